@@ -1,0 +1,235 @@
+//! Scene geometry (REFERENCE section 1): the material is the square
+//! [-1,1]^2 in the z = 0 plane with macro normal +z; every pixel is shaded
+//! with its own light and view directions (perspective rectification).
+
+use rand::Rng;
+use rand_distr::{Distribution, Normal};
+use serde::{Deserialize, Serialize};
+use tch::{Device, Kind, Tensor};
+
+/// The model's field of view in degrees (the input photo's camera).
+pub const MODEL_FOV_DEG: f64 = 28.0;
+
+/// Radius of the hemisphere used by the "hemisphere" evaluation case.
+pub const HEMISPHERE_RADIUS: f64 = 4.0;
+
+/// Distance of a camera looking straight down whose FOV exactly covers the
+/// material: d = 1 / tan(FOV / 2). 28 degrees -> 4.010781.
+pub fn fov_to_distance(fov_deg: f64) -> f64 {
+    1.0 / (fov_deg.to_radians() / 2.0).tan()
+}
+
+/// Fraction of a photo's width to keep so a `fov_deg` photo shows what the
+/// model's 28 degree camera sees: tan(14 deg) / tan(fov / 2).
+pub fn fov_crop_ratio(fov_deg: f64) -> f64 {
+    (MODEL_FOV_DEG.to_radians() / 2.0).tan() / (fov_deg.to_radians() / 2.0).tan()
+}
+
+/// Pixel centre of row i, column j on an H x W grid: (x, y, 0).
+pub fn pixel_center(i: usize, j: usize, h: usize, w: usize) -> [f64; 3] {
+    [2.0 * (j as f64 + 0.5) / w as f64 - 1.0, 1.0 - 2.0 * (i as f64 + 0.5) / h as f64, 0.0]
+}
+
+/// Surface positions of every pixel centre. Returns `[3, H, W]` (x, y, z=0)
+/// of the given kind (Float for training, Double for oracle checks).
+pub fn pixel_positions(h: usize, w: usize, opts: (Kind, Device)) -> Tensor {
+    let xs: Tensor = (Tensor::arange(w as i64, opts) + 0.5) * (2.0 / w as f64) - 1.0;
+    let ys: Tensor = (Tensor::arange(h as i64, opts) + 0.5) * (-2.0 / h as f64) + 1.0;
+    let x = xs.view([1, w as i64]).expand([h as i64, w as i64], false);
+    let y = ys.view([h as i64, 1]).expand([h as i64, w as i64], false);
+    Tensor::stack(&[x, y, Tensor::zeros([h as i64, w as i64], opts)], 0)
+}
+
+/// Unit directions from every surface point towards each of B points.
+/// positions: `[3, H, W]`, points: `[B, 3]` -> `[B, 3, H, W]`.
+pub fn direction_maps(positions: &Tensor, points: &Tensor) -> Tensor {
+    let b = points.size()[0];
+    let diff = points.view([b, 3, 1, 1]) - positions.unsqueeze(0);
+    normalize_channels(&diff)
+}
+
+/// Normalizes along dimension 1 (the 3 vector components) of `[.., 3, H, W]`.
+pub fn normalize_channels(v: &Tensor) -> Tensor {
+    let norm = v.square().sum_dim_intlist([1i64].as_slice(), true, v.kind()).sqrt().clamp_min(1e-12);
+    v / norm
+}
+
+/// Half vectors h = normalize(wi + wo), both `[B, 3, H, W]`.
+pub fn half_vectors(wi: &Tensor, wo: &Tensor) -> Tensor {
+    normalize_channels(&(wi + wo))
+}
+
+/// A point light and a camera position (world units, material at z = 0).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LightView {
+    pub light: [f64; 3],
+    pub view: [f64; 3],
+}
+
+impl LightView {
+    /// The input configuration: light and camera co-located at (0, 0, d).
+    pub fn colocated(fov_deg: f64) -> Self {
+        let d = fov_to_distance(fov_deg);
+        Self { light: [0.0, 0.0, d], view: [0.0, 0.0, d] }
+    }
+}
+
+/// How output light/view configurations are drawn.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+pub enum Sampling {
+    /// Training sampling: the mirror highlight lands at a random point p.
+    Reflect,
+    /// Light and view independently uniform on the radius-4 hemisphere.
+    Hemisphere,
+    /// The input's co-located configuration.
+    Identity,
+}
+
+/// Uniform direction on the upper unit hemisphere (uniform in solid angle:
+/// z ~ U[0,1], azimuth ~ U[0, 2 pi)).
+pub fn uniform_hemisphere<R: Rng>(rng: &mut R) -> [f64; 3] {
+    let z: f64 = rng.random::<f64>();
+    let phi = rng.random::<f64>() * std::f64::consts::TAU;
+    let s = (1.0 - z * z).max(0.0).sqrt();
+    [s * phi.cos(), s * phi.sin(), z]
+}
+
+/// "Reflect" sampling: p = U[-1,1]^2 + N(0, 2^2) per axis; camera uniform
+/// on the hemisphere of radius `d_view`; light on the mirror direction of
+/// (V - p) about +z at distance |N(0, 2^2)| + 0.5 from p. Returns the
+/// configuration and p.
+pub fn sample_reflect<R: Rng>(rng: &mut R, d_view: f64) -> (LightView, [f64; 3]) {
+    let normal = Normal::new(0.0, 2.0).expect("valid normal distribution");
+    let px = rng.random_range(-1.0..1.0) + normal.sample(rng);
+    let py = rng.random_range(-1.0..1.0) + normal.sample(rng);
+    let p = [px, py, 0.0];
+    let dir = uniform_hemisphere(rng);
+    let view = [d_view * dir[0], d_view * dir[1], d_view * dir[2]];
+    let to_view = crate::svbrdf::scalar::normalize(crate::svbrdf::scalar::sub(view, p));
+    // Mirror about the normal (0,0,1): flip the tangential components.
+    let mirror = [-to_view[0], -to_view[1], to_view[2]];
+    let dist = normal.sample(rng).abs() + 0.5;
+    let light = [p[0] + dist * mirror[0], p[1] + dist * mirror[1], dist * mirror[2]];
+    (LightView { light, view }, p)
+}
+
+/// "Hemisphere" sampling: light and camera independently uniform on the
+/// hemisphere of the given radius.
+pub fn sample_hemisphere<R: Rng>(rng: &mut R, radius: f64) -> LightView {
+    let l = uniform_hemisphere(rng);
+    let v = uniform_hemisphere(rng);
+    LightView { light: l.map(|c| c * radius), view: v.map(|c| c * radius) }
+}
+
+/// Draws `count` configurations with the given scheme.
+pub fn sample_configs<R: Rng>(rng: &mut R, scheme: Sampling, count: usize, fov_deg: f64) -> Vec<LightView> {
+    let d = fov_to_distance(fov_deg);
+    (0..count)
+        .map(|_| match scheme {
+            Sampling::Reflect => sample_reflect(rng, d).0,
+            Sampling::Hemisphere => sample_hemisphere(rng, HEMISPHERE_RADIUS),
+            Sampling::Identity => LightView::colocated(fov_deg),
+        })
+        .collect()
+}
+
+/// Light and view positions as `[B, 3]` tensors.
+pub fn config_tensors(configs: &[LightView], device: Device) -> (Tensor, Tensor) {
+    let lights: Vec<f32> = configs.iter().flat_map(|c| c.light.map(|v| v as f32)).collect();
+    let views: Vec<f32> = configs.iter().flat_map(|c| c.view.map(|v| v as f32)).collect();
+    let b = configs.len() as i64;
+    (
+        Tensor::from_slice(&lights).view([b, 3]).to_device(device),
+        Tensor::from_slice(&views).view([b, 3]).to_device(device),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::svbrdf::scalar::{add, normalize, sub};
+    use rand::SeedableRng;
+    use rand_pcg::Pcg64;
+
+    #[test]
+    fn fov_distance() {
+        assert!((fov_to_distance(28.0) - 4.010781).abs() < 1e-6);
+        assert!((fov_to_distance(90.0) - 1.0).abs() < 1e-12);
+        assert!((fov_crop_ratio(28.0) - 1.0).abs() < 1e-12);
+        // tan(14)/tan(22.5) = 0.24933 / 0.41421
+        assert!((fov_crop_ratio(45.0) - 0.601938).abs() < 1e-5);
+    }
+
+    #[test]
+    fn pixel_centres() {
+        assert_eq!(pixel_center(0, 0, 2, 2), [-0.5, 0.5, 0.0]);
+        assert_eq!(pixel_center(1, 1, 2, 2), [0.5, -0.5, 0.0]);
+        let p = pixel_positions(3, 4, (Kind::Float, Device::Cpu));
+        assert_eq!(p.size(), [3, 3, 4]);
+        for (i, j) in [(0, 0), (2, 3), (1, 2)] {
+            let c = pixel_center(i, j, 3, 4);
+            for k in 0..3 {
+                let v = p.double_value(&[k as i64, i as i64, j as i64]);
+                assert!((v - c[k]).abs() < 1e-6);
+            }
+        }
+    }
+
+    #[test]
+    fn direction_maps_match_scalar() {
+        let p = pixel_positions(4, 4, (Kind::Float, Device::Cpu));
+        let pts = Tensor::from_slice(&[0.3f32, -0.2, 2.0, 1.0, 1.0, 0.5]).view([2, 3]);
+        let d = direction_maps(&p, &pts);
+        assert_eq!(d.size(), [2, 3, 4, 4]);
+        let c = pixel_center(1, 3, 4, 4);
+        let expect = normalize(sub([1.0, 1.0, 0.5], c));
+        for k in 0..3 {
+            assert!((d.double_value(&[1, k as i64, 1, 3]) - expect[k]).abs() < 1e-6);
+        }
+        let h = half_vectors(&d, &d);
+        assert!((h - &d).abs().max().double_value(&[]) < 1e-6);
+    }
+
+    #[test]
+    fn reflect_sampling_centres_highlight() {
+        let mut rng = Pcg64::seed_from_u64(7);
+        for _ in 0..200 {
+            let (cfg, p) = sample_reflect(&mut rng, fov_to_distance(28.0));
+            assert!(cfg.light[2] > 0.0 && cfg.view[2] >= 0.0);
+            let r = (cfg.view.iter().map(|v| v * v).sum::<f64>()).sqrt();
+            assert!((r - 4.010781).abs() < 1e-5);
+            let wi = normalize(sub(cfg.light, p));
+            let wo = normalize(sub(cfg.view, p));
+            let h = normalize(add(wi, wo));
+            assert!(h[0].abs() < 1e-9 && h[1].abs() < 1e-9 && (h[2] - 1.0).abs() < 1e-9, "{h:?}");
+        }
+    }
+
+    #[test]
+    fn hemisphere_is_uniform() {
+        let mut rng = Pcg64::seed_from_u64(3);
+        let n = 20000;
+        let (mut mz, mut mx) = (0.0, 0.0);
+        for _ in 0..n {
+            let c = sample_hemisphere(&mut rng, HEMISPHERE_RADIUS);
+            let r = c.light.iter().map(|v| v * v).sum::<f64>().sqrt();
+            assert!((r - 4.0).abs() < 1e-9 && c.light[2] >= 0.0);
+            mz += c.light[2] / 4.0;
+            mx += c.view[0] / 4.0;
+        }
+        // z ~ U[0,1]: mean 0.5, std of the mean sqrt(1/12/n) = 0.002.
+        assert!((mz / n as f64 - 0.5).abs() < 0.01);
+        assert!((mx / n as f64).abs() < 0.01);
+    }
+
+    #[test]
+    fn sampling_is_deterministic_per_seed() {
+        let a = sample_configs(&mut Pcg64::seed_from_u64(11), Sampling::Reflect, 8, 28.0);
+        let b = sample_configs(&mut Pcg64::seed_from_u64(11), Sampling::Reflect, 8, 28.0);
+        let c = sample_configs(&mut Pcg64::seed_from_u64(12), Sampling::Reflect, 8, 28.0);
+        assert_eq!(a, b);
+        assert_ne!(a, c);
+        let id = sample_configs(&mut Pcg64::seed_from_u64(0), Sampling::Identity, 2, 28.0);
+        assert_eq!(id[0], LightView::colocated(28.0));
+    }
+}

@@ -1,0 +1,219 @@
+//! A plain floating-point image: planar channels, row-major, no tensor library.
+//!
+//! Layout is `[C, H, W]` (channel planes one after another), the layout that
+//! tensors use, so converting to and from `tch::Tensor` is a reshape.
+
+use anyhow::{bail, Result};
+
+/// A `[C, H, W]` float image. Values are in whatever space the owner says
+/// (linear radiance, gamma-encoded, log); see `crate::spaces`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub channels: usize,
+    pub height: usize,
+    pub width: usize,
+    /// `channels * height * width` values, channel-major.
+    pub data: Vec<f32>,
+}
+
+impl Image {
+    pub fn new(channels: usize, height: usize, width: usize) -> Self {
+        Self { channels, height, width, data: vec![0.0; channels * height * width] }
+    }
+
+    pub fn filled(channels: usize, height: usize, width: usize, value: f32) -> Self {
+        Self { channels, height, width, data: vec![value; channels * height * width] }
+    }
+
+    pub fn from_data(channels: usize, height: usize, width: usize, data: Vec<f32>) -> Result<Self> {
+        if data.len() != channels * height * width {
+            bail!("image data has {} values, expected {}x{}x{}", data.len(), channels, height, width);
+        }
+        Ok(Self { channels, height, width, data })
+    }
+
+    /// Builds an image by evaluating `f(channel, row, col)` at every sample.
+    pub fn from_fn(channels: usize, height: usize, width: usize, f: impl Fn(usize, usize, usize) -> f32) -> Self {
+        let mut data = Vec::with_capacity(channels * height * width);
+        for c in 0..channels {
+            for y in 0..height {
+                for x in 0..width {
+                    data.push(f(c, y, x));
+                }
+            }
+        }
+        Self { channels, height, width, data }
+    }
+
+    #[inline]
+    pub fn index(&self, c: usize, y: usize, x: usize) -> usize {
+        (c * self.height + y) * self.width + x
+    }
+
+    #[inline]
+    pub fn get(&self, c: usize, y: usize, x: usize) -> f32 {
+        self.data[self.index(c, y, x)]
+    }
+
+    #[inline]
+    pub fn set(&mut self, c: usize, y: usize, x: usize, v: f32) {
+        let i = self.index(c, y, x);
+        self.data[i] = v;
+    }
+
+    /// One channel plane as a slice of `H * W` values.
+    pub fn plane(&self, c: usize) -> &[f32] {
+        let n = self.height * self.width;
+        &self.data[c * n..(c + 1) * n]
+    }
+
+    pub fn plane_mut(&mut self, c: usize) -> &mut [f32] {
+        let n = self.height * self.width;
+        &mut self.data[c * n..(c + 1) * n]
+    }
+
+    /// The pixel at (y, x) as a `channels`-long vector.
+    pub fn pixel(&self, y: usize, x: usize) -> Vec<f32> {
+        (0..self.channels).map(|c| self.get(c, y, x)).collect()
+    }
+
+    pub fn map(&self, f: impl Fn(f32) -> f32) -> Self {
+        Self { data: self.data.iter().map(|&v| f(v)).collect(), ..*self }
+    }
+
+    /// Rectangular crop: rows `top..top+h`, columns `left..left+w`.
+    pub fn crop(&self, top: usize, left: usize, h: usize, w: usize) -> Result<Self> {
+        if top + h > self.height || left + w > self.width {
+            bail!(
+                "crop {}x{} at ({}, {}) does not fit in a {}x{} image",
+                w, h, left, top, self.width, self.height
+            );
+        }
+        Ok(Self::from_fn(self.channels, h, w, |c, y, x| self.get(c, top + y, left + x)))
+    }
+
+    /// Columns `left..left+w` of every row (used to cut strip images into panels).
+    pub fn columns(&self, left: usize, w: usize) -> Result<Self> {
+        self.crop(0, left, self.height, w)
+    }
+
+    /// Selects channels `first..first+count`.
+    pub fn channel_range(&self, first: usize, count: usize) -> Result<Self> {
+        if first + count > self.channels {
+            bail!("channels {}..{} requested from a {}-channel image", first, first + count, self.channels);
+        }
+        let n = self.height * self.width;
+        Ok(Self {
+            channels: count,
+            height: self.height,
+            width: self.width,
+            data: self.data[first * n..(first + count) * n].to_vec(),
+        })
+    }
+
+    /// Stacks images with equal H, W along the channel axis.
+    pub fn concat_channels(images: &[&Image]) -> Result<Self> {
+        let Some(first) = images.first() else { bail!("no images to concatenate") };
+        let mut data = Vec::new();
+        let mut channels = 0;
+        for im in images {
+            if im.height != first.height || im.width != first.width {
+                bail!("cannot stack a {}x{} image with a {}x{} image", im.width, im.height, first.width, first.height);
+            }
+            data.extend_from_slice(&im.data);
+            channels += im.channels;
+        }
+        Ok(Self { channels, height: first.height, width: first.width, data })
+    }
+
+    /// Bilinear resize (pixel-centre aligned, as torch's `align_corners=false`).
+    pub fn resize_bilinear(&self, h: usize, w: usize) -> Self {
+        let sy = self.height as f32 / h as f32;
+        let sx = self.width as f32 / w as f32;
+        let mut out = Image::new(self.channels, h, w);
+        for y in 0..h {
+            let fy = ((y as f32 + 0.5) * sy - 0.5).clamp(0.0, (self.height - 1) as f32);
+            let y0 = fy.floor() as usize;
+            let y1 = (y0 + 1).min(self.height - 1);
+            let ty = fy - y0 as f32;
+            for x in 0..w {
+                let fx = ((x as f32 + 0.5) * sx - 0.5).clamp(0.0, (self.width - 1) as f32);
+                let x0 = fx.floor() as usize;
+                let x1 = (x0 + 1).min(self.width - 1);
+                let tx = fx - x0 as f32;
+                for c in 0..self.channels {
+                    let a = self.get(c, y0, x0) * (1.0 - tx) + self.get(c, y0, x1) * tx;
+                    let b = self.get(c, y1, x0) * (1.0 - tx) + self.get(c, y1, x1) * tx;
+                    out.set(c, y, x, a * (1.0 - ty) + b * ty);
+                }
+            }
+        }
+        out
+    }
+
+    /// Area-averaging resize by an integer factor (anti-aliased downsampling).
+    pub fn downsample(&self, factor: usize) -> Self {
+        let (h, w) = (self.height / factor, self.width / factor);
+        let norm = 1.0 / (factor * factor) as f32;
+        Self::from_fn(self.channels, h, w, |c, y, x| {
+            let mut s = 0.0;
+            for dy in 0..factor {
+                for dx in 0..factor {
+                    s += self.get(c, y * factor + dy, x * factor + dx);
+                }
+            }
+            s * norm
+        })
+    }
+
+    /// First non-finite sample as (channel, row, col), if any.
+    pub fn find_non_finite(&self) -> Option<(usize, usize, usize)> {
+        let n = self.height * self.width;
+        self.data.iter().position(|v| !v.is_finite()).map(|i| (i / n, (i % n) / self.width, i % self.width))
+    }
+
+    pub fn mean(&self) -> f32 {
+        self.data.iter().map(|&v| v as f64).sum::<f64>() as f32 / self.data.len().max(1) as f32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn layout_is_channel_major() {
+        let im = Image::from_fn(2, 3, 4, |c, y, x| (c * 100 + y * 10 + x) as f32);
+        assert_eq!(im.get(1, 2, 3), 123.0);
+        assert_eq!(im.data[im.index(1, 0, 0)], 100.0);
+        assert_eq!(im.plane(1)[0], 100.0);
+        assert_eq!(im.pixel(2, 1), vec![21.0, 121.0]);
+    }
+
+    #[test]
+    fn crop_and_columns() {
+        let im = Image::from_fn(1, 4, 6, |_, y, x| (y * 10 + x) as f32);
+        let c = im.crop(1, 2, 2, 3).unwrap();
+        assert_eq!(c.data, vec![12.0, 13.0, 14.0, 22.0, 23.0, 24.0]);
+        assert!(im.crop(3, 0, 2, 2).is_err());
+        assert_eq!(im.columns(4, 2).unwrap().get(0, 3, 1), 35.0);
+    }
+
+    #[test]
+    fn resize_identity_and_constant() {
+        let im = Image::from_fn(3, 8, 8, |c, y, x| (c + y * x) as f32);
+        assert_eq!(im.resize_bilinear(8, 8), im);
+        let k = Image::filled(1, 5, 7, 0.25).resize_bilinear(13, 3);
+        assert!(k.data.iter().all(|&v| (v - 0.25).abs() < 1e-7));
+        let d = Image::from_fn(1, 4, 4, |_, y, _| y as f32).downsample(2);
+        assert_eq!(d.data, vec![0.5, 0.5, 2.5, 2.5]);
+    }
+
+    #[test]
+    fn non_finite_is_located() {
+        let mut im = Image::new(3, 2, 2);
+        assert_eq!(im.find_non_finite(), None);
+        im.set(2, 1, 0, f32::NAN);
+        assert_eq!(im.find_non_finite(), Some((2, 1, 0)));
+    }
+}

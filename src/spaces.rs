@@ -1,0 +1,113 @@
+//! Radiometric spaces (REFERENCE section 3) and 8-bit encodings.
+//!
+//! - linear: HDR radiance as rendered, unbounded;
+//! - log: ln(1 + R), what the networks read and predict;
+//! - display: (exp(log) - 1)^(1/2.2) = R^(1/2.2), clamped to [0,1] for 8 bit.
+
+use tch::Tensor;
+
+/// Gamma of the paper's display transform and 8-bit map encoding.
+pub const GAMMA: f64 = 2.2;
+
+/// ln(1 + R).
+pub fn to_log(linear: &Tensor) -> Tensor {
+    linear.log1p()
+}
+
+/// exp(x) - 1, inverse of [`to_log`].
+pub fn from_log(log: &Tensor) -> Tensor {
+    log.expm1()
+}
+
+/// Linear radiance to display values in [0, 1]: clamp(R, 0, 1)^(1/2.2).
+pub fn linear_to_display(linear: &Tensor) -> Tensor {
+    linear.clamp(0.0, 1.0).pow_tensor_scalar(1.0 / GAMMA)
+}
+
+/// Log radiance to display values in [0, 1].
+pub fn log_to_display(log: &Tensor) -> Tensor {
+    linear_to_display(&from_log(log))
+}
+
+/// LDR input: what an 8-bit camera keeps of an HDR render.
+pub fn ldr_clamp(linear: &Tensor) -> Tensor {
+    linear.clamp(0.0, 1.0)
+}
+
+/// Gamma-encoded value in [0,1] to linear (^2.2), as for 8-bit photos and
+/// stored diffuse/specular maps.
+pub fn gamma_decode(v: f32) -> f32 {
+    v.max(0.0).powf(GAMMA as f32)
+}
+
+/// Linear to gamma-encoded (^(1/2.2)), clamped to [0, 1].
+pub fn gamma_encode(v: f32) -> f32 {
+    v.clamp(0.0, 1.0).powf(1.0 / GAMMA as f32)
+}
+
+/// Exact sRGB transfer decode (IEC 61966-2-1), offered for photos whose
+/// camera states sRGB; the paper's pipeline uses [`gamma_decode`].
+pub fn srgb_decode(v: f32) -> f32 {
+    if v <= 0.04045 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// Exact sRGB transfer encode.
+pub fn srgb_encode(v: f32) -> f32 {
+    let v = v.clamp(0.0, 1.0);
+    if v <= 0.0031308 {
+        v * 12.92
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+/// Quantizes a [0,1] value to 8 bits (round to nearest).
+pub fn quantize_u8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn log_round_trip_and_values() {
+        let x = Tensor::from_slice(&[0.0f64, 1.0, 10.0, 1e4]);
+        let l = to_log(&x);
+        assert!((l.double_value(&[1]) - 2f64.ln()).abs() < 1e-12);
+        assert!((from_log(&l) - &x).abs().max().double_value(&[]) < 1e-9);
+    }
+
+    #[test]
+    fn display_transform() {
+        let x = Tensor::from_slice(&[-1.0f64, 0.0, 0.5, 1.0, 7.0]);
+        let d = linear_to_display(&x);
+        let got: Vec<f64> = Vec::try_from(d).unwrap();
+        assert_eq!(got[0], 0.0);
+        assert!((got[2] - 0.5f64.powf(1.0 / 2.2)).abs() < 1e-12);
+        assert_eq!(got[3], 1.0);
+        assert_eq!(got[4], 1.0);
+        let l = to_log(&x.narrow(0, 2, 1));
+        assert!((log_to_display(&l).double_value(&[0]) - got[2]).abs() < 1e-12);
+        let c: Vec<f64> = Vec::try_from(ldr_clamp(&x)).unwrap();
+        assert_eq!(c, vec![0.0, 0.0, 0.5, 1.0, 1.0]);
+    }
+
+    #[test]
+    fn gamma_and_srgb() {
+        assert!((gamma_decode(0.5) - 0.217637).abs() < 1e-6);
+        assert!((gamma_encode(gamma_decode(0.3)) - 0.3).abs() < 1e-6);
+        // sRGB reference points: 0.5 -> 0.214041, 0.04045 -> 0.0031308.
+        assert!((srgb_decode(0.5) - 0.214041).abs() < 1e-6);
+        assert!((srgb_decode(0.04045) - 0.0031308).abs() < 1e-6);
+        for v in [0.0f32, 0.01, 0.2, 0.7, 1.0] {
+            assert!((srgb_encode(srgb_decode(v)) - v).abs() < 1e-6);
+        }
+        assert_eq!(quantize_u8(0.5), 128);
+        assert_eq!(quantize_u8(2.0), 255);
+    }
+}

@@ -1,0 +1,207 @@
+//! Spatially-varying GGX BRDFs: the material maps, their encodings, and the
+//! paper's renderer (REFERENCE section 2) as batched tensor ops (`render`)
+//! and as a scalar oracle (`scalar`).
+
+pub mod render;
+pub mod scalar;
+
+use crate::image::Image;
+use anyhow::{bail, Result};
+
+/// Number of channels of the stacked map tensor: kd(3) ks(3) roughness(1) normal(3).
+pub const MAP_CHANNELS: usize = 10;
+
+/// One material: linear maps on an H x W grid.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Svbrdf {
+    /// Linear diffuse albedo kd, `[3, H, W]`.
+    pub diffuse: Image,
+    /// Linear specular albedo ks (F0), `[3, H, W]`.
+    pub specular: Image,
+    /// GGX roughness r (alpha = r^2), `[1, H, W]`, in [0, 1].
+    pub roughness: Image,
+    /// Unit shading normals, `[3, H, W]`, z > 0.
+    pub normal: Image,
+    /// Height field the normals came from (plane units, [-1,1] spans the
+    /// material), `[1, H, W]`, when known. Used for shadows.
+    pub height_field: Option<Image>,
+}
+
+impl Svbrdf {
+    pub fn height(&self) -> usize {
+        self.diffuse.height
+    }
+    pub fn width(&self) -> usize {
+        self.diffuse.width
+    }
+
+    /// Checks channel counts, equal sizes and finite values.
+    pub fn validate(&self) -> Result<()> {
+        let (h, w) = (self.height(), self.width());
+        for (name, im, c) in [
+            ("diffuse", &self.diffuse, 3),
+            ("specular", &self.specular, 3),
+            ("roughness", &self.roughness, 1),
+            ("normal", &self.normal, 3),
+        ] {
+            if im.channels != c {
+                bail!("{name} map has {} channels, expected {c}", im.channels);
+            }
+            if im.height != h || im.width != w {
+                bail!("{name} map is {}x{}, the diffuse map is {w}x{h}", im.width, im.height);
+            }
+            if let Some((c, y, x)) = im.find_non_finite() {
+                bail!("{name} map has a NaN/Inf value at channel {c}, row {y}, column {x}");
+            }
+        }
+        Ok(())
+    }
+
+    /// The maps stacked as `[10, H, W]`: kd, ks, roughness, normal.
+    pub fn stacked(&self) -> Image {
+        Image::concat_channels(&[&self.diffuse, &self.specular, &self.roughness, &self.normal])
+            .expect("validated maps share their size")
+    }
+
+    /// Inverse of [`Svbrdf::stacked`].
+    pub fn from_stacked(maps: &Image) -> Result<Self> {
+        if maps.channels != MAP_CHANNELS {
+            bail!("stacked maps have {} channels, expected {MAP_CHANNELS}", maps.channels);
+        }
+        Ok(Self {
+            diffuse: maps.channel_range(0, 3)?,
+            specular: maps.channel_range(3, 3)?,
+            roughness: maps.channel_range(6, 1)?,
+            normal: maps.channel_range(7, 3)?,
+            height_field: None,
+        })
+    }
+
+    /// Crop of every map (and the height field).
+    pub fn crop(&self, top: usize, left: usize, h: usize, w: usize) -> Result<Self> {
+        Ok(Self {
+            diffuse: self.diffuse.crop(top, left, h, w)?,
+            specular: self.specular.crop(top, left, h, w)?,
+            roughness: self.roughness.crop(top, left, h, w)?,
+            normal: self.normal.crop(top, left, h, w)?,
+            height_field: self.height_field.as_ref().map(|hf| hf.crop(top, left, h, w)).transpose()?,
+        })
+    }
+
+    /// A uniform material (handy in tests and examples).
+    pub fn uniform(h: usize, w: usize, kd: [f32; 3], ks: [f32; 3], roughness: f32) -> Self {
+        Self {
+            diffuse: Image::from_fn(3, h, w, |c, _, _| kd[c]),
+            specular: Image::from_fn(3, h, w, |c, _, _| ks[c]),
+            roughness: Image::filled(1, h, w, roughness),
+            normal: Image::from_fn(3, h, w, |c, _, _| if c == 2 { 1.0 } else { 0.0 }),
+            height_field: None,
+        }
+    }
+}
+
+/// Decodes a normal-map pixel c in [0,1]^3 to a unit vector: normalize(2c - 1).
+pub fn decode_normal(c: [f32; 3]) -> [f32; 3] {
+    let v = [2.0 * c[0] - 1.0, 2.0 * c[1] - 1.0, 2.0 * c[2] - 1.0];
+    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-12);
+    [v[0] / n, v[1] / n, v[2] / n]
+}
+
+/// Encodes a unit normal to a normal-map pixel: (n + 1) / 2.
+pub fn encode_normal(n: [f32; 3]) -> [f32; 3] {
+    [(n[0] + 1.0) * 0.5, (n[1] + 1.0) * 0.5, (n[2] + 1.0) * 0.5]
+}
+
+/// Decodes a `[3, H, W]` normal-map image (values in [0,1]) to unit normals.
+pub fn decode_normal_map(encoded: &Image) -> Image {
+    let mut out = encoded.clone();
+    let n = encoded.height * encoded.width;
+    for i in 0..n {
+        let d = decode_normal([encoded.data[i], encoded.data[n + i], encoded.data[2 * n + i]]);
+        for c in 0..3 {
+            out.data[c * n + i] = d[c];
+        }
+    }
+    out
+}
+
+/// Encodes unit normals `[3, H, W]` as a normal-map image in [0,1].
+pub fn encode_normal_map(normals: &Image) -> Image {
+    normals.map(|v| ((v + 1.0) * 0.5).clamp(0.0, 1.0))
+}
+
+/// Normals from a height field by central differences. `height` is in plane
+/// units, where the material spans [-1,1] (so a pixel is 2/W wide).
+/// Image rows go down while y goes up, hence the sign on dh/dy.
+pub fn normals_from_height(height: &Image) -> Image {
+    let (h, w) = (height.height, height.width);
+    let (px, py) = (2.0 / w as f32, 2.0 / h as f32);
+    let mut out = Image::new(3, h, w);
+    for y in 0..h {
+        for x in 0..w {
+            let xl = x.saturating_sub(1);
+            let xr = (x + 1).min(w - 1);
+            let yu = y.saturating_sub(1);
+            let yd = (y + 1).min(h - 1);
+            let dhdx = (height.get(0, y, xr) - height.get(0, y, xl)) / (px * (xr - xl).max(1) as f32);
+            // Row index grows downward, y coordinate grows upward.
+            let dhdy = (height.get(0, yu, x) - height.get(0, yd, x)) / (py * (yd - yu).max(1) as f32);
+            let (nx, ny, nz) = (-dhdx, -dhdy, 1.0f32);
+            let len = (nx * nx + ny * ny + nz * nz).sqrt();
+            out.set(0, y, x, nx / len);
+            out.set(1, y, x, ny / len);
+            out.set(2, y, x, nz / len);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn normal_codec_round_trip() {
+        let n = decode_normal([0.5, 0.5, 1.0]);
+        assert!((n[2] - 1.0).abs() < 1e-7 && n[0].abs() < 1e-7);
+        let v = [0.6f32, -0.0, 0.8];
+        let back = decode_normal(encode_normal(v));
+        for i in 0..3 {
+            assert!((back[i] - v[i]).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn stacked_round_trip() {
+        let s = Svbrdf::uniform(4, 5, [0.1, 0.2, 0.3], [0.04, 0.05, 0.06], 0.5);
+        s.validate().unwrap();
+        let st = s.stacked();
+        assert_eq!((st.channels, st.height, st.width), (10, 4, 5));
+        assert_eq!(Svbrdf::from_stacked(&st).unwrap(), s);
+    }
+
+    #[test]
+    fn tilted_plane_normals() {
+        // h = 0.5 x: dh/dx = 0.5, so n = normalize(-0.5, 0, 1)
+        let w = 16;
+        let hf = Image::from_fn(1, w, w, |_, _, x| 0.5 * (2.0 * (x as f32 + 0.5) / w as f32 - 1.0));
+        let n = normals_from_height(&hf);
+        let len = (0.25f32 + 1.0).sqrt();
+        assert!((n.get(0, 5, 7) + 0.5 / len).abs() < 1e-5);
+        assert!(n.get(1, 5, 7).abs() < 1e-6);
+        // h = 0.5 y (y up = row decreasing): n = normalize(0, -0.5, 1)
+        let hf = Image::from_fn(1, w, w, |_, r, _| 0.5 * (1.0 - 2.0 * (r as f32 + 0.5) / w as f32));
+        let n = normals_from_height(&hf);
+        assert!((n.get(1, 5, 7) + 0.5 / len).abs() < 1e-5);
+    }
+
+    #[test]
+    fn validate_rejects_mismatch_and_nan() {
+        let mut s = Svbrdf::uniform(4, 4, [0.1; 3], [0.04; 3], 0.5);
+        s.roughness = Image::filled(1, 4, 3, 0.5);
+        assert!(s.validate().unwrap_err().to_string().contains("roughness"));
+        let mut s = Svbrdf::uniform(4, 4, [0.1; 3], [0.04; 3], 0.5);
+        s.diffuse.data[3] = f32::INFINITY;
+        assert!(s.validate().unwrap_err().to_string().contains("NaN/Inf"));
+    }
+}
