@@ -172,6 +172,22 @@ impl Image {
         self.data.iter().position(|v| !v.is_finite()).map(|i| (i / n, (i % n) / self.width, i % self.width))
     }
 
+    /// As a `[C, H, W]` float tensor on the CPU.
+    pub fn to_tensor(&self) -> tch::Tensor {
+        tch::Tensor::from_slice(&self.data).view([self.channels as i64, self.height as i64, self.width as i64])
+    }
+
+    /// From a `[C, H, W]` (or `[1, C, H, W]`) tensor of any kind or device.
+    pub fn from_tensor(t: &tch::Tensor) -> Result<Self> {
+        let t = if t.dim() == 4 && t.size()[0] == 1 { t.squeeze_dim(0) } else { t.shallow_clone() };
+        let size = t.size();
+        if size.len() != 3 {
+            bail!("expected a [C, H, W] tensor, got shape {size:?}");
+        }
+        let data: Vec<f32> = Vec::try_from(t.to_device(tch::Device::Cpu).to_kind(tch::Kind::Float).contiguous().flatten(0, -1))?;
+        Self::from_data(size[0] as usize, size[1] as usize, size[2] as usize, data)
+    }
+
     pub fn mean(&self) -> f32 {
         self.data.iter().map(|&v| v as f64).sum::<f64>() as f32 / self.data.len().max(1) as f32
     }
@@ -207,6 +223,15 @@ mod tests {
         assert!(k.data.iter().all(|&v| (v - 0.25).abs() < 1e-7));
         let d = Image::from_fn(1, 4, 4, |_, y, _| y as f32).downsample(2);
         assert_eq!(d.data, vec![0.5, 0.5, 2.5, 2.5]);
+    }
+
+    #[test]
+    fn tensor_round_trip() {
+        let im = Image::from_fn(3, 2, 5, |c, y, x| (c * 10 + y * 5 + x) as f32);
+        let t = im.to_tensor();
+        assert_eq!(t.size(), [3, 2, 5]);
+        assert_eq!(t.double_value(&[2, 1, 3]), 28.0);
+        assert_eq!(Image::from_tensor(&t.unsqueeze(0)).unwrap(), im);
     }
 
     #[test]
