@@ -5,3 +5,4 @@ pub mod geometry;
 pub mod image;
 pub mod spaces;
 pub mod svbrdf;
+pub mod data;

@@ -1,0 +1,187 @@
+//! Training samples (REFERENCE section 5): for a batch of SVBRDFs, the
+//! co-located input render with its direction maps, and K output renders
+//! under "reflect" (or another) sampling with theirs, on the training device.
+
+use crate::geometry::{config_tensors, sample_configs, LightView, Sampling};
+use crate::spaces;
+use crate::svbrdf::render::{direction_maps_for, half_vector_z, render_directions};
+use crate::svbrdf::{Svbrdf, MAP_CHANNELS};
+use anyhow::{bail, Result};
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+use tch::{Device, Kind, Tensor};
+
+/// How training samples are rendered.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SampleConfig {
+    /// Output renders per material (8 at crop 192, 4 at 256 in the paper).
+    pub outputs_per_material: usize,
+    /// Field of view of the input camera (sets the co-located distance).
+    pub fov_deg: f64,
+    /// Clamp the input photo to [0,1] (LDR model); outputs stay HDR.
+    pub ldr_input: bool,
+    /// Scheme for output configurations.
+    pub output_sampling: Sampling,
+}
+
+impl Default for SampleConfig {
+    fn default() -> Self {
+        Self { outputs_per_material: 8, fov_deg: crate::geometry::MODEL_FOV_DEG, ldr_input: false, output_sampling: Sampling::Reflect }
+    }
+}
+
+/// One batch of N materials with K outputs each, all tensors on one device.
+pub struct TrainingBatch {
+    /// Stacked GGX maps `[N, 10, H, W]`.
+    pub maps: Tensor,
+    /// Input photo, linear (HDR, or clamped when `ldr_input`) `[N, 3, H, W]`.
+    pub input_linear: Tensor,
+    /// M_est input: ln(1 + photo) and h_z `[N, 4, H, W]`.
+    pub est_input: Tensor,
+    /// Output light directions `[N, K, 3, H, W]`.
+    pub out_wi: Tensor,
+    /// Output view directions `[N, K, 3, H, W]`.
+    pub out_wo: Tensor,
+    /// Ground-truth output renders, linear HDR `[N, K, 3, H, W]`.
+    pub targets: Tensor,
+    /// The output configurations, `N * K` in material-major order.
+    pub configs: Vec<LightView>,
+}
+
+/// Stacks materials into `[N, 10, H, W]` on `device`.
+pub fn stack_maps(materials: &[Svbrdf], device: Device) -> Result<Tensor> {
+    let Some(first) = materials.first() else { bail!("empty material batch") };
+    let (h, w) = (first.height(), first.width());
+    let mut parts = Vec::with_capacity(materials.len());
+    for m in materials {
+        if m.height() != h || m.width() != w {
+            bail!("materials in one batch must share a size: {}x{} vs {}x{}", m.width(), m.height(), w, h);
+        }
+        parts.push(m.stacked().to_tensor());
+    }
+    let maps = Tensor::stack(&parts, 0).to_device(device);
+    debug_assert_eq!(maps.size()[1], MAP_CHANNELS as i64);
+    Ok(maps)
+}
+
+/// M_est input from a linear photo and its half-vector z.
+/// photo_linear: `[N, 3, H, W]`, h_z: `[N, 1, H, W]` -> `[N, 4, H, W]`.
+pub fn est_input(photo_linear: &Tensor, h_z: &Tensor) -> Tensor {
+    Tensor::cat(&[spaces::to_log(&photo_linear.clamp_min(0.0)), h_z.shallow_clone()], 1)
+}
+
+/// Co-located input directions for an H x W photo at `fov_deg`:
+/// (wi, wo) each `[1, 3, H, W]` (identical, light at the camera).
+pub fn input_directions(h: usize, w: usize, fov_deg: f64, device: Device) -> (Tensor, Tensor) {
+    let (l, v) = config_tensors(&[LightView::colocated(fov_deg)], device);
+    let (wi, wo) = direction_maps_for(&l.view([1, 1, 3]), &v.view([1, 1, 3]), h, w);
+    (wi.squeeze_dim(1), wo.squeeze_dim(1))
+}
+
+/// Renders the co-located input photo. maps: `[N, 10, H, W]` -> `[N, 3, H, W]` linear HDR.
+pub fn render_input(maps: &Tensor, fov_deg: f64) -> Tensor {
+    let size = maps.size();
+    let (wi, wo) = input_directions(size[2] as usize, size[3] as usize, fov_deg, maps.device());
+    render_directions(maps, &wi.unsqueeze(1), &wo.unsqueeze(1)).squeeze_dim(1)
+}
+
+/// Builds one training batch: input renders plus K sampled output renders.
+pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R, device: Device) -> Result<TrainingBatch> {
+    let maps = stack_maps(materials, device)?;
+    let size = maps.size();
+    let (n, h, w) = (size[0], size[2] as usize, size[3] as usize);
+    let k = cfg.outputs_per_material as i64;
+
+    let (in_wi, in_wo) = input_directions(h, w, cfg.fov_deg, device);
+    let hz = half_vector_z(&in_wi, &in_wo).expand([n, 1, h as i64, w as i64], false);
+    let mut input_linear = render_input(&maps, cfg.fov_deg);
+    if cfg.ldr_input {
+        input_linear = spaces::ldr_clamp(&input_linear);
+    }
+    let est = est_input(&input_linear, &hz);
+
+    let configs = sample_configs(rng, cfg.output_sampling, (n * k) as usize, cfg.fov_deg);
+    let (lights, views) = config_tensors(&configs, device);
+    let (out_wi, out_wo) = direction_maps_for(&lights.view([n, k, 3]), &views.view([n, k, 3]), h, w);
+    let targets = render_directions(&maps, &out_wi, &out_wo);
+    Ok(TrainingBatch { maps, input_linear, est_input: est.to_kind(Kind::Float), out_wi, out_wo, targets, configs })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{fov_to_distance, pixel_center};
+    use crate::svbrdf::scalar::{self, PixelMaterial};
+    use rand::SeedableRng;
+    use rand_pcg::Pcg64;
+
+    fn material(h: usize, w: usize, kd: f32) -> Svbrdf {
+        let mut s = Svbrdf::uniform(h, w, [kd, 0.5 * kd, 0.2], [0.04; 3], 0.3);
+        // A non-trivial normal so the check is not symmetric.
+        for y in 0..h {
+            for x in 0..w {
+                let n = scalar::normalize([0.1 * x as f64 / w as f64, -0.2, 1.0]);
+                for c in 0..3 {
+                    s.normal.set(c, y, x, n[c] as f32);
+                }
+            }
+        }
+        s
+    }
+
+    #[test]
+    fn batch_shapes_and_input_matches_oracle() {
+        let mats = vec![material(8, 16, 0.6), material(8, 16, 0.3)];
+        let cfg = SampleConfig { outputs_per_material: 3, ..Default::default() };
+        let b = make_batch(&mats, &cfg, &mut Pcg64::seed_from_u64(1), Device::Cpu).unwrap();
+        assert_eq!(b.maps.size(), [2, 10, 8, 16]);
+        assert_eq!(b.est_input.size(), [2, 4, 8, 16]);
+        assert_eq!(b.targets.size(), [2, 3, 3, 8, 16]);
+        assert_eq!(b.out_wi.size(), [2, 3, 3, 8, 16]);
+        assert_eq!(b.configs.len(), 6);
+        // Input pixel vs scalar oracle with the co-located light at d.
+        let d = fov_to_distance(28.0);
+        let (i, j) = (2usize, 11usize);
+        let m = &mats[1];
+        let pm = PixelMaterial {
+            kd: [m.diffuse.get(0, i, j) as f64, m.diffuse.get(1, i, j) as f64, m.diffuse.get(2, i, j) as f64],
+            ks: [0.04; 3],
+            roughness: 0.3,
+            normal: [m.normal.get(0, i, j) as f64, m.normal.get(1, i, j) as f64, m.normal.get(2, i, j) as f64],
+        };
+        let r = scalar::radiance_at(&pm, pixel_center(i, j, 8, 16), [0.0, 0.0, d], [0.0, 0.0, d]);
+        for c in 0..3 {
+            let t = b.input_linear.double_value(&[1, c as i64, i as i64, j as i64]);
+            assert!((t - r[c]).abs() < 1e-4 * r[c].max(1.0), "{t} vs {}", r[c]);
+            let l = b.est_input.double_value(&[1, c as i64, i as i64, j as i64]);
+            assert!((l - r[c].ln_1p()).abs() < 1e-4);
+        }
+        // h_z of the co-located configuration = cos of the angle to the camera.
+        let p = pixel_center(i, j, 8, 16);
+        let expect_hz = d / (p[0] * p[0] + p[1] * p[1] + d * d).sqrt();
+        assert!((b.est_input.double_value(&[0, 3, i as i64, j as i64]) - expect_hz).abs() < 1e-5);
+        // Output renders equal the oracle for the sampled configuration.
+        let cfg1 = b.configs[3 + 2];
+        let r = scalar::radiance_at(&pm, pixel_center(i, j, 8, 16), cfg1.light, cfg1.view);
+        let t = b.targets.double_value(&[1, 2, 0, i as i64, j as i64]);
+        assert!((t - r[0]).abs() < 1e-4 * r[0].max(1.0));
+    }
+
+    #[test]
+    fn ldr_input_is_clamped_but_targets_are_not() {
+        // A shiny material has a highlight above 1 at the centre.
+        let mats = vec![Svbrdf::uniform(16, 16, [0.5; 3], [0.9; 3], 0.1)];
+        let hdr = make_batch(&mats, &SampleConfig::default(), &mut Pcg64::seed_from_u64(2), Device::Cpu).unwrap();
+        assert!(hdr.input_linear.max().double_value(&[]) > 1.0);
+        let cfg = SampleConfig { ldr_input: true, ..Default::default() };
+        let ldr = make_batch(&mats, &cfg, &mut Pcg64::seed_from_u64(2), Device::Cpu).unwrap();
+        assert!((ldr.input_linear.max().double_value(&[]) - 1.0).abs() < 1e-7);
+        assert!(ldr.targets.equal(&hdr.targets));
+    }
+
+    #[test]
+    fn mixed_sizes_are_an_error() {
+        let mats = vec![material(8, 8, 0.5), material(16, 16, 0.5)];
+        assert!(make_batch(&mats, &SampleConfig::default(), &mut Pcg64::seed_from_u64(0), Device::Cpu).is_err());
+    }
+}
