@@ -6,3 +6,5 @@ pub mod image;
 pub mod spaces;
 pub mod svbrdf;
 pub mod data;
+pub mod archive;
+pub mod fsutil;
