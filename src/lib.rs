@@ -8,3 +8,4 @@ pub mod svbrdf;
 pub mod data;
 pub mod archive;
 pub mod fsutil;
+pub mod train;
