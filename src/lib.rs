@@ -9,3 +9,4 @@ pub mod data;
 pub mod archive;
 pub mod fsutil;
 pub mod train;
+pub mod viz;

@@ -1,0 +1,185 @@
+//! Pictures for people: image grids, loss-curve charts, GIF animations.
+
+use crate::image::Image;
+use anyhow::{bail, Context, Result};
+use plotters::prelude::*;
+use std::path::Path;
+use std::sync::Once;
+
+const FONT: &[u8] = include_bytes!("../assets/fonts/DejaVuSans.ttf");
+static FONT_ONCE: Once = Once::new();
+
+fn register_font() {
+    FONT_ONCE.call_once(|| {
+        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);
+    });
+}
+
+/// Lays out `[3, h, w]` display images (values in [0,1]) in rows, with a
+/// `gap`-pixel dark border; rows may have different lengths and images
+/// different sizes (each cell is as large as the largest image).
+pub fn grid(rows: &[Vec<Image>], gap: usize) -> Result<Image> {
+    let cells = rows.iter().flatten();
+    let cell_h = cells.clone().map(|im| im.height).max().context("empty grid")?;
+    let cell_w = cells.clone().map(|im| im.width).max().unwrap_or(0);
+    let ncols = rows.iter().map(|r| r.len()).max().unwrap_or(0);
+    let height = rows.len() * (cell_h + gap) + gap;
+    let width = ncols * (cell_w + gap) + gap;
+    let mut out = Image::filled(3, height, width, 0.08);
+    for (r, row) in rows.iter().enumerate() {
+        for (c, im) in row.iter().enumerate() {
+            if im.channels != 3 && im.channels != 1 {
+                bail!("grid cells must have 1 or 3 channels, got {}", im.channels);
+            }
+            let (top, left) = (gap + r * (cell_h + gap), gap + c * (cell_w + gap));
+            for ch in 0..3 {
+                let src = if im.channels == 1 { 0 } else { ch };
+                for y in 0..im.height {
+                    for x in 0..im.width {
+                        out.set(ch, top + y, left + x, im.get(src, y, x).clamp(0.0, 1.0));
+                    }
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// One named series of (step, value) points.
+pub struct Series {
+    pub name: String,
+    pub points: Vec<(f64, f64)>,
+}
+
+/// Renders loss curves (log-scaled y when all values are positive) to an
+/// RGB image of `width x height`.
+pub fn line_chart(title: &str, series: &[Series], width: usize, height: usize) -> Result<Image> {
+    register_font();
+    let mut buf = vec![255u8; width * height * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (width as u32, height as u32)).into_drawing_area();
+        root.fill(&WHITE)?;
+        let all = series.iter().flat_map(|s| s.points.iter()).filter(|p| p.1.is_finite());
+        let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        for &(x, y) in all {
+            x0 = x0.min(x);
+            x1 = x1.max(x);
+            y0 = y0.min(y);
+            y1 = y1.max(y);
+        }
+        if x0 > x1 {
+            (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+        }
+        if x1 <= x0 {
+            x1 = x0 + 1.0;
+        }
+        if y1 <= y0 {
+            y1 = y0 + 1e-6 + y0.abs() * 0.1;
+        }
+        let colors = [RGBColor(31, 119, 180), RGBColor(255, 127, 14), RGBColor(44, 160, 44), RGBColor(214, 39, 40), RGBColor(148, 103, 189), RGBColor(140, 86, 75), RGBColor(227, 119, 194)];
+        let mut builder = ChartBuilder::on(&root);
+        builder.caption(title, ("sans-serif", 20)).margin(10).x_label_area_size(30).y_label_area_size(60);
+        if y0 > 0.0 {
+            let mut chart = builder.build_cartesian_2d(x0..x1, (y0 * 0.9..y1 * 1.1).log_scale())?;
+            chart.configure_mesh().x_desc("step").label_style(("sans-serif", 12)).draw()?;
+            for (i, s) in series.iter().enumerate() {
+                let color = colors[i % colors.len()];
+                chart
+                    .draw_series(LineSeries::new(s.points.iter().copied().filter(|p| p.1.is_finite() && p.1 > 0.0), color.stroke_width(2)))?
+                    .label(s.name.clone())
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+            }
+            chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).label_font(("sans-serif", 12)).draw()?;
+        } else {
+            let pad = (y1 - y0) * 0.05;
+            let mut chart = builder.build_cartesian_2d(x0..x1, y0 - pad..y1 + pad)?;
+            chart.configure_mesh().x_desc("step").label_style(("sans-serif", 12)).draw()?;
+            for (i, s) in series.iter().enumerate() {
+                let color = colors[i % colors.len()];
+                chart
+                    .draw_series(LineSeries::new(s.points.iter().copied().filter(|p| p.1.is_finite()), color.stroke_width(2)))?
+                    .label(s.name.clone())
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+            }
+            chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).label_font(("sans-serif", 12)).draw()?;
+        }
+        root.present()?;
+    }
+    let mut im = Image::new(3, height, width);
+    for y in 0..height {
+        for x in 0..width {
+            for c in 0..3 {
+                im.set(c, y, x, buf[(y * width + x) * 3 + c] as f32 / 255.0);
+            }
+        }
+    }
+    Ok(im)
+}
+
+/// Writes display frames (`[3, H, W]` in [0,1]) as a looping GIF,
+/// `delay_cs` hundredths of a second per frame (atomic write).
+pub fn write_gif(path: &Path, frames: &[Image], delay_cs: u16) -> Result<()> {
+    let first = frames.first().context("no frames")?;
+    let (w, h) = (first.width, first.height);
+    let mut bytes = Vec::new();
+    {
+        let mut enc = gif::Encoder::new(&mut bytes, w as u16, h as u16, &[])?;
+        enc.set_repeat(gif::Repeat::Infinite)?;
+        for f in frames {
+            if f.width != w || f.height != h || f.channels != 3 {
+                bail!("all GIF frames must be 3-channel {w}x{h}");
+            }
+            let mut rgb = Vec::with_capacity(w * h * 3);
+            for y in 0..h {
+                for x in 0..w {
+                    for c in 0..3 {
+                        rgb.push(crate::spaces::quantize_u8(f.get(c, y, x)));
+                    }
+                }
+            }
+            let mut frame = gif::Frame::from_rgb_speed(w as u16, h as u16, &rgb, 10);
+            frame.delay = delay_cs;
+            enc.write_frame(&frame)?;
+        }
+    }
+    crate::fsutil::atomic_write_bytes(path, &bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grid_layout() {
+        let a = Image::filled(3, 4, 4, 1.0);
+        let b = Image::filled(1, 2, 2, 0.5);
+        let g = grid(&[vec![a.clone(), b], vec![a]], 1).unwrap();
+        assert_eq!((g.height, g.width), (2 * 5 + 1, 2 * 5 + 1));
+        assert_eq!(g.get(0, 1, 1), 1.0);
+        assert_eq!(g.get(2, 1, 6), 0.5); // grey cell replicated to RGB
+        assert!((g.get(0, 0, 0) - 0.08).abs() < 1e-7); // border
+        assert!((g.get(0, 4, 7) - 0.08).abs() < 1e-7); // outside the small image
+    }
+
+    #[test]
+    fn chart_draws_lines() {
+        let s = vec![Series { name: "l1".into(), points: (0..50).map(|i| (i as f64, 1.0 / (1.0 + i as f64))).collect() }];
+        let im = line_chart("loss", &s, 320, 200).unwrap();
+        assert_eq!((im.channels, im.height, im.width), (3, 200, 320));
+        // Some pixels are the series colour (not white, not grey).
+        let n = im.height * im.width;
+        let coloured = (0..n).filter(|&i| (im.data[i] - im.data[2 * n + i]).abs() > 0.3).count();
+        assert!(coloured > 50, "{coloured}");
+    }
+
+    #[test]
+    fn gif_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.gif");
+        let frames: Vec<Image> = (0..3).map(|i| Image::filled(3, 8, 8, i as f32 / 2.0)).collect();
+        write_gif(&p, &frames, 5).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        assert_eq!(&bytes[..6], b"GIF89a");
+        assert!(write_gif(&p, &[], 5).is_err());
+    }
+}
