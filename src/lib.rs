@@ -10,3 +10,4 @@ pub mod archive;
 pub mod fsutil;
 pub mod train;
 pub mod viz;
+pub mod cli;

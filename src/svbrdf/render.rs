@@ -199,3 +199,13 @@ mod tests {
         let _ = Device::Cpu;
     }
 }
+
+/// Renders one material (CPU) under several configurations; linear images `[3, H, W]`.
+pub fn render_material(material: &crate::svbrdf::Svbrdf, configs: &[crate::geometry::LightView]) -> anyhow::Result<Vec<crate::image::Image>> {
+    material.validate()?;
+    let maps = material.stacked().to_tensor().unsqueeze(0);
+    let (lights, views) = crate::geometry::config_tensors(configs, tch::Device::Cpu);
+    let k = configs.len() as i64;
+    let out = tch::no_grad(|| render(&maps, &lights.view([1, k, 3]), &views.view([1, k, 3])));
+    (0..k).map(|i| crate::image::Image::from_tensor(&out.get(0).get(i))).collect()
+}

@@ -1,0 +1,114 @@
+//! `flashmat render` and `flashmat svbrdf generate|preview`.
+
+use super::{light_view, prepare_output, GenerateArgs, MaterialArgs, PreviewArgs, RenderArgs};
+use crate::data::loaders::{open_dataset, write_material_dir, write_matfusion};
+use crate::data::procedural::{self, Family, ProceduralConfig};
+use crate::geometry::LightView;
+use crate::image::Image;
+use crate::svbrdf::render::render_material;
+use crate::svbrdf::{encode_normal_map, Svbrdf};
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
+
+/// Resolves a `--svbrdf` source to a named material.
+pub fn load_material(args: &MaterialArgs) -> Result<(String, Svbrdf)> {
+    if let Some(rest) = args.source.strip_prefix("procedural:") {
+        let mut parts = rest.split(':');
+        let seed: u64 = parts.next().unwrap_or("").parse().with_context(|| format!("'{}': expected procedural:SEED or procedural:SEED:FAMILY", args.source))?;
+        let material = match parts.next() {
+            Some(family) => {
+                let family: Family = family.parse().map_err(|e| anyhow::anyhow!("{e}"))?;
+                procedural::generate_family(family, seed, args.size)
+            }
+            None => procedural::generate(seed, &ProceduralConfig { size: args.size, ..Default::default() }),
+        };
+        return Ok((format!("procedural-{seed}"), material));
+    }
+    let dataset = open_dataset(std::path::Path::new(&args.source))?;
+    if args.index >= dataset.len() {
+        bail!("--index {} is out of range: {} holds {} material(s)", args.index, args.source, dataset.len());
+    }
+    Ok((dataset.name(args.index), dataset.load(args.index)?))
+}
+
+/// Display encoding of a linear render: clamp to [0,1], then ^(1/2.2).
+pub fn to_display(linear: &Image) -> Image {
+    linear.map(crate::spaces::gamma_encode)
+}
+
+/// Writes a linear render: EXR keeps radiance, PNG gets the display transform.
+pub fn write_render(path: &std::path::Path, linear: &Image) -> Result<()> {
+    prepare_output(path)?;
+    match path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
+        Some("exr") => crate::io::write_exr(path, linear),
+        Some("png") => crate::io::write_png(path, &to_display(linear), crate::io::BitDepth::Eight),
+        _ => bail!("{}: output must end in .png or .exr", path.display()),
+    }
+}
+
+pub fn render(args: &RenderArgs) -> Result<()> {
+    let config = light_view(args.light, args.view)?;
+    let (_, material) = load_material(&args.material)?;
+    let image = render_material(&material, &[config])?.remove(0);
+    write_render(&args.output, &image)?;
+    eprintln!("wrote {}", args.output.display());
+    Ok(())
+}
+
+pub fn generate(args: &GenerateArgs) -> Result<()> {
+    std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
+    let seeds: Vec<u64> = if args.test_set {
+        procedural::test_seeds()
+    } else {
+        (args.start..args.start + args.count as u64).map(procedural::training_seed).collect()
+    };
+    let bar = ProgressBar::new(seeds.len() as u64).with_style(ProgressStyle::with_template("{bar:40} {pos}/{len} materials {per_sec} ETA {eta}")?);
+    let cfg = ProceduralConfig { size: args.size, ..Default::default() };
+    seeds.par_iter().enumerate().try_for_each(|(i, &seed)| -> Result<()> {
+        let m = procedural::generate(seed, &cfg);
+        if args.test_set {
+            write_material_dir(&args.out.join(format!("test-{i:02}")), &m)?;
+        } else {
+            write_matfusion(&args.out, args.start as usize + i + 1, &m)?;
+        }
+        bar.inc(1);
+        Ok(())
+    })?;
+    bar.finish();
+    eprintln!("wrote {} materials to {}", seeds.len(), args.out.display());
+    Ok(())
+}
+
+/// One preview row: diffuse, specular, roughness, normals (display-encoded), co-located render.
+pub fn preview_row(material: &Svbrdf, size: usize) -> Result<Vec<Image>> {
+    let render = render_material(material, &[LightView::colocated(crate::geometry::MODEL_FOV_DEG)])?.remove(0);
+    let cells = [
+        to_display(&material.diffuse),
+        to_display(&material.specular),
+        material.roughness.clone(),
+        encode_normal_map(&material.normal),
+        to_display(&render),
+    ];
+    Ok(cells.iter().map(|c| c.resize_bilinear(size, size)).collect())
+}
+
+pub fn preview(args: &PreviewArgs) -> Result<()> {
+    prepare_output(&args.output)?;
+    let materials: Vec<Svbrdf> = match args.source.as_str() {
+        "procedural" => {
+            let seeds: Vec<u64> = (0..args.count as u64).map(procedural::training_seed).collect();
+            procedural::generate_many(&seeds, 256)
+        }
+        "procedural-test" => procedural::generate_many(&procedural::test_seeds()[..args.count.min(50)], 256),
+        path => {
+            let ds = open_dataset(std::path::Path::new(path))?;
+            (0..ds.len().min(args.count)).map(|i| ds.load(i)).collect::<Result<_>>()?
+        }
+    };
+    let rows: Vec<Vec<Image>> = materials.par_iter().map(|m| preview_row(m, args.size)).collect::<Result<_>>()?;
+    let grid = crate::viz::grid(&rows, 4)?;
+    crate::io::write_png(&args.output, &grid, crate::io::BitDepth::Eight)?;
+    eprintln!("wrote {} ({} materials: diffuse | specular | roughness | normals | co-located render)", args.output.display(), rows.len());
+    Ok(())
+}

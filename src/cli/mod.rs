@@ -1,0 +1,181 @@
+//! The `flashmat` command line: argument parsing and dispatch. Each
+//! subcommand's work lives in the module of its pipeline stage.
+
+pub mod bench;
+pub mod materials;
+
+use crate::geometry::{fov_to_distance, LightView, MODEL_FOV_DEG};
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
+use std::path::PathBuf;
+
+#[derive(Parser, Debug)]
+#[command(name = "flashmat", version, about = "One flash photograph of a flat material in, a relightable neural material out.")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Render a GGX material for a point light and a camera (PNG: display-encoded; EXR: linear HDR).
+    Render(RenderArgs),
+    /// Procedural and on-disk SVBRDF datasets.
+    #[command(subcommand)]
+    Svbrdf(SvbrdfCommand),
+    /// Speed benchmarks (ratios against a baseline measured in the same run).
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+}
+
+#[derive(Subcommand, Debug)]
+pub enum SvbrdfCommand {
+    /// Write procedural materials in the MatFusion folder layout (diffuse/ specular/ normals/ roughness/).
+    Generate(GenerateArgs),
+    /// Draw a grid of maps and a co-located render for each material of a dataset.
+    Preview(PreviewArgs),
+}
+
+/// A 3-vector given as `X,Y,Z`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Vec3Arg(pub [f64; 3]);
+
+impl std::str::FromStr for Vec3Arg {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+        if parts.len() != 3 {
+            return Err(format!("expected X,Y,Z (three comma-separated numbers), got '{s}'"));
+        }
+        let mut v = [0.0; 3];
+        for (i, p) in parts.iter().enumerate() {
+            v[i] = p.parse::<f64>().map_err(|_| format!("'{p}' is not a number (in '{s}')"))?;
+            if !v[i].is_finite() {
+                return Err(format!("'{p}' is not a finite number"));
+            }
+        }
+        Ok(Self(v))
+    }
+}
+
+/// Which material to use: a dataset path (with --index), or `procedural:SEED[:FAMILY]`.
+#[derive(Args, Debug, Clone)]
+pub struct MaterialArgs {
+    /// Material source: a folder in the MatFusion or per-material layout, an INRIA strip PNG (or a folder of
+    /// them), or `procedural:SEED` / `procedural:SEED:FAMILY` for a built-in procedural material.
+    #[arg(long = "svbrdf", value_name = "SOURCE")]
+    pub source: String,
+    /// Which material of a multi-material source (0-based, sorted by name).
+    #[arg(long, default_value_t = 0)]
+    pub index: usize,
+    /// Resolution of procedural materials (loaded maps keep their size).
+    #[arg(long, default_value_t = 256)]
+    pub size: usize,
+}
+
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    #[command(flatten)]
+    pub material: MaterialArgs,
+    /// Point light position X,Y,Z (the material spans [-1,1]^2 at z = 0; z must be > 0).
+    /// Default: co-located with the camera.
+    #[arg(long, value_name = "X,Y,Z")]
+    pub light: Option<Vec3Arg>,
+    /// Camera position X,Y,Z (z must be > 0). Default: straight overhead at the 28 degree model FOV distance.
+    #[arg(long, value_name = "X,Y,Z")]
+    pub view: Option<Vec3Arg>,
+    /// Output image: .png (display-encoded, 8-bit) or .exr (linear HDR radiance).
+    #[arg(short, long)]
+    pub output: PathBuf,
+}
+
+#[derive(Args, Debug)]
+pub struct GenerateArgs {
+    /// Number of materials.
+    #[arg(long, default_value_t = 16)]
+    pub count: usize,
+    /// Output root folder (created).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Resolution in pixels.
+    #[arg(long, default_value_t = 256)]
+    pub size: usize,
+    /// First index of the procedural training stream (materials are deterministic per index).
+    #[arg(long, default_value_t = 0)]
+    pub start: u64,
+    /// Write the 50 held-out test materials instead of training materials (per-material layout).
+    #[arg(long)]
+    pub test_set: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct PreviewArgs {
+    /// Dataset folder or strip file, or `procedural` for the procedural training stream,
+    /// or `procedural-test` for the held-out set.
+    pub source: String,
+    /// Output PNG.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Maximum number of materials shown.
+    #[arg(long, default_value_t = 12)]
+    pub count: usize,
+    /// Cell size in pixels.
+    #[arg(long, default_value_t = 128)]
+    pub size: usize,
+}
+
+/// Checks that a light or camera position is above the material plane.
+pub fn above_surface(what: &str, p: [f64; 3]) -> Result<[f64; 3]> {
+    if p[2] <= 0.0 {
+        bail!("the {what} position {},{},{} is not above the surface: z must be > 0", p[0], p[1], p[2]);
+    }
+    Ok(p)
+}
+
+/// Resolves render positions: defaults are the co-located input configuration.
+pub fn light_view(light: Option<Vec3Arg>, view: Option<Vec3Arg>) -> Result<LightView> {
+    let d = fov_to_distance(MODEL_FOV_DEG);
+    let view = above_surface("camera", view.map(|v| v.0).unwrap_or([0.0, 0.0, d]))?;
+    let light = above_surface("light", light.map(|v| v.0).unwrap_or(view))?;
+    Ok(LightView { light, view })
+}
+
+/// Makes sure the folder that will hold `path` exists and is writable.
+pub fn prepare_output(path: &std::path::Path) -> Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create output folder {}", dir.display()))?;
+    }
+    Ok(())
+}
+
+pub fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Render(a) => materials::render(&a),
+        Command::Svbrdf(SvbrdfCommand::Generate(a)) => materials::generate(&a),
+        Command::Svbrdf(SvbrdfCommand::Preview(a)) => materials::preview(&a),
+        Command::Bench(b) => bench::run(&b),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn vec3_parsing() {
+        assert_eq!("1,2.5,-3".parse::<Vec3Arg>().unwrap(), Vec3Arg([1.0, 2.5, -3.0]));
+        assert_eq!(" 0, 0 ,4".parse::<Vec3Arg>().unwrap(), Vec3Arg([0.0, 0.0, 4.0]));
+        assert!("1,2".parse::<Vec3Arg>().is_err());
+        assert!("1,x,3".parse::<Vec3Arg>().is_err());
+        assert!("1,nan,3".parse::<Vec3Arg>().is_err());
+    }
+
+    #[test]
+    fn positions_must_be_above_the_surface() {
+        let lv = light_view(None, None).unwrap();
+        assert_eq!(lv, LightView::colocated(28.0));
+        let e = light_view(Some(Vec3Arg([0.0, 0.0, -1.0])), None).unwrap_err();
+        assert!(e.to_string().contains("light position 0,0,-1 is not above the surface"));
+        assert!(light_view(None, Some(Vec3Arg([1.0, 1.0, 0.0]))).is_err());
+    }
+}
