@@ -3,6 +3,7 @@
 
 pub mod geometry;
 pub mod image;
+pub mod lpips;
 pub mod spaces;
 pub mod svbrdf;
 pub mod data;
