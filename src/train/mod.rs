@@ -1,1 +1,226 @@
+//! Training of M_est, ND_enc + M_render and the discriminator with the
+//! paper's losses (REFERENCE section 5): L1 on log renders, LPIPS, and a
+//! conditional least-squares discriminator; alternating optimizers;
+//! checkpoints that resume exactly.
+
 pub mod adam;
+pub mod batches;
+pub mod checkpoint;
+pub mod config;
+pub mod losses;
+pub mod run;
+
+pub use config::{PixelSampling, TrainConfig, UpdateScheme};
+
+use crate::data::samples::TrainingBatch;
+use crate::lpips::Lpips;
+use crate::model::{Discriminator, Model};
+use adam::Adam;
+use anyhow::Result;
+use serde::{Deserialize, Serialize};
+use tch::{nn, Device, Tensor};
+
+/// Loss terms of one step (what the JSONL log records).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct StepLosses {
+    pub step: u64,
+    pub lr: f64,
+    /// L1 on log renders seen by M_est (full image).
+    pub l1: f64,
+    pub lpips: f64,
+    pub adv: f64,
+    /// Total loss of the M_est update.
+    pub loss_est: f64,
+    /// Pixel-sampled L1 of the renderer update.
+    pub l1_render: f64,
+    /// Total loss of the renderer update.
+    pub loss_render: f64,
+    /// Discriminator least-squares loss.
+    pub loss_disc: f64,
+    /// Mean L2 norm of the neural parameters (watch for "garbage" vectors).
+    pub param_norm: f64,
+    /// True when the step was skipped because a loss or gradient was NaN/Inf.
+    pub skipped: bool,
+    pub seconds: f64,
+}
+
+/// All trainable state: networks, their optimizers, the perceptual metric.
+pub struct Trainer {
+    pub config: TrainConfig,
+    pub model: Model,
+    pub disc_vs: nn::VarStore,
+    pub disc: Discriminator,
+    pub opt_est: Adam,
+    pub opt_render: Adam,
+    pub opt_disc: Adam,
+    pub lpips: Option<Lpips>,
+    /// Steps completed.
+    pub step: u64,
+}
+
+fn trainable(vs: &nn::VarStore) -> std::collections::HashMap<String, Tensor> {
+    vs.variables().into_iter().filter(|(_, t)| t.requires_grad()).collect()
+}
+
+impl Trainer {
+    /// Fresh networks initialised from the configured seed.
+    pub fn new(config: TrainConfig, device: Device) -> Result<Self> {
+        config.validate()?;
+        tch::manual_seed(config.seed as i64);
+        let model = Model::new(&config.model, device)?;
+        let (disc_vs, disc) = Discriminator::with_store(&config.model, device);
+        let opt_est = Adam::new(trainable(&model.est_vs));
+        let opt_render = Adam::new(trainable(&model.renderer_vs));
+        let opt_disc = Adam::new(trainable(&disc_vs));
+        let lpips = if config.weight_lpips > 0.0 { Some(Lpips::new(device)?) } else { None };
+        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, step: 0 })
+    }
+
+    pub fn device(&self) -> Device {
+        self.model.device()
+    }
+
+    /// One training step on a batch; returns its losses. A NaN/Inf loss or
+    /// gradient skips every update of the step (logged, never saved).
+    pub fn train_step(&mut self, batch: &TrainingBatch) -> Result<StepLosses> {
+        let lr = self.config.lr_at(self.step);
+        // Per-step torch RNG seed (pixel sampling) so a resumed run replays exactly.
+        tch::manual_seed((self.config.seed.wrapping_mul(1_000_003).wrapping_add(self.step)) as i64);
+        let out = match self.config.scheme {
+            UpdateScheme::Alternating => self.alternating_step(batch, lr)?,
+            UpdateScheme::Combined => self.combined_step(batch, lr)?,
+        };
+        self.step += 1;
+        Ok(StepLosses { step: self.step, lr, ..out })
+    }
+
+    fn zero_all(&mut self) {
+        self.opt_est.zero_grad();
+        self.opt_render.zero_grad();
+        self.opt_disc.zero_grad();
+    }
+
+    fn alternating_step(&mut self, b: &TrainingBatch, lr: f64) -> Result<StepLosses> {
+        let cfg = self.config.clone();
+        let target_log = crate::spaces::to_log(&b.targets);
+        let photo_log = b.est_input.narrow(1, 0, 3);
+        let clip = cfg.grad_clip;
+        let mut out = StepLosses::default();
+
+        // 1. M_est update; the renderer takes part in the graph but is not stepped.
+        self.zero_all();
+        let neural = self.model.est.forward_t(&b.est_input, true)?;
+        let pred = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
+        let l1 = (&pred - &target_log).abs().mean(tch::Kind::Float);
+        let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
+        let adv = losses::adversarial(&self.disc, &pred, &photo_log, cfg.weight_adv)?;
+        let loss_est = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * cfg.weight_adv;
+        out.l1 = l1.double_value(&[]);
+        out.lpips = lp.double_value(&[]);
+        out.adv = adv.double_value(&[]);
+        out.loss_est = loss_est.double_value(&[]);
+        out.param_norm = losses::mean_param_norm(&neural);
+        if !out.loss_est.is_finite() {
+            self.zero_all();
+            return Ok(StepLosses { skipped: true, ..out });
+        }
+        loss_est.backward();
+        if !self.opt_est.grad_norm().is_finite() {
+            self.zero_all();
+            return Ok(StepLosses { skipped: true, ..out });
+        }
+
+        // 2. Renderer update on the detached neural map, pixel-sampled L1.
+        let neural = neural.detach();
+        self.opt_render.zero_grad();
+        self.opt_disc.zero_grad();
+        let pred_r = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
+        let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling);
+        let l1_r = losses::masked_l1(&pred_r, &target_log, &mask);
+        let lp_r = losses::perceptual(self.lpips.as_ref(), &pred_r, &target_log)?;
+        let adv_r = losses::adversarial(&self.disc, &pred_r, &photo_log, cfg.weight_adv)?;
+        let loss_render = &l1_r * cfg.weight_l1 + &lp_r * cfg.weight_lpips + &adv_r * cfg.weight_adv;
+        out.l1_render = l1_r.double_value(&[]);
+        out.loss_render = loss_render.double_value(&[]);
+        if !out.loss_render.is_finite() {
+            self.zero_all();
+            return Ok(StepLosses { skipped: true, ..out });
+        }
+        loss_render.backward();
+        if !self.opt_render.grad_norm().is_finite() {
+            self.zero_all();
+            return Ok(StepLosses { skipped: true, ..out });
+        }
+
+        // 3. Discriminator update.
+        self.opt_disc.zero_grad();
+        let loss_disc = losses::discriminator_loss(&self.disc, &pred_r.detach(), &target_log, &photo_log, cfg.weight_adv)?;
+        out.loss_disc = loss_disc.double_value(&[]);
+        let disc_ok = out.loss_disc.is_finite() && {
+            if cfg.weight_adv > 0.0 {
+                loss_disc.backward();
+            }
+            self.opt_disc.grad_norm().is_finite()
+        };
+        if !disc_ok {
+            self.zero_all();
+            return Ok(StepLosses { skipped: true, ..out });
+        }
+
+        // Every loss and gradient is finite: apply the three updates.
+        self.opt_est.step(lr, clip);
+        self.opt_render.step(lr, clip);
+        if cfg.weight_adv > 0.0 {
+            self.opt_disc.step(lr, clip);
+        }
+        self.zero_all();
+        Ok(out)
+    }
+
+    fn combined_step(&mut self, b: &TrainingBatch, lr: f64) -> Result<StepLosses> {
+        let cfg = self.config.clone();
+        let target_log = crate::spaces::to_log(&b.targets);
+        let photo_log = b.est_input.narrow(1, 0, 3);
+        let mut out = StepLosses::default();
+        self.zero_all();
+        let neural = self.model.est.forward_t(&b.est_input, true)?;
+        let pred = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
+        let l1 = (&pred - &target_log).abs().mean(tch::Kind::Float);
+        let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
+        let adv = losses::adversarial(&self.disc, &pred, &photo_log, cfg.weight_adv)?;
+        let loss = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * cfg.weight_adv;
+        out.l1 = l1.double_value(&[]);
+        out.l1_render = out.l1;
+        out.lpips = lp.double_value(&[]);
+        out.adv = adv.double_value(&[]);
+        out.loss_est = loss.double_value(&[]);
+        out.loss_render = out.loss_est;
+        out.param_norm = losses::mean_param_norm(&neural);
+        if !out.loss_est.is_finite() {
+            self.zero_all();
+            return Ok(StepLosses { skipped: true, ..out });
+        }
+        loss.backward();
+        if !(self.opt_est.grad_norm().is_finite() && self.opt_render.grad_norm().is_finite()) {
+            self.zero_all();
+            return Ok(StepLosses { skipped: true, ..out });
+        }
+        self.opt_disc.zero_grad();
+        let loss_disc = losses::discriminator_loss(&self.disc, &pred.detach(), &target_log, &photo_log, cfg.weight_adv)?;
+        out.loss_disc = loss_disc.double_value(&[]);
+        if cfg.weight_adv > 0.0 {
+            loss_disc.backward();
+            if !(out.loss_disc.is_finite() && self.opt_disc.grad_norm().is_finite()) {
+                self.zero_all();
+                return Ok(StepLosses { skipped: true, ..out });
+            }
+        }
+        self.opt_est.step(lr, cfg.grad_clip);
+        self.opt_render.step(lr, cfg.grad_clip);
+        if cfg.weight_adv > 0.0 {
+            self.opt_disc.step(lr, cfg.grad_clip);
+        }
+        self.zero_all();
+        Ok(out)
+    }
+}

@@ -1,0 +1,88 @@
+//! Where training materials come from: the procedural stream or a dataset
+//! folder, deterministic per (seed, step) so a resumed run sees the same
+//! batches, prepared on a background thread so the trainer never waits.
+
+use super::TrainConfig;
+use crate::data::loaders::{open_dataset, random_crop, SvbrdfSource};
+use crate::data::procedural::{self, ProceduralConfig};
+use crate::data::samples::{make_batch, SampleConfig, TrainingBatch};
+use crate::svbrdf::Svbrdf;
+use anyhow::Result;
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+use std::sync::mpsc;
+use std::sync::Arc;
+use tch::Device;
+
+/// RNG for everything random in one step (crops, light/view sampling).
+pub fn step_rng(seed: u64, step: u64, stream: u64) -> Pcg64 {
+    Pcg64::seed_from_u64(seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ stream.wrapping_mul(0xD1B5_4A32_D192_ED03))
+}
+
+/// A source of training materials.
+#[derive(Clone)]
+pub enum MaterialStream {
+    Procedural { size: usize },
+    Dataset(Arc<dyn SvbrdfSource>),
+}
+
+impl MaterialStream {
+    pub fn open(cfg: &TrainConfig) -> Result<Self> {
+        if cfg.data == "procedural" {
+            Ok(Self::Procedural { size: cfg.material_size })
+        } else {
+            let ds = open_dataset(std::path::Path::new(&cfg.data))?;
+            anyhow::ensure!(ds.len() > 0, "dataset {} holds no materials", cfg.data);
+            Ok(Self::Dataset(Arc::from(ds)))
+        }
+    }
+
+    /// The cropped materials of training step `step`.
+    pub fn materials(&self, cfg: &TrainConfig, step: u64) -> Result<Vec<Svbrdf>> {
+        let mut rng = step_rng(cfg.seed, step, 1);
+        let n = cfg.materials_per_batch as u64;
+        let full: Vec<Svbrdf> = match self {
+            Self::Procedural { size } => {
+                let seeds: Vec<u64> = (0..n).map(|i| procedural::training_seed(step * n + i)).collect();
+                procedural::generate_many(&seeds, *size)
+            }
+            Self::Dataset(ds) => (0..n).map(|_| ds.load(rng.random_range(0..ds.len()))).collect::<Result<_>>()?,
+        };
+        full.iter().map(|m| random_crop(m, cfg.crop, &mut rng)).collect()
+    }
+}
+
+/// Renders the batch of a step on `device`.
+pub fn batch_for_step(cfg: &TrainConfig, materials: &[Svbrdf], step: u64, device: Device) -> Result<TrainingBatch> {
+    let sample_cfg = SampleConfig { outputs_per_material: cfg.outputs_per_material, ldr_input: cfg.ldr_input, ..Default::default() };
+    let mut rng = step_rng(cfg.seed, step, 2);
+    tch::no_grad(|| make_batch(materials, &sample_cfg, &mut rng, device))
+}
+
+/// Prepares the materials of upcoming steps on a background thread.
+pub struct Prefetcher {
+    rx: mpsc::Receiver<(u64, Result<Vec<Svbrdf>>)>,
+    _worker: std::thread::JoinHandle<()>,
+}
+
+impl Prefetcher {
+    pub fn start(stream: MaterialStream, cfg: TrainConfig, first_step: u64, depth: usize) -> Self {
+        let (tx, rx) = mpsc::sync_channel(depth);
+        let worker = std::thread::spawn(move || {
+            for step in first_step.. {
+                let item = stream.materials(&cfg, step);
+                if tx.send((step, item)).is_err() {
+                    break;
+                }
+            }
+        });
+        Self { rx, _worker: worker }
+    }
+
+    /// Materials for `step` (steps arrive in order).
+    pub fn next(&self, step: u64) -> Result<Vec<Svbrdf>> {
+        let (got, item) = self.rx.recv().map_err(|_| anyhow::anyhow!("the data thread stopped"))?;
+        anyhow::ensure!(got == step, "data thread out of step ({got} != {step})");
+        item
+    }
+}

@@ -1,0 +1,66 @@
+//! Training checkpoints: every network's weights (BatchNorm statistics
+//! included), the three optimizers' moments, the step and the full
+//! configuration, in one checksummed archive written atomically. All other
+//! randomness derives from (seed, step), so this is everything a resumed run
+//! needs to continue exactly.
+
+use super::{TrainConfig, Trainer};
+use crate::archive::{restore_vars, Archive};
+use anyhow::{bail, Context, Result};
+use std::path::Path;
+use tch::Device;
+
+pub const FORMAT: &str = "flashmat-checkpoint";
+pub const VERSION: u32 = 1;
+
+impl Trainer {
+    pub fn save_checkpoint(&self, path: &Path) -> Result<()> {
+        let mut a = Archive::new();
+        a.insert_all("est/", &self.model.est_vs.variables());
+        a.insert_all("renderer/", &self.model.renderer_vs.variables());
+        a.insert_all("disc/", &self.disc_vs.variables());
+        self.opt_est.save_into(&mut a, "opt_est/");
+        self.opt_render.save_into(&mut a, "opt_render/");
+        self.opt_disc.save_into(&mut a, "opt_disc/");
+        a.set_meta("step", self.step.to_string());
+        a.set_meta("model_id", self.model.model_id());
+        a.set_meta("train_config", serde_json::to_string(&self.config)?);
+        a.save(path, FORMAT, VERSION)
+    }
+
+    /// The training configuration stored in a checkpoint.
+    pub fn checkpoint_config(path: &Path) -> Result<TrainConfig> {
+        let a = Archive::load(path, FORMAT, VERSION)?;
+        serde_json::from_str(a.meta("train_config")?).with_context(|| format!("{}: unreadable training configuration", path.display()))
+    }
+
+    /// Rebuilds a trainer from a checkpoint. `expect` (when given) must
+    /// describe the same model, otherwise the checkpoint is refused.
+    pub fn resume(path: &Path, device: Device, expect: Option<&TrainConfig>) -> Result<Self> {
+        let a = Archive::load(path, FORMAT, VERSION)?;
+        let config: TrainConfig = serde_json::from_str(a.meta("train_config")?).with_context(|| format!("{}: unreadable training configuration", path.display()))?;
+        if let Some(e) = expect {
+            if e.model.model_id() != config.model.model_id() {
+                bail!(
+                    "{}: checkpoint of model '{}' cannot be resumed as '{}' (another preset or configuration)",
+                    path.display(),
+                    config.model.model_id(),
+                    e.model.model_id()
+                );
+            }
+        }
+        let mut t = Trainer::new(config, device)?;
+        if a.meta("model_id")? != t.model.model_id() {
+            bail!("{}: model id mismatch inside the checkpoint", path.display());
+        }
+        let ctx = |what: &str| format!("{}: {what}", path.display());
+        restore_vars(&t.model.est_vs.variables(), &a.with_prefix("est/"), &ctx("M_est"))?;
+        restore_vars(&t.model.renderer_vs.variables(), &a.with_prefix("renderer/"), &ctx("renderer"))?;
+        restore_vars(&t.disc_vs.variables(), &a.with_prefix("disc/"), &ctx("discriminator"))?;
+        t.opt_est.load_from(&a, "opt_est/")?;
+        t.opt_render.load_from(&a, "opt_render/")?;
+        t.opt_disc.load_from(&a, "opt_disc/")?;
+        t.step = a.meta("step")?.parse().with_context(|| ctx("step"))?;
+        Ok(t)
+    }
+}

@@ -1,0 +1,123 @@
+//! Training hyper-parameters, with the paper's values as defaults where the
+//! paper gives them (REFERENCE section 5).
+
+use crate::model::ModelConfig;
+use serde::{Deserialize, Serialize};
+
+/// Which pixels the renderer's L1 data term uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+pub enum PixelSampling {
+    /// 60% of pixels drawn with probability proportional to 1 / ||neural params|| (the paper's default).
+    InverseNorm,
+    /// 60% of pixels drawn with probability proportional to ||target RGB||^2.
+    TargetNorm,
+    /// Every pixel.
+    All,
+}
+
+/// How the networks are updated each batch.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+pub enum UpdateScheme {
+    /// The paper: M_est step (renderer frozen), then renderer step on the detached map.
+    Alternating,
+    /// One backward pass through both networks, full-image L1 (no pixel sampling).
+    Combined,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    pub model: ModelConfig,
+    /// `procedural` or a dataset folder.
+    pub data: String,
+    /// Resolution materials are generated at before cropping (procedural data).
+    pub material_size: usize,
+    /// Training crop (paper: 192, then 256).
+    pub crop: usize,
+    pub materials_per_batch: usize,
+    pub outputs_per_material: usize,
+    /// Train on LDR (clamped) input photos.
+    pub ldr_input: bool,
+    pub lr: f64,
+    /// Multiplicative learning-rate decay applied every `lr_decay_every` steps (paper: 1.5% per 20,000).
+    pub lr_decay: f64,
+    pub lr_decay_every: u64,
+    pub weight_l1: f64,
+    pub weight_lpips: f64,
+    pub weight_adv: f64,
+    pub pixel_fraction: f64,
+    pub pixel_sampling: PixelSampling,
+    pub scheme: UpdateScheme,
+    /// Clip the global gradient norm of each network to this value.
+    pub grad_clip: Option<f64>,
+    /// Total steps to train (a resumed run continues to this count).
+    pub steps: u64,
+    pub checkpoint_every: u64,
+    pub preview_every: u64,
+    pub seed: u64,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            model: ModelConfig::compact(),
+            data: "procedural".into(),
+            material_size: 256,
+            crop: 128,
+            materials_per_batch: 2,
+            outputs_per_material: 8,
+            ldr_input: false,
+            lr: 1e-4,
+            lr_decay: 0.985,
+            lr_decay_every: 20_000,
+            weight_l1: 1.0,
+            weight_lpips: 0.01,
+            weight_adv: 0.03,
+            pixel_fraction: 0.6,
+            pixel_sampling: PixelSampling::InverseNorm,
+            scheme: UpdateScheme::Alternating,
+            grad_clip: None,
+            steps: 10_000,
+            checkpoint_every: 250,
+            preview_every: 250,
+            seed: 1,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Learning rate at a step: step decay of the paper.
+    pub fn lr_at(&self, step: u64) -> f64 {
+        self.lr * self.lr_decay.powi((step / self.lr_decay_every.max(1)) as i32)
+    }
+
+    pub fn validate(&self) -> anyhow::Result<()> {
+        anyhow::ensure!(self.crop % 8 == 0 && self.crop >= 32, "--crop must be a multiple of 8 and at least 32 (got {})", self.crop);
+        anyhow::ensure!(self.material_size >= self.crop, "material size {} is smaller than the crop {}", self.material_size, self.crop);
+        anyhow::ensure!(self.materials_per_batch >= 2 || self.weight_adv == 0.0, "the discriminator needs at least 2 materials per batch");
+        anyhow::ensure!(self.outputs_per_material >= 1, "at least one output render per material");
+        anyhow::ensure!(self.pixel_fraction > 0.0 && self.pixel_fraction <= 1.0, "pixel fraction must be in (0, 1]");
+        anyhow::ensure!(self.lr > 0.0 && self.lr.is_finite(), "learning rate must be positive");
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paper_step_decay() {
+        let c = TrainConfig::default();
+        assert_eq!(c.lr_at(0), 1e-4);
+        assert_eq!(c.lr_at(19_999), 1e-4);
+        assert!((c.lr_at(20_000) - 0.985e-4).abs() < 1e-15);
+        assert!((c.lr_at(45_000) - 1e-4 * 0.985f64.powi(2)).abs() < 1e-15);
+    }
+
+    #[test]
+    fn validation() {
+        assert!(TrainConfig::default().validate().is_ok());
+        assert!(TrainConfig { crop: 100, ..Default::default() }.validate().is_err());
+        assert!(TrainConfig { materials_per_batch: 1, ..Default::default() }.validate().is_err());
+    }
+}

@@ -1,0 +1,136 @@
+//! Loss terms of REFERENCE section 5.
+
+use super::PixelSampling;
+use crate::lpips::Lpips;
+use crate::model::Discriminator;
+use anyhow::Result;
+use tch::{Kind, Tensor};
+
+/// Flattens `[N, K, 3, H, W]` to `[N*K, 3, H, W]`.
+fn flat(t: &Tensor) -> Tensor {
+    t.flatten(0, 1)
+}
+
+/// Display transform for LPIPS with a small offset so the 1/2.2 power has a
+/// finite gradient at black. log: `[N, K, 3, H, W]` -> `[N*K, 3, H, W]` in [0,1].
+fn display_for_lpips(log: &Tensor) -> Tensor {
+    (flat(log).expm1().clamp(0.0, 1.0) + 1e-4).pow_tensor_scalar(1.0 / 2.2).clamp(0.0, 1.0)
+}
+
+/// Mean LPIPS between predicted and target log renders (0 when disabled).
+/// pred_log, target_log: `[N, K, 3, H, W]` -> scalar.
+pub fn perceptual(lpips: Option<&Lpips>, pred_log: &Tensor, target_log: &Tensor) -> Result<Tensor> {
+    match lpips {
+        Some(l) => Ok(l.distance_01(&display_for_lpips(pred_log), &display_for_lpips(&target_log.detach())).mean(Kind::Float)),
+        None => Ok(Tensor::zeros([], (Kind::Float, pred_log.device()))),
+    }
+}
+
+/// Repeats the input photo once per output render.
+/// photo_log: `[N, 3, H, W]`, k -> `[N*K, 3, H, W]`.
+fn photo_per_output(photo_log: &Tensor, k: i64) -> Tensor {
+    let s = photo_log.size();
+    photo_log.unsqueeze(1).expand([s[0], k, s[1], s[2], s[3]], false).flatten(0, 1)
+}
+
+/// The model's adversarial term |D(prediction, photo) - 1| (0 when disabled).
+/// pred_log: `[N, K, 3, H, W]`, photo_log: `[N, 3, H, W]` -> scalar.
+pub fn adversarial(disc: &Discriminator, pred_log: &Tensor, photo_log: &Tensor, weight: f64) -> Result<Tensor> {
+    if weight == 0.0 {
+        return Ok(Tensor::zeros([], (Kind::Float, pred_log.device())));
+    }
+    let k = pred_log.size()[1];
+    let score = disc.forward_t(&flat(pred_log), &photo_per_output(photo_log, k), true)?;
+    Ok((score - 1.0).abs().mean(Kind::Float))
+}
+
+/// Least-squares discriminator loss: (target, photo) -> 1, (prediction,
+/// photo) -> 0, (another material's target, photo) -> 0.
+/// pred_log, target_log: `[N, K, 3, H, W]`, photo_log: `[N, 3, H, W]`.
+pub fn discriminator_loss(disc: &Discriminator, pred_log: &Tensor, target_log: &Tensor, photo_log: &Tensor, weight: f64) -> Result<Tensor> {
+    if weight == 0.0 {
+        return Ok(Tensor::zeros([], (Kind::Float, pred_log.device())));
+    }
+    let k = pred_log.size()[1];
+    let photos = photo_per_output(photo_log, k);
+    let real = disc.forward_t(&flat(target_log), &photos, true)?;
+    let fake = disc.forward_t(&flat(pred_log), &photos, true)?;
+    // Pair each material's photo with the next material's targets.
+    let other = flat(&target_log.roll([1i64].as_slice(), [0i64].as_slice()));
+    let wrong = disc.forward_t(&other, &photos, true)?;
+    Ok((real - 1.0).square().mean(Kind::Float) + fake.square().mean(Kind::Float) + wrong.square().mean(Kind::Float))
+}
+
+/// Mean L2 norm of the neural parameter vectors. neural: `[N, C, H, W]`.
+pub fn mean_param_norm(neural: &Tensor) -> f64 {
+    neural.detach().square().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).sqrt().mean(Kind::Float).double_value(&[])
+}
+
+/// Pixel mask for the renderer's data term: `fraction` of the pixels drawn
+/// without replacement from a multinomial.
+/// neural: `[N, C, H, W]`, targets (linear): `[N, K, 3, H, W]` -> mask
+/// `[N, K or 1, 1, H, W]` of 0/1 values.
+pub fn pixel_mask(neural: &Tensor, targets: &Tensor, fraction: f64, mode: PixelSampling) -> Tensor {
+    let s = targets.size();
+    let (n, k, h, w) = (s[0], s[1], s[3], s[4]);
+    let probs = match mode {
+        PixelSampling::All => return Tensor::ones([n, 1, 1, h, w], (Kind::Float, targets.device())),
+        PixelSampling::InverseNorm => {
+            let norm = neural.detach().square().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).sqrt();
+            (norm + 1e-6).reciprocal().view([n, h * w])
+        }
+        PixelSampling::TargetNorm => {
+            targets.detach().square().sum_dim_intlist([2i64].as_slice(), false, Kind::Float).view([n * k, h * w]) + 1e-8
+        }
+    };
+    let count = ((fraction * (h * w) as f64).round() as i64).clamp(1, h * w);
+    let rows = probs.size()[0];
+    let picked = probs.multinomial(count, false);
+    let mask = Tensor::zeros([rows, h * w], (Kind::Float, targets.device())).scatter_value(1, &picked, 1.0);
+    mask.view([n, rows / n, 1, h, w])
+}
+
+/// L1 over the masked pixels only. pred, target: `[N, K, 3, H, W]`; mask broadcastable.
+pub fn masked_l1(pred: &Tensor, target: &Tensor, mask: &Tensor) -> Tensor {
+    let diff = (pred - target).abs() * mask;
+    let denom = (mask.expand_as(pred).sum(Kind::Float)).clamp_min(1.0);
+    diff.sum(Kind::Float) / denom
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::Device;
+
+    #[test]
+    fn mask_has_the_requested_fraction_and_prefers_low_norm() {
+        tch::manual_seed(0);
+        let (n, h, w) = (2i64, 16i64, 16i64);
+        // Left half: norm 1; right half: norm 100.
+        let neural = Tensor::ones([n, 4, h, w], (Kind::Float, Device::Cpu)) * 0.5;
+        let _ = neural.narrow(3, 8, 8).fill_(50.0);
+        let targets = Tensor::ones([n, 3, 3, h, w], (Kind::Float, Device::Cpu));
+        let mask = pixel_mask(&neural, &targets, 0.6, PixelSampling::InverseNorm);
+        assert_eq!(mask.size(), [n, 1, 1, h, w]);
+        let total = mask.sum(Kind::Float).double_value(&[]);
+        assert_eq!(total, (2.0 * (0.6f64 * 256.0).round()));
+        // 154 of 256 pixels: all 128 low-norm ones are taken before high-norm ones
+        // would be likely (weights 1 vs 0.01), so the left half is (almost) full.
+        let left = mask.narrow(4, 0, 8).sum(Kind::Float).double_value(&[]);
+        assert!(left >= 2.0 * 125.0, "{left}");
+        let all = pixel_mask(&neural, &targets, 0.6, PixelSampling::All);
+        assert_eq!(all.sum(Kind::Float).double_value(&[]), (n * h * w) as f64);
+        let tn = pixel_mask(&neural, &targets, 0.5, PixelSampling::TargetNorm);
+        assert_eq!(tn.size(), [n, 3, 1, h, w]);
+        assert_eq!(tn.sum(Kind::Float).double_value(&[]), (n * 3 * 128) as f64);
+    }
+
+    #[test]
+    fn masked_l1_counts_only_masked_pixels() {
+        let pred = Tensor::zeros([1, 1, 3, 2, 2], (Kind::Float, Device::Cpu));
+        let target = Tensor::from_slice(&[1.0f32, 2.0, 3.0, 4.0]).view([1, 1, 1, 2, 2]).expand([1, 1, 3, 2, 2], false);
+        let mask = Tensor::from_slice(&[1.0f32, 0.0, 0.0, 1.0]).view([1, 1, 1, 2, 2]);
+        let v = masked_l1(&pred, &target, &mask).double_value(&[]);
+        assert!((v - 2.5).abs() < 1e-6, "{v}");
+    }
+}

@@ -1,0 +1,199 @@
+//! The training loop around [`Trainer`]: run folder, progress bar, JSONL
+//! log, loss charts, preview grids, periodic and final checkpoints, resume.
+//!
+//! A run folder holds `config.json`, `checkpoint.safetensors`, `log.jsonl`,
+//! `losses.png` and `previews/step-NNNNNNN.png`.
+
+use super::batches::{batch_for_step, MaterialStream, Prefetcher};
+use super::{StepLosses, TrainConfig, Trainer};
+use crate::data::samples::TrainingBatch;
+use crate::image::Image;
+use crate::viz::{self, Series};
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+use tch::{Device, Kind, Tensor};
+
+pub fn checkpoint_path(run: &Path) -> PathBuf {
+    run.join("checkpoint.safetensors")
+}
+
+fn log_path(run: &Path) -> PathBuf {
+    run.join("log.jsonl")
+}
+
+/// Reads the JSONL log (lines that do not parse are skipped).
+pub fn read_log(run: &Path) -> Vec<StepLosses> {
+    std::fs::read_to_string(log_path(run))
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect()
+}
+
+/// Drops log lines after `step` (they will be trained again after a resume).
+fn truncate_log(run: &Path, step: u64) -> Result<()> {
+    let kept: Vec<String> = read_log(run).into_iter().filter(|l| l.step <= step).map(|l| serde_json::to_string(&l)).collect::<Result<_, _>>()?;
+    let mut text = kept.join("\n");
+    if !text.is_empty() {
+        text.push('\n');
+    }
+    crate::fsutil::atomic_write_bytes(&log_path(run), text.as_bytes())
+}
+
+/// Moving average over `window` points, for readable charts.
+fn smooth(points: &[(f64, f64)], window: usize) -> Vec<(f64, f64)> {
+    let mut out = Vec::with_capacity(points.len());
+    let mut sum = 0.0;
+    for i in 0..points.len() {
+        sum += points[i].1;
+        if i >= window {
+            sum -= points[i - window].1;
+        }
+        out.push((points[i].0, sum / (i + 1).min(window) as f64));
+    }
+    out
+}
+
+/// Writes `losses.png` from the log.
+pub fn write_charts(run: &Path) -> Result<()> {
+    let log: Vec<StepLosses> = read_log(run).into_iter().filter(|l| !l.skipped).collect();
+    if log.len() < 2 {
+        return Ok(());
+    }
+    let window = (log.len() / 50).clamp(1, 200);
+    let series = |name: &str, f: fn(&StepLosses) -> f64| Series {
+        name: name.into(),
+        points: smooth(&log.iter().map(|l| (l.step as f64, f(l))).collect::<Vec<_>>(), window),
+    };
+    let top = viz::line_chart(
+        "training losses (moving average)",
+        &[series("L1 log (M_est)", |l| l.l1), series("L1 sampled (renderer)", |l| l.l1_render), series("LPIPS", |l| l.lpips)],
+        900,
+        360,
+    )?;
+    let bottom = viz::line_chart(
+        "adversarial terms",
+        &[series("|D(pred)-1|", |l| l.adv), series("discriminator LS loss", |l| l.loss_disc)],
+        900,
+        300,
+    )?;
+    let chart = viz::grid(&[vec![top], vec![bottom]], 0)?;
+    crate::io::write_png(&run.join("losses.png"), &chart, crate::io::BitDepth::Eight)
+}
+
+/// Input | targets (top row) and neural-map norm | predictions (bottom row)
+/// for the first material of a batch.
+pub fn preview_grid(trainer: &Trainer, batch: &TrainingBatch, max_outputs: usize) -> Result<Image> {
+    let k = (batch.targets.size()[1] as usize).min(max_outputs) as i64;
+    tch::no_grad(|| -> Result<Image> {
+        let x = batch.est_input.narrow(0, 0, 1);
+        let neural = trainer.model.est.forward_t(&x, false)?;
+        let pred = trainer.model.renderer.forward_maps(&neural, &batch.out_wi.narrow(0, 0, 1).narrow(1, 0, k), &batch.out_wo.narrow(0, 0, 1).narrow(1, 0, k))?;
+        let display = |linear: &Tensor| Image::from_tensor(&crate::spaces::linear_to_display(linear));
+        let mut top = vec![display(&batch.input_linear.get(0))?];
+        let norm = neural.get(0).square().sum_dim_intlist([0i64].as_slice(), true, Kind::Float).sqrt();
+        let norm = &norm / norm.max().clamp_min(1e-8);
+        let mut bottom = vec![Image::from_tensor(&norm)?];
+        for i in 0..k {
+            top.push(display(&batch.targets.get(0).get(i))?);
+            bottom.push(display(&crate::spaces::from_log(&pred.get(0).get(i)))?);
+        }
+        viz::grid(&[top, bottom], 2)
+    })
+}
+
+/// Options of one `flashmat train` invocation.
+pub struct RunOptions {
+    pub run_dir: PathBuf,
+    pub device: Device,
+    /// Stop after this many steps in this invocation (tests, time-boxed runs).
+    pub max_steps_this_run: Option<u64>,
+    pub progress: bool,
+}
+
+/// Starts a new run (fails if the folder already holds a checkpoint).
+pub fn start(config: TrainConfig, opts: &RunOptions) -> Result<Trainer> {
+    let ckpt = checkpoint_path(&opts.run_dir);
+    if ckpt.exists() {
+        anyhow::bail!("{} already holds a run; continue it with `flashmat train --resume {}`", opts.run_dir.display(), opts.run_dir.display());
+    }
+    std::fs::create_dir_all(opts.run_dir.join("previews")).with_context(|| format!("cannot create run folder {}", opts.run_dir.display()))?;
+    crate::fsutil::atomic_write_bytes(&opts.run_dir.join("config.json"), serde_json::to_string_pretty(&config)?.as_bytes())?;
+    let _ = std::fs::remove_file(log_path(&opts.run_dir));
+    let trainer = Trainer::new(config, opts.device)?;
+    train_loop(trainer, opts)
+}
+
+/// Continues a run from its last checkpoint, optionally to a new step total.
+pub fn resume(opts: &RunOptions, steps: Option<u64>) -> Result<Trainer> {
+    let ckpt = checkpoint_path(&opts.run_dir);
+    anyhow::ensure!(ckpt.exists(), "{} holds no checkpoint to resume", opts.run_dir.display());
+    let mut trainer = Trainer::resume(&ckpt, opts.device, None)?;
+    if let Some(s) = steps {
+        trainer.config.steps = s;
+    }
+    truncate_log(&opts.run_dir, trainer.step)?;
+    train_loop(trainer, opts)
+}
+
+fn train_loop(mut trainer: Trainer, opts: &RunOptions) -> Result<Trainer> {
+    let cfg = trainer.config.clone();
+    let run = &opts.run_dir;
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        // A second handler registration (tests, repeated runs) is harmless to ignore.
+        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
+    }
+    let first = trainer.step;
+    let last = match opts.max_steps_this_run {
+        Some(n) => cfg.steps.min(first + n),
+        None => cfg.steps,
+    };
+    if first >= last {
+        return Ok(trainer);
+    }
+    let stream = MaterialStream::open(&cfg)?;
+    let prefetch = Prefetcher::start(stream, cfg.clone(), first, 4);
+    let bar = if opts.progress { ProgressBar::new(cfg.steps) } else { ProgressBar::hidden() };
+    bar.set_style(ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {per_sec}  ETA {eta}  {msg}")?);
+    bar.set_position(first);
+    let mut log = std::fs::OpenOptions::new().create(true).append(true).open(log_path(run)).with_context(|| format!("cannot write {}", log_path(run).display()))?;
+    let mut skipped = 0u64;
+    while trainer.step < last {
+        let step = trainer.step;
+        let t0 = Instant::now();
+        let materials = prefetch.next(step)?;
+        let batch = batch_for_step(&cfg, &materials, step, opts.device)?;
+        let mut losses = trainer.train_step(&batch)?;
+        losses.seconds = t0.elapsed().as_secs_f64();
+        if losses.skipped {
+            skipped += 1;
+            bar.println(format!("step {}: NaN/Inf loss or gradient, update skipped", losses.step));
+        }
+        writeln!(log, "{}", serde_json::to_string(&losses)?)?;
+        bar.set_message(format!("L1 {:.4}  LPIPS {:.3}  skipped {skipped}", losses.l1, losses.lpips));
+        bar.set_position(trainer.step);
+        let done = trainer.step;
+        if cfg.preview_every > 0 && done % cfg.preview_every == 0 {
+            let grid = preview_grid(&trainer, &batch, 4)?;
+            crate::io::write_png(&run.join("previews").join(format!("step-{done:07}.png")), &grid, crate::io::BitDepth::Eight)?;
+        }
+        if done % cfg.checkpoint_every.max(1) == 0 || done == last || stop.load(Ordering::SeqCst) {
+            log.flush()?;
+            trainer.save_checkpoint(&checkpoint_path(run))?;
+            write_charts(run)?;
+        }
+        if stop.load(Ordering::SeqCst) {
+            bar.abandon_with_message(format!("interrupted at step {done}; checkpoint saved, continue with --resume"));
+            return Ok(trainer);
+        }
+    }
+    bar.finish_with_message(format!("done at step {}", trainer.step));
+    Ok(trainer)
+}
