@@ -1,0 +1,154 @@
+//! `flashmat train` and `flashmat export`.
+
+use crate::model::ModelConfig;
+use crate::train::run::{self, RunOptions};
+use crate::train::{PixelSampling, TrainConfig, UpdateScheme};
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use std::path::PathBuf;
+use tch::Device;
+
+#[derive(Args, Debug)]
+pub struct TrainArgs {
+    /// Model size preset: paper (W=64, the paper's sizes), compact (CPU-trainable) or tiny (tests).
+    #[arg(long, default_value = "compact", conflicts_with = "model_config")]
+    pub preset: String,
+    /// A TOML file with model sizes (fields of ModelConfig; missing ones take the paper's values).
+    #[arg(long, value_name = "FILE")]
+    pub model_config: Option<PathBuf>,
+    /// Run folder (checkpoint, log, charts, previews). Required for a new run.
+    #[arg(long, value_name = "DIR", required_unless_present = "resume")]
+    pub out: Option<PathBuf>,
+    /// Continue the run in DIR from its last checkpoint.
+    #[arg(long, value_name = "DIR", conflicts_with = "out")]
+    pub resume: Option<PathBuf>,
+    /// cpu or cuda (cuda:N for a given GPU).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Train on LDR input photos (clamped to [0,1]); outputs stay HDR.
+    #[arg(long)]
+    pub ldr: bool,
+    /// Training data: `procedural` or a dataset folder (MatFusion, per-material or INRIA strips).
+    #[arg(long, default_value = "procedural")]
+    pub data: String,
+    /// Total training steps (with --resume: the new total).
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Stop after this many steps in this invocation (the run can be resumed).
+    #[arg(long)]
+    pub max_steps_now: Option<u64>,
+    /// Training crop size (multiple of 8; paper: 192 then 256).
+    #[arg(long, default_value_t = 128)]
+    pub crop: usize,
+    /// Output renders per material (paper: 8 at 192, 4 at 256).
+    #[arg(long, default_value_t = 8)]
+    pub outputs: usize,
+    /// Materials per batch.
+    #[arg(long, default_value_t = 2)]
+    pub batch: usize,
+    #[arg(long, default_value_t = 1e-4)]
+    pub lr: f64,
+    /// Pixels used by the renderer's data term.
+    #[arg(long, value_enum, default_value_t = PixelSampling::InverseNorm)]
+    pub pixel_sampling: PixelSampling,
+    /// Update scheme: the paper's alternating optimizers or one combined update.
+    #[arg(long, value_enum, default_value_t = UpdateScheme::Alternating)]
+    pub scheme: UpdateScheme,
+    /// Clip each network's global gradient norm to this value.
+    #[arg(long)]
+    pub grad_clip: Option<f64>,
+    /// Weight of the LPIPS term (paper 0.01).
+    #[arg(long, default_value_t = 0.01)]
+    pub lpips_weight: f64,
+    /// Weight of the adversarial term (paper 0.03).
+    #[arg(long, default_value_t = 0.03)]
+    pub adv_weight: f64,
+    #[arg(long, default_value_t = 250)]
+    pub checkpoint_every: u64,
+    #[arg(long, default_value_t = 250)]
+    pub preview_every: u64,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Number of CPU threads for libtorch (default: all cores).
+    #[arg(long)]
+    pub threads: Option<i32>,
+}
+
+#[derive(Args, Debug)]
+pub struct ExportArgs {
+    /// Run folder to export from.
+    #[arg(long, value_name = "DIR")]
+    pub run: PathBuf,
+    /// Output model file (.safetensors): inference weights and configuration.
+    #[arg(short, long)]
+    pub output: PathBuf,
+}
+
+/// Parses `cpu`, `cuda`, `cuda:N`; CUDA must be present.
+pub fn parse_device(s: &str) -> Result<Device> {
+    match s {
+        "cpu" => Ok(Device::Cpu),
+        "cuda" | "gpu" => {
+            if !tch::Cuda::is_available() {
+                bail!("--device cuda: no CUDA device is available (libtorch sees {} GPUs)", tch::Cuda::device_count());
+            }
+            Ok(Device::Cuda(0))
+        }
+        other => match other.strip_prefix("cuda:").and_then(|n| n.parse::<usize>().ok()) {
+            Some(n) if (n as i64) < tch::Cuda::device_count() => Ok(Device::Cuda(n)),
+            Some(n) => bail!("--device cuda:{n}: only {} CUDA device(s) available", tch::Cuda::device_count()),
+            None => bail!("--device must be cpu, cuda or cuda:N (got '{other}')"),
+        },
+    }
+}
+
+pub fn train(a: &TrainArgs) -> Result<()> {
+    if let Some(t) = a.threads {
+        tch::set_num_threads(t);
+    }
+    let device = parse_device(&a.device)?;
+    if let Some(dir) = &a.resume {
+        let opts = RunOptions { run_dir: dir.clone(), device, max_steps_this_run: a.max_steps_now, progress: true };
+        let t = run::resume(&opts, a.steps)?;
+        eprintln!("run {} at step {} of {}", dir.display(), t.step, t.config.steps);
+        return Ok(());
+    }
+    let model = match &a.model_config {
+        Some(p) => ModelConfig::from_toml_file(p)?,
+        None => ModelConfig::preset(&a.preset)?,
+    };
+    let config = TrainConfig {
+        model,
+        data: a.data.clone(),
+        crop: a.crop,
+        material_size: a.crop.max(256),
+        materials_per_batch: a.batch,
+        outputs_per_material: a.outputs,
+        ldr_input: a.ldr,
+        lr: a.lr,
+        pixel_sampling: a.pixel_sampling,
+        scheme: a.scheme,
+        grad_clip: a.grad_clip,
+        weight_lpips: a.lpips_weight,
+        weight_adv: a.adv_weight,
+        steps: a.steps.unwrap_or(TrainConfig::default().steps),
+        checkpoint_every: a.checkpoint_every,
+        preview_every: a.preview_every,
+        seed: a.seed,
+        ..Default::default()
+    };
+    let dir = a.out.clone().context("--out DIR is required for a new run")?;
+    let opts = RunOptions { run_dir: dir.clone(), device, max_steps_this_run: a.max_steps_now, progress: true };
+    let t = run::start(config, &opts)?;
+    eprintln!("run {} at step {} of {}", dir.display(), t.step, t.config.steps);
+    Ok(())
+}
+
+pub fn export(a: &ExportArgs) -> Result<()> {
+    let ckpt = run::checkpoint_path(&a.run);
+    let trainer = crate::train::Trainer::resume(&ckpt, Device::Cpu, None)?;
+    super::prepare_output(&a.output)?;
+    crate::model::export::save_model(&trainer.model, trainer.config.ldr_input, trainer.step, &a.output)?;
+    eprintln!("wrote {} (model {}, step {})", a.output.display(), trainer.model.model_id(), trainer.step);
+    Ok(())
+}
