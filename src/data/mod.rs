@@ -1,0 +1,3 @@
+//! Training and evaluation data: SVBRDF datasets on disk.
+
+pub mod loaders;
