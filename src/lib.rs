@@ -1,14 +1,15 @@
 //! flashmat: one flash photograph of a flat material in, a relightable
 //! neural material out. See docs/ARCHITECTURE.md for the pipeline.
 
+pub mod archive;
+pub mod cli;
+pub mod data;
+pub mod fsutil;
 pub mod geometry;
 pub mod image;
+pub mod io;
 pub mod lpips;
 pub mod spaces;
 pub mod svbrdf;
-pub mod data;
-pub mod archive;
-pub mod fsutil;
 pub mod train;
 pub mod viz;
-pub mod cli;

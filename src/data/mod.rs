@@ -1,1 +1,5 @@
+//! SVBRDF data: the procedural generator (the built-in dataset), loaders and
+//! writers for on-disk layouts, and training samples rendered from them.
+
+pub mod loaders;
 pub mod samples;

@@ -1,0 +1,738 @@
+//! Image files in and out, and atomic file replacement.
+//!
+//! Reading: PNG and JPEG (8 or 16 bit; values scaled to [0, 1] exactly as
+//! stored, *not* linearised) and OpenEXR (float, returned as-is). The
+//! decoder is chosen from the file's signature, so a misnamed file still
+//! reads; the extension only improves the error message for a bad file.
+//! Writing: PNG (8 or 16 bit, clamped to [0, 1]) and OpenEXR (float32).
+//! This layer never applies display transforms (gamma, log, tone mapping):
+//! callers decide the space (see `crate::spaces`).
+//!
+//! Every error is one line that names the file, and no input file, however
+//! corrupt, makes these functions panic.
+
+use crate::image::Image;
+use anyhow::{anyhow, Result};
+use std::io::{BufWriter, Cursor, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// Sample depth of a written PNG.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BitDepth {
+    Eight,
+    Sixteen,
+}
+
+/// Container format of an image file, as found from its signature.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum FileFormat {
+    Png,
+    Jpeg,
+    Exr,
+}
+
+impl FileFormat {
+    /// Whether the samples are floats in a linear space (EXR) rather than
+    /// integer codes in whatever encoding the producer used (PNG, JPEG).
+    pub(crate) fn is_float(self) -> bool {
+        self == FileFormat::Exr
+    }
+}
+
+const PNG_SIGNATURE: &[u8] = b"\x89PNG\r\n\x1a\n";
+const JPEG_SIGNATURE: &[u8] = &[0xFF, 0xD8, 0xFF];
+const EXR_SIGNATURE: &[u8] = &[0x76, 0x2F, 0x31, 0x01];
+
+/// One-line error for a file that could not be read.
+fn read_error(path: &Path, reason: impl std::fmt::Display) -> anyhow::Error {
+    // Decoder messages occasionally span lines; keep ours on one.
+    let reason = reason.to_string().replace('\n', " ");
+    anyhow!("cannot read image {}: {}", path.display(), reason)
+}
+
+fn extension_lowercase(path: &Path) -> Option<String> {
+    path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase())
+}
+
+/// Reads a PNG, JPEG or OpenEXR image as `[C, H, W]`.
+///
+/// - PNG/JPEG: 8- or 16-bit codes divided by 255 or 65535, so values are in
+///   [0, 1] and still in the file's encoding (typically gamma/sRGB).
+///   Palette images are expanded. C is 1 (gray), 2 (gray + alpha),
+///   3 (RGB) or 4 (RGBA): the channels the file has.
+/// - OpenEXR: the first layer's channels as float32, unchanged: C is 3
+///   (R, G, B), 4 (R, G, B, A), 1 (Y, or a single channel of any name)
+///   or 2 (Y, A).
+///
+/// Errors (one line, naming the file) for a missing, empty, truncated or
+/// corrupt file, an unsupported format or channel layout, and NaN/Inf
+/// samples (with the first bad pixel's location).
+pub fn read_image(path: &Path) -> Result<Image> {
+    Ok(read_image_with_format(path)?.0)
+}
+
+/// [`read_image`] that also says which container the file was.
+pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)> {
+    let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
+    if bytes.is_empty() {
+        return Err(read_error(path, "the file is empty"));
+    }
+    let format = if bytes.starts_with(PNG_SIGNATURE) {
+        FileFormat::Png
+    } else if bytes.starts_with(JPEG_SIGNATURE) {
+        FileFormat::Jpeg
+    } else if bytes.starts_with(EXR_SIGNATURE) {
+        FileFormat::Exr
+    } else {
+        return Err(match extension_lowercase(path).as_deref() {
+            Some(ext @ ("png" | "jpg" | "jpeg" | "exr")) => {
+                read_error(path, format!("not a valid .{ext} file (unrecognised signature)"))
+            }
+            _ => read_error(path, "unsupported format (expected PNG, JPEG or OpenEXR)"),
+        });
+    };
+    // The decoders are third-party code fed arbitrary bytes; turn any panic
+    // on a hostile file into an ordinary error.
+    let decoded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match format {
+        FileFormat::Png => decode_8_16(&bytes, image::ImageFormat::Png),
+        FileFormat::Jpeg => decode_8_16(&bytes, image::ImageFormat::Jpeg),
+        FileFormat::Exr => decode_exr(&bytes),
+    }))
+    .unwrap_or_else(|_| Err("the decoder crashed (corrupt file?)".to_string()));
+    let image = decoded.map_err(|reason| {
+        let kind = match format {
+            FileFormat::Png => "PNG",
+            FileFormat::Jpeg => "JPEG",
+            FileFormat::Exr => "OpenEXR",
+        };
+        read_error(path, format!("corrupt or truncated {kind} file: {reason}"))
+    })?;
+    if image.height == 0 || image.width == 0 {
+        return Err(read_error(path, "the image has no pixels"));
+    }
+    if let Some((c, y, x)) = image.find_non_finite() {
+        return Err(read_error(path, format!("NaN/Inf value at row {y}, column {x}, channel {c}")));
+    }
+    Ok((image, format))
+}
+
+/// Interleaved `[H, W, C]` samples to a planar image, scaling each sample.
+fn planar<T: Copy>(samples: &[T], channels: usize, height: usize, width: usize, scale: impl Fn(T) -> f32) -> Image {
+    let mut image = Image::new(channels, height, width);
+    let n = height * width;
+    for (i, px) in samples.chunks_exact(channels).enumerate().take(n) {
+        for (c, &v) in px.iter().enumerate() {
+            image.data[c * n + i] = scale(v);
+        }
+    }
+    image
+}
+
+/// PNG or JPEG bytes to an image in [0, 1].
+fn decode_8_16(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<Image, String> {
+    use image::DynamicImage as D;
+    let img = image::load_from_memory_with_format(bytes, format).map_err(|e| e.to_string())?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let s8 = |v: u8| v as f32 / 255.0;
+    let s16 = |v: u16| v as f32 / 65535.0;
+    Ok(match &img {
+        D::ImageLuma8(b) => planar(b.as_raw(), 1, h, w, s8),
+        D::ImageLumaA8(b) => planar(b.as_raw(), 2, h, w, s8),
+        D::ImageRgb8(b) => planar(b.as_raw(), 3, h, w, s8),
+        D::ImageRgba8(b) => planar(b.as_raw(), 4, h, w, s8),
+        D::ImageLuma16(b) => planar(b.as_raw(), 1, h, w, s16),
+        D::ImageLumaA16(b) => planar(b.as_raw(), 2, h, w, s16),
+        D::ImageRgb16(b) => planar(b.as_raw(), 3, h, w, s16),
+        D::ImageRgba16(b) => planar(b.as_raw(), 4, h, w, s16),
+        D::ImageRgb32F(b) => planar(b.as_raw(), 3, h, w, |v| v),
+        D::ImageRgba32F(b) => planar(b.as_raw(), 4, h, w, |v| v),
+        other => return Err(format!("unsupported pixel layout {:?}", other.color())),
+    })
+}
+
+/// OpenEXR bytes to an image; see [`read_image`] for the channel rules.
+fn decode_exr(bytes: &[u8]) -> std::result::Result<Image, String> {
+    use exr::prelude::{read, FlatSamples, ReadChannels, ReadLayers, Vec2};
+    // Pedantic: a truncated file is an error rather than missing blocks.
+    // Sequential: callers already load many files in parallel.
+    let exr_image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .pedantic()
+        .non_parallel()
+        .from_buffered(Cursor::new(bytes))
+        .map_err(|e| e.to_string())?;
+    let layer = &exr_image.layer_data;
+    let (w, h) = (layer.size.width(), layer.size.height());
+    let channels = &layer.channel_data.list;
+    let find = |name: &str| channels.iter().position(|c| c.name.eq(name));
+    let names: Vec<String> = channels.iter().map(|c| c.name.to_string()).collect();
+    let order: Vec<usize> = match (find("R"), find("G"), find("B"), find("A"), find("Y")) {
+        (Some(r), Some(g), Some(b), a, _) => [Some(r), Some(g), Some(b), a].into_iter().flatten().collect(),
+        (_, _, _, a, Some(y)) => [Some(y), a].into_iter().flatten().collect(),
+        _ if channels.len() == 1 => vec![0],
+        _ => return Err(format!("unsupported channels {names:?} (expected R,G,B[,A] or Y)")),
+    };
+    let mut image = crate::image::Image::new(order.len(), h, w);
+    for (c, &k) in order.iter().enumerate() {
+        let ch = &channels[k];
+        if ch.sampling != Vec2(1, 1) {
+            return Err(format!("channel {} is subsampled, which is not supported", ch.name));
+        }
+        let plane = image.plane_mut(c);
+        let n = match &ch.sample_data {
+            FlatSamples::F16(v) => v.len(),
+            FlatSamples::F32(v) => v.len(),
+            FlatSamples::U32(v) => v.len(),
+        };
+        if n != plane.len() {
+            return Err(format!("channel {} has {n} samples, expected {}", ch.name, plane.len()));
+        }
+        match &ch.sample_data {
+            FlatSamples::F16(v) => plane.iter_mut().zip(v).for_each(|(o, s)| *o = s.to_f32()),
+            FlatSamples::F32(v) => plane.copy_from_slice(v),
+            FlatSamples::U32(v) => plane.iter_mut().zip(v).for_each(|(o, &s)| *o = s as f32),
+        }
+    }
+    Ok(image)
+}
+
+/// Reads an image as 3 channels: RGB(A) keeps R, G, B (alpha dropped);
+/// gray (with or without alpha) is replicated into R, G, B. `[3, H, W]`.
+pub fn read_rgb(path: &Path) -> Result<Image> {
+    Ok(to_rgb(&read_image(path)?))
+}
+
+/// Reads an image as 1 channel, `[1, H, W]`: the file's first channel (gray,
+/// or R of an RGB image; the other channels are not checked or averaged).
+pub fn read_gray(path: &Path) -> Result<Image> {
+    Ok(first_channel(&read_image(path)?))
+}
+
+/// 3-channel view of a 1- to 4-channel image (see [`read_rgb`]).
+pub(crate) fn to_rgb(image: &Image) -> Image {
+    match image.channels {
+        1 | 2 => Image::concat_channels(&[&first_channel(image), &first_channel(image), &first_channel(image)])
+            .expect("planes of one image share their size"),
+        _ => image.channel_range(0, 3).expect("3 or more channels"),
+    }
+}
+
+/// Channel 0 as a `[1, H, W]` image.
+pub(crate) fn first_channel(image: &Image) -> Image {
+    image.channel_range(0, 1).expect("images have at least one channel")
+}
+
+/// One-line error for a file that could not be written.
+fn write_error(path: &Path, reason: impl std::fmt::Display) -> anyhow::Error {
+    let reason = reason.to_string().replace('\n', " ");
+    anyhow!("cannot write {}: {}", path.display(), reason)
+}
+
+/// Checks what every encoder needs: 1 to 4 channels, a non-empty size that
+/// fits the formats' 32-bit dimensions, and no NaN (which has no meaning in
+/// a PNG and which [`read_image`] would refuse to read back).
+fn check_writable(path: &Path, image: &Image) -> Result<()> {
+    if !(1..=4).contains(&image.channels) {
+        return Err(write_error(path, format!("{} channels, expected 1 (gray), 3 (RGB) or 4 (RGBA)", image.channels)));
+    }
+    if image.width == 0 || image.height == 0 || image.width > u32::MAX as usize || image.height > u32::MAX as usize {
+        return Err(write_error(path, format!("unsupported image size {}x{}", image.width, image.height)));
+    }
+    if image.data.len() != image.channels * image.height * image.width {
+        return Err(write_error(path, "image data does not match its shape"));
+    }
+    if let Some(i) = image.data.iter().position(|v| v.is_nan()) {
+        let n = image.height * image.width;
+        let (c, y, x) = (i / n, (i % n) / image.width, i % image.width);
+        return Err(write_error(path, format!("NaN value at row {y}, column {x}, channel {c}")));
+    }
+    Ok(())
+}
+
+/// Planar image to interleaved `[H, W, C]` samples.
+fn interleaved<T>(image: &Image, f: impl Fn(f32) -> T) -> Vec<T> {
+    let n = image.height * image.width;
+    let mut out = Vec::with_capacity(image.data.len());
+    for i in 0..n {
+        for c in 0..image.channels {
+            out.push(f(image.data[c * n + i]));
+        }
+    }
+    out
+}
+
+/// Writes a PNG of 1 (gray), 2 (gray + alpha), 3 (RGB) or 4 (RGBA)
+/// channels. Values are clamped to [0, 1] and rounded to 8- or 16-bit codes
+/// (Inf clamps; NaN is an error). The file is replaced atomically.
+pub fn write_png(path: &Path, image: &Image, bits: BitDepth) -> Result<()> {
+    use image::{DynamicImage as D, ImageBuffer};
+    check_writable(path, image)?;
+    let (w, h) = (image.width as u32, image.height as u32);
+    let dynamic = match bits {
+        BitDepth::Eight => {
+            let raw = interleaved(image, crate::spaces::quantize_u8);
+            match image.channels {
+                1 => ImageBuffer::from_raw(w, h, raw).map(D::ImageLuma8),
+                2 => ImageBuffer::from_raw(w, h, raw).map(D::ImageLumaA8),
+                3 => ImageBuffer::from_raw(w, h, raw).map(D::ImageRgb8),
+                _ => ImageBuffer::from_raw(w, h, raw).map(D::ImageRgba8),
+            }
+        }
+        BitDepth::Sixteen => {
+            let raw = interleaved(image, |v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16);
+            match image.channels {
+                1 => ImageBuffer::from_raw(w, h, raw).map(D::ImageLuma16),
+                2 => ImageBuffer::from_raw(w, h, raw).map(D::ImageLumaA16),
+                3 => ImageBuffer::from_raw(w, h, raw).map(D::ImageRgb16),
+                _ => ImageBuffer::from_raw(w, h, raw).map(D::ImageRgba16),
+            }
+        }
+    }
+    .expect("buffer length follows from the checked shape");
+    atomic_write(path, |tmp| {
+        let mut out = BufWriter::new(std::fs::File::create(tmp)?);
+        dynamic.write_to(&mut out, image::ImageFormat::Png)?;
+        // Flush explicitly: BufWriter swallows errors when dropped.
+        out.flush()?;
+        Ok(())
+    })
+}
+
+/// Writes an uncompressed-precision (float32, lossless compression) OpenEXR
+/// file: 1 channel as Y, 2 as Y, A, 3 as R, G, B, 4 as R, G, B, A. Values
+/// are stored exactly (Inf allowed, NaN an error). Replaced atomically.
+pub fn write_exr(path: &Path, image: &Image) -> Result<()> {
+    use exr::prelude::{AnyChannel, AnyChannels, Encoding, FlatSamples, Layer, LayerAttributes, SmallVec, WritableImage};
+    check_writable(path, image)?;
+    let names: &[&str] = match image.channels {
+        1 => &["Y"],
+        2 => &["Y", "A"],
+        3 => &["R", "G", "B"],
+        _ => &["R", "G", "B", "A"],
+    };
+    let list: Vec<AnyChannel<FlatSamples>> = names
+        .iter()
+        .enumerate()
+        .map(|(c, &name)| AnyChannel::new(name, FlatSamples::F32(image.plane(c).to_vec())))
+        .collect();
+    let layer = Layer::new(
+        (image.width, image.height),
+        LayerAttributes::default(),
+        Encoding::FAST_LOSSLESS,
+        AnyChannels::sort(SmallVec::from_vec(list)),
+    );
+    let exr_image = exr::image::Image::from_layer(layer);
+    atomic_write(path, |tmp| {
+        let mut out = BufWriter::new(std::fs::File::create(tmp)?);
+        exr_image.write().non_parallel().to_buffered(&mut out).map_err(|e| anyhow!("{e}"))?;
+        out.flush()?;
+        Ok(())
+    })
+}
+
+/// Writes by extension: `.png` as 8-bit PNG, `.exr` as float32 OpenEXR;
+/// any other extension is an error. No transform is applied to the values.
+pub fn write_image(path: &Path, image: &Image) -> Result<()> {
+    match extension_lowercase(path).as_deref() {
+        Some("png") => write_png(path, image, BitDepth::Eight),
+        Some("exr") => write_exr(path, image),
+        _ => Err(write_error(path, "unsupported extension (expected .png or .exr)")),
+    }
+}
+
+/// Distinguishes temp files of concurrent writes to the same path within
+/// one process (the PID alone would not).
+static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
+
+/// Removes the temporary file unless the write completed, including when
+/// the writer panics.
+struct TempGuard(Option<PathBuf>);
+
+impl Drop for TempGuard {
+    fn drop(&mut self) {
+        if let Some(p) = self.0.take() {
+            let _ = std::fs::remove_file(p);
+        }
+    }
+}
+
+/// Writes `path` all-or-nothing: `write` is called with a temporary path in
+/// the same directory (`.NAME.tmp-PID-N`), and only when it succeeds is the
+/// temporary renamed over `path`. On error (or panic) the temporary is
+/// removed and any existing file at `path` is left untouched, so an
+/// interrupted or failed write never leaves a partial file under the final
+/// name. (Same directory, so the rename is atomic on one file system. No
+/// fsync: this protects against failures of the process, not power loss.)
+///
+/// The directory must exist. Errors are one line naming `path`.
+pub fn atomic_write<F: FnOnce(&Path) -> Result<()>>(path: &Path, write: F) -> Result<()> {
+    let name = path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .ok_or_else(|| write_error(path, "not a file path"))?;
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    if !dir.is_dir() {
+        let why = if dir.exists() { "is not a directory" } else { "does not exist" };
+        return Err(write_error(path, format!("{} {why}", dir.display())));
+    }
+    let n = TEMP_COUNTER.fetch_add(1, Ordering::Relaxed);
+    let tmp = dir.join(format!(".{name}.tmp-{}-{n}", std::process::id()));
+    let mut guard = TempGuard(Some(tmp.clone()));
+    write(&tmp).map_err(|e| write_error(path, format!("{e:#}")))?;
+    if !tmp.is_file() {
+        return Err(write_error(path, "the writer produced no file"));
+    }
+    std::fs::rename(&tmp, path).map_err(|e| write_error(path, e))?;
+    guard.0 = None;
+    Ok(())
+}
+
+/// Lists `dir`'s visible entries (names not starting with '.', which skips
+/// our own temporaries), sorted by file name for determinism.
+pub(crate) fn sorted_entries(dir: &Path) -> Result<Vec<PathBuf>> {
+    let entries = std::fs::read_dir(dir).map_err(|e| anyhow!("cannot list {}: {e}", dir.display()))?;
+    let mut out = Vec::new();
+    for entry in entries {
+        let entry = entry.map_err(|e| anyhow!("cannot list {}: {e}", dir.display()))?;
+        if entry.file_name().to_str().is_some_and(|n| !n.starts_with('.')) {
+            out.push(entry.path());
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use anyhow::bail;
+
+    fn ramp(channels: usize, h: usize, w: usize) -> Image {
+        Image::from_fn(channels, h, w, |c, y, x| ((c * 37 + y * 11 + x * 5) % 97) as f32 / 96.0)
+    }
+
+    fn max_abs_diff(a: &Image, b: &Image) -> f32 {
+        assert_eq!((a.channels, a.height, a.width), (b.channels, b.height, b.width));
+        a.data.iter().zip(&b.data).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    }
+
+    fn message(e: anyhow::Error) -> String {
+        let m = format!("{e:#}");
+        assert!(!m.contains('\n'), "multi-line error: {m}");
+        m
+    }
+
+    /// A one-row 8-bit indexed PNG, assembled chunk by chunk (the image
+    /// crate cannot write palettes): zlib "stored" blocks need no deflate.
+    fn indexed_png(palette: &[[u8; 3]], row: &[u8]) -> Vec<u8> {
+        fn crc32(bytes: &[u8]) -> u32 {
+            let mut crc = !0u32;
+            for &b in bytes {
+                crc ^= b as u32;
+                for _ in 0..8 {
+                    crc = if crc & 1 != 0 { (crc >> 1) ^ 0xEDB8_8320 } else { crc >> 1 };
+                }
+            }
+            !crc
+        }
+        fn chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
+            out.extend_from_slice(&(data.len() as u32).to_be_bytes());
+            let body = [&kind[..], data].concat();
+            out.extend_from_slice(&body);
+            out.extend_from_slice(&crc32(&body).to_be_bytes());
+        }
+        let mut ihdr = Vec::new();
+        ihdr.extend_from_slice(&(row.len() as u32).to_be_bytes());
+        ihdr.extend_from_slice(&1u32.to_be_bytes());
+        ihdr.extend_from_slice(&[8, 3, 0, 0, 0]); // depth 8, indexed colour
+        let raw = [&[0u8][..], row].concat(); // filter type 0
+        let (mut a, mut b) = (1u32, 0u32);
+        for &v in &raw {
+            a = (a + v as u32) % 65521;
+            b = (b + a) % 65521;
+        }
+        let mut zlib = vec![0x78, 0x01, 1];
+        zlib.extend_from_slice(&(raw.len() as u16).to_le_bytes());
+        zlib.extend_from_slice(&(!(raw.len() as u16)).to_le_bytes());
+        zlib.extend_from_slice(&raw);
+        zlib.extend_from_slice(&((b << 16) | a).to_be_bytes());
+        let mut out = PNG_SIGNATURE.to_vec();
+        chunk(&mut out, b"IHDR", &ihdr);
+        chunk(&mut out, b"PLTE", &palette.concat());
+        chunk(&mut out, b"IDAT", &zlib);
+        chunk(&mut out, b"IEND", &[]);
+        out
+    }
+
+    fn leftovers(dir: &Path) -> Vec<String> {
+        std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.contains(".tmp-"))
+            .collect()
+    }
+
+    #[test]
+    fn png_8_bit_round_trip_all_channel_counts() {
+        let dir = tempfile::tempdir().unwrap();
+        for c in 1..=4 {
+            let im = ramp(c, 7, 9);
+            let p = dir.path().join(format!("a{c}.png"));
+            write_png(&p, &im, BitDepth::Eight).unwrap();
+            let back = read_image(&p).unwrap();
+            assert!(max_abs_diff(&im, &back) <= 0.5 / 255.0 + 1e-6, "c={c}");
+            // Values are the stored codes / 255 exactly.
+            assert_eq!(back.get(0, 3, 4) * 255.0, (im.get(0, 3, 4) * 255.0).round());
+        }
+        assert!(leftovers(dir.path()).is_empty());
+    }
+
+    #[test]
+    fn png_16_bit_round_trip_and_clamping() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut im = ramp(3, 5, 6);
+        im.set(0, 0, 0, -0.5);
+        im.set(1, 0, 0, 7.0);
+        im.set(2, 0, 0, f32::INFINITY);
+        let p = dir.path().join("a.png");
+        write_png(&p, &im, BitDepth::Sixteen).unwrap();
+        let back = read_image(&p).unwrap();
+        assert_eq!(back.pixel(0, 0), vec![0.0, 1.0, 1.0]);
+        let clamped = im.map(|v| v.clamp(0.0, 1.0));
+        assert!(max_abs_diff(&clamped, &back) <= 0.5 / 65535.0 + 1e-7);
+        // 16-bit really keeps more than 8 bits.
+        let fine = Image::filled(1, 2, 2, 1000.0 / 65535.0);
+        write_png(&p, &fine, BitDepth::Sixteen).unwrap();
+        assert!((read_image(&p).unwrap().data[0] * 65535.0 - 1000.0).abs() < 1e-2);
+    }
+
+    #[test]
+    fn exr_round_trip_is_exact() {
+        let dir = tempfile::tempdir().unwrap();
+        for c in [1, 3, 4] {
+            let im = Image::from_fn(c, 6, 5, |c, y, x| (c as f32 - 1.0) * 17.25 + y as f32 * 1e-3 - x as f32 * 123.5);
+            let p = dir.path().join(format!("a{c}.exr"));
+            write_exr(&p, &im).unwrap();
+            assert_eq!(read_image(&p).unwrap(), im, "c={c}");
+        }
+        // HDR values beyond 1 and write_image's dispatch.
+        let im = Image::filled(3, 2, 3, 1e6);
+        let p = dir.path().join("b.EXR");
+        write_image(&p, &im).unwrap();
+        assert_eq!(read_image(&p).unwrap(), im);
+    }
+
+    #[test]
+    fn jpeg_is_readable() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.jpg");
+        let (w, h) = (32u32, 16u32);
+        let buf = image::RgbImage::from_fn(w, h, |x, _| image::Rgb([200, (x * 4) as u8, 50]));
+        buf.save_with_format(&p, image::ImageFormat::Jpeg).unwrap();
+        let im = read_image(&p).unwrap();
+        assert_eq!((im.channels, im.height, im.width), (3, 16, 32));
+        let want = |c: usize, x: usize| [200.0, (x * 4) as f32, 50.0][c] / 255.0;
+        for x in [0, 10, 31] {
+            for c in 0..3 {
+                assert!((im.get(c, 8, x) - want(c, x)).abs() < 0.04, "c={c} x={x}: {}", im.get(c, 8, x));
+            }
+        }
+        let gray = image::GrayImage::from_pixel(8, 8, image::Luma([100]));
+        let g = dir.path().join("g.jpeg");
+        gray.save_with_format(&g, image::ImageFormat::Jpeg).unwrap();
+        let im = read_image(&g).unwrap();
+        assert_eq!(im.channels, 1);
+        assert!((im.data[0] - 100.0 / 255.0).abs() < 0.02);
+    }
+
+    #[test]
+    fn palette_png_is_expanded_and_format_found_by_content() {
+        let dir = tempfile::tempdir().unwrap();
+        // A 2x1 indexed PNG (palette: red, blue; pixels: blue, red).
+        let bytes = indexed_png(&[[255, 0, 0], [0, 0, 255]], &[1, 0]);
+        let p = dir.path().join("indexed.data"); // no telling extension
+        std::fs::write(&p, bytes).unwrap();
+        let im = read_image(&p).unwrap();
+        assert_eq!(im.channels, 3);
+        assert_eq!(im.pixel(0, 0), vec![0.0, 0.0, 1.0]);
+        assert_eq!(im.pixel(0, 1), vec![1.0, 0.0, 0.0]);
+    }
+
+    #[test]
+    fn rgb_and_gray_views() {
+        let dir = tempfile::tempdir().unwrap();
+        let gray = ramp(1, 3, 4);
+        let p = dir.path().join("g.png");
+        write_png(&p, &gray, BitDepth::Sixteen).unwrap();
+        let rgb = read_rgb(&p).unwrap();
+        assert_eq!(rgb.channels, 3);
+        assert_eq!(rgb.plane(0), rgb.plane(2));
+        let rgba = ramp(4, 3, 4);
+        let p = dir.path().join("c.png");
+        write_png(&p, &rgba, BitDepth::Sixteen).unwrap();
+        let rgb = read_rgb(&p).unwrap();
+        assert!(max_abs_diff(&rgb, &rgba.channel_range(0, 3).unwrap()) < 1e-4);
+        let g = read_gray(&p).unwrap();
+        assert!(max_abs_diff(&g, &rgba.channel_range(0, 1).unwrap()) < 1e-4);
+        let ga = ramp(2, 3, 4);
+        let p = dir.path().join("ga.png");
+        write_png(&p, &ga, BitDepth::Eight).unwrap();
+        assert_eq!(read_image(&p).unwrap().channels, 2);
+        assert_eq!(read_rgb(&p).unwrap().plane(1), read_gray(&p).unwrap().plane(0));
+    }
+
+    #[test]
+    fn truncated_and_garbage_files_are_errors_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let png = dir.path().join("full.png");
+        write_png(&png, &ramp(3, 64, 64), BitDepth::Eight).unwrap();
+        let exr = dir.path().join("full.exr");
+        write_exr(&exr, &ramp(3, 64, 64)).unwrap();
+        for src in [&png, &exr] {
+            let bytes = std::fs::read(src).unwrap();
+            for keep in [bytes.len() / 3, bytes.len() - 20, 12, 4] {
+                let p = dir.path().join(format!("cut{keep}_{}", src.file_name().unwrap().to_str().unwrap()));
+                std::fs::write(&p, &bytes[..keep]).unwrap();
+                let m = message(read_image(&p).unwrap_err());
+                assert!(m.contains(p.to_str().unwrap()), "{m}");
+            }
+        }
+        let garbage: Vec<u8> = (0..500u32).map(|i| (i.wrapping_mul(2654435761) >> 13) as u8).collect();
+        for name in ["junk.png", "junk.exr", "junk.bin"] {
+            let p = dir.path().join(name);
+            std::fs::write(&p, &garbage).unwrap();
+            let m = message(read_image(&p).unwrap_err());
+            assert!(m.contains(name), "{m}");
+        }
+        // A valid signature followed by garbage.
+        for sig in [PNG_SIGNATURE, JPEG_SIGNATURE, EXR_SIGNATURE] {
+            let p = dir.path().join("sig.png");
+            std::fs::write(&p, [sig, &garbage[..]].concat()).unwrap();
+            let m = message(read_image(&p).unwrap_err());
+            assert!(m.contains("sig.png") && m.contains("corrupt"), "{m}");
+        }
+        let empty = dir.path().join("empty.png");
+        std::fs::write(&empty, b"").unwrap();
+        assert!(message(read_image(&empty).unwrap_err()).contains("empty"));
+        let missing = dir.path().join("missing.png");
+        let m = message(read_rgb(&missing).unwrap_err());
+        assert!(m.contains("missing.png") && m.contains("No such file"), "{m}");
+        let m = message(read_gray(&missing).unwrap_err());
+        assert!(m.contains("missing.png"), "{m}");
+    }
+
+    #[test]
+    fn non_finite_exr_reports_first_bad_pixel() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("nan.exr");
+        let mut im = ramp(3, 4, 5);
+        im.set(1, 2, 3, f32::INFINITY);
+        im.set(2, 3, 0, f32::INFINITY);
+        write_exr(&p, &im).unwrap();
+        let m = message(read_image(&p).unwrap_err());
+        assert!(m.contains("nan.exr") && m.contains("row 2, column 3, channel 1"), "{m}");
+        assert!(message(read_rgb(&p).unwrap_err()).contains("row 2, column 3"));
+        // NaN cannot be written; craft it with the exr crate directly.
+        exr::prelude::write_rgb_file(&p, 3, 2, |x, y| (0.5f32, if (x, y) == (1, 1) { f32::NAN } else { 0.0 }, 0.25f32))
+            .unwrap();
+        let m = message(read_gray(&p).unwrap_err());
+        assert!(m.contains("NaN/Inf") && m.contains("row 1, column 1, channel 1"), "{m}");
+    }
+
+    #[test]
+    fn write_errors_are_clear() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("x.png");
+        let m = message(write_png(&p, &ramp(5, 2, 2), BitDepth::Eight).unwrap_err());
+        assert!(m.contains("x.png") && m.contains("5 channels"), "{m}");
+        let mut nan = ramp(3, 2, 2);
+        nan.set(1, 1, 0, f32::NAN);
+        assert!(message(write_exr(&p, &nan).unwrap_err()).contains("row 1, column 0, channel 1"));
+        let m = message(write_image(&dir.path().join("x.tiff"), &ramp(3, 2, 2)).unwrap_err());
+        assert!(m.contains("x.tiff") && m.contains("extension"), "{m}");
+        let m = message(write_image(&dir.path().join("no/such/dir/x.png"), &ramp(3, 2, 2)).unwrap_err());
+        assert!(m.contains("no/such/dir/x.png") && m.contains("does not exist"), "{m}");
+        // A "directory" that is a file: unwritable even for root.
+        let file = dir.path().join("plain");
+        std::fs::write(&file, b"x").unwrap();
+        let m = message(write_image(&file.join("x.exr"), &ramp(3, 2, 2)).unwrap_err());
+        assert!(m.contains("plain/x.exr") && m.contains("not a directory"), "{m}");
+        assert_eq!(leftovers(dir.path()), Vec::<String>::new());
+    }
+
+    #[test]
+    #[cfg(unix)]
+    fn unwritable_directory_is_a_clear_error() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let ro = dir.path().join("ro");
+        std::fs::create_dir(&ro).unwrap();
+        std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o555)).unwrap();
+        // Root ignores permissions; only check where they apply.
+        if std::fs::write(ro.join("probe"), b"").is_err() {
+            let m = message(write_png(&ro.join("x.png"), &ramp(1, 2, 2), BitDepth::Eight).unwrap_err());
+            assert!(m.contains("ro/x.png") && m.contains("ermission"), "{m}");
+        }
+        std::fs::set_permissions(&ro, std::fs::Permissions::from_mode(0o755)).unwrap();
+    }
+
+    #[test]
+    fn atomic_write_keeps_old_file_and_no_temp_on_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("model.bin");
+        std::fs::write(&p, b"old contents").unwrap();
+        let mut seen = PathBuf::new();
+        let err = atomic_write(&p, |tmp| {
+            seen = tmp.to_path_buf();
+            std::fs::write(tmp, b"half")?;
+            bail!("disk on fire")
+        })
+        .unwrap_err();
+        let m = message(err);
+        assert!(m.contains("model.bin") && m.contains("disk on fire"), "{m}");
+        assert_eq!(seen.parent(), Some(dir.path()));
+        assert!(seen.file_name().unwrap().to_str().unwrap().starts_with(".model.bin.tmp-"));
+        assert!(!seen.exists());
+        assert_eq!(std::fs::read(&p).unwrap(), b"old contents");
+        assert!(leftovers(dir.path()).is_empty());
+
+        // A panicking writer also leaves nothing behind.
+        let r = std::panic::catch_unwind(|| {
+            let _ = atomic_write(&p, |tmp| {
+                std::fs::write(tmp, b"partial").unwrap();
+                panic!("writer bug")
+            });
+        });
+        assert!(r.is_err());
+        assert!(leftovers(dir.path()).is_empty());
+        assert_eq!(std::fs::read(&p).unwrap(), b"old contents");
+
+        // A writer that writes nothing is an error, not an empty file.
+        assert!(atomic_write(&p, |_| Ok(())).is_err());
+        assert_eq!(std::fs::read(&p).unwrap(), b"old contents");
+
+        atomic_write(&p, |tmp| Ok(std::fs::write(tmp, b"new")?)).unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), b"new");
+        assert!(leftovers(dir.path()).is_empty());
+    }
+
+    #[test]
+    fn failed_image_write_does_not_clobber() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("keep.png");
+        write_png(&p, &ramp(3, 4, 4), BitDepth::Eight).unwrap();
+        let before = std::fs::read(&p).unwrap();
+        let mut bad = ramp(3, 4, 4);
+        bad.data[5] = f32::NAN;
+        assert!(write_png(&p, &bad, BitDepth::Eight).is_err());
+        assert_eq!(std::fs::read(&p).unwrap(), before);
+    }
+}
