@@ -86,7 +86,7 @@ impl Archive {
             .map(|(name, bytes, shape)| Ok((name.clone(), TensorView::new(Dtype::F32, shape.clone(), bytes)?)))
             .collect::<Result<_>>()?;
         let data = safetensors::tensor::serialize(views, Some(metadata)).context("serializing tensors")?;
-        crate::fsutil::atomic_write_bytes(path, &data)
+        crate::io::atomic_write_bytes(path, &data)
     }
 
     /// Reads and verifies an archive of the given format; versions other than

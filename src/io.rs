@@ -395,6 +395,11 @@ pub fn atomic_write<F: FnOnce(&Path) -> Result<()>>(path: &Path, write: F) -> Re
     Ok(())
 }
 
+/// Writes bytes atomically (see [`atomic_write`]).
+pub fn atomic_write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
+    atomic_write(path, |tmp| std::fs::write(tmp, bytes).map_err(Into::into))
+}
+
 /// Lists `dir`'s visible entries (names not starting with '.', which skips
 /// our own temporaries), sorted by file name for determinism.
 pub(crate) fn sorted_entries(dir: &Path) -> Result<Vec<PathBuf>> {

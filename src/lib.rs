@@ -4,7 +4,6 @@
 pub mod archive;
 pub mod cli;
 pub mod data;
-pub mod fsutil;
 pub mod geometry;
 pub mod image;
 pub mod io;

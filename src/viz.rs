@@ -142,7 +142,7 @@ pub fn write_gif(path: &Path, frames: &[Image], delay_cs: u16) -> Result<()> {
             enc.write_frame(&frame)?;
         }
     }
-    crate::fsutil::atomic_write_bytes(path, &bytes)
+    crate::io::atomic_write_bytes(path, &bytes)
 }
 
 #[cfg(test)]

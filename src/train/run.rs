@@ -42,7 +42,7 @@ fn truncate_log(run: &Path, step: u64) -> Result<()> {
     if !text.is_empty() {
         text.push('\n');
     }
-    crate::fsutil::atomic_write_bytes(&log_path(run), text.as_bytes())
+    crate::io::atomic_write_bytes(&log_path(run), text.as_bytes())
 }
 
 /// Moving average over `window` points, for readable charts.
@@ -123,7 +123,7 @@ pub fn start(config: TrainConfig, opts: &RunOptions) -> Result<Trainer> {
         anyhow::bail!("{} already holds a run; continue it with `flashmat train --resume {}`", opts.run_dir.display(), opts.run_dir.display());
     }
     std::fs::create_dir_all(opts.run_dir.join("previews")).with_context(|| format!("cannot create run folder {}", opts.run_dir.display()))?;
-    crate::fsutil::atomic_write_bytes(&opts.run_dir.join("config.json"), serde_json::to_string_pretty(&config)?.as_bytes())?;
+    crate::io::atomic_write_bytes(&opts.run_dir.join("config.json"), serde_json::to_string_pretty(&config)?.as_bytes())?;
     let _ = std::fs::remove_file(log_path(&opts.run_dir));
     let trainer = Trainer::new(config, opts.device)?;
     train_loop(trainer, opts)
