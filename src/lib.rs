@@ -1,6 +1,7 @@
 //! flashmat: one flash photograph of a flat material in, a relightable
 //! neural material out. See docs/ARCHITECTURE.md for the pipeline.
 
+pub mod data;
 pub mod geometry;
 pub mod image;
 pub mod spaces;
