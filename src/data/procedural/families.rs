@@ -337,19 +337,37 @@ impl Tiles {
         let depth = rng.uni(0.004, 0.02);
         let kind = rng.uni(0.0, 1.0);
         let (colour, rough, ks) = if kind < 0.35 {
-            (hsv_lin(rng.uni(0.05, 0.15), rng.uni(0.0, 0.15), rng.uni(0.75, 0.95)), rng.uni(0.03, 0.2), f0(rng, 0.04, 0.06))
+            (
+                hsv_lin(rng.uni(0.05, 0.15), rng.uni(0.0, 0.15), rng.uni(0.75, 0.95)),
+                rng.uni(0.03, 0.2),
+                f0(rng, 0.04, 0.06),
+            )
         } else if kind < 0.7 {
-            (hsv_lin(rng.uni(0.0, 1.0), rng.uni(0.25, 0.85), rng.uni(0.3, 0.85)), rng.uni(0.03, 0.3), f0(rng, 0.04, 0.06))
+            (
+                hsv_lin(rng.uni(0.0, 1.0), rng.uni(0.25, 0.85), rng.uni(0.3, 0.85)),
+                rng.uni(0.03, 0.3),
+                f0(rng, 0.04, 0.06),
+            )
         } else if kind < 0.85 {
-            (hsv_lin(rng.uni(0.0, 1.0), rng.uni(0.0, 0.3), rng.uni(0.08, 0.3)), rng.uni(0.05, 0.35), f0(rng, 0.04, 0.06))
+            (
+                hsv_lin(rng.uni(0.0, 1.0), rng.uni(0.0, 0.3), rng.uni(0.08, 0.3)),
+                rng.uni(0.05, 0.35),
+                f0(rng, 0.04, 0.06),
+            )
         } else {
             // Unglazed terracotta.
-            (hsv_lin(rng.uni(0.02, 0.08), rng.uni(0.45, 0.75), rng.uni(0.45, 0.8)), rng.uni(0.5, 0.85), f0(rng, 0.025, 0.04))
+            (
+                hsv_lin(rng.uni(0.02, 0.08), rng.uni(0.45, 0.75), rng.uni(0.45, 0.8)),
+                rng.uni(0.5, 0.85),
+                f0(rng, 0.025, 0.04),
+            )
         };
-        let colour2 = rng.chance(0.15).then(|| hsv_lin(rng.uni(0.0, 1.0), rng.uni(0.0, 0.6), {
-            let mid = rng.uni(0.2, 0.8);
-            rng.pick(&[0.1, 0.9, mid])
-        }));
+        let colour2 = rng.chance(0.15).then(|| {
+            hsv_lin(rng.uni(0.0, 1.0), rng.uni(0.0, 0.6), {
+                let mid = rng.uni(0.2, 0.8);
+                rng.pick(&[0.1, 0.9, mid])
+            })
+        });
         let wave_freq = rng.uni(1.5, 4.0);
         Self {
             seed: ctx.seed(1),
@@ -634,8 +652,7 @@ impl Pattern for Wood {
         let z = (0.02 + 0.4 * rnd(id, 2)) * self.pw * 3.0;
         let dv = lv - c;
         let f = self.ring_freq * (1.0 + self.ring_jit * srnd(id, 3));
-        let warp = self.distort
-            * fbm([lu * 1.2 + 31.0 * rnd(id, 4), lv * 6.0], self.seed ^ 0x44, 3, 0.5);
+        let warp = self.distort * fbm([lu * 1.2 + 31.0 * rnd(id, 4), lv * 6.0], self.seed ^ 0x44, 3, 0.5);
         let ring = fract(f * ((dv * dv + z * z).sqrt() - self.taper * lu) + warp);
         // Latewood: darkens towards the end of each year, sharp edge at the wrap.
         let late = smoothstep(1.0 - self.late_w, 1.0 - 0.2 * self.late_w, ring) * self.late_k;
@@ -845,7 +862,7 @@ impl RustPaint {
             thick: rng.uni(0.002, 0.008),
             rust_freq,
             rust_oct: ctx.oct(rust_freq, 5),
-            rust_amp: rng.uni(0.1, 0.4) / rust_freq,
+            rust_amp: rng.uni(0.05, 0.2) / rust_freq,
             fine_freq: ctx.cap(60.0, 0.3),
         }
     }
@@ -884,7 +901,7 @@ impl Pattern for RustPaint {
                 out.ks[c] += self.rust_ks[c] * w_rust;
             }
             out.rough += self.rust_rough * w_rust;
-            out.h += (self.rust_amp * (r + 0.15 * fine) - 0.5 * self.thick) * w_rust;
+            out.h += (self.rust_amp * (r + 0.1 * fine) - 0.5 * self.thick) * w_rust;
         }
         out
     }
@@ -1100,7 +1117,11 @@ impl Pattern for Fabric {
             let k = hash1(i.div_euclid(self.warp_stripe), self.seed) % self.ncol;
             (self.warp[k as usize], p[1], p[0], hash1(i, self.seed ^ 0x1))
         } else {
-            let k = if self.weft_stripe == i32::MAX { 0 } else { hash1(j.div_euclid(self.weft_stripe), self.seed ^ 0x2) % self.ncol };
+            let k = if self.weft_stripe == i32::MAX {
+                0
+            } else {
+                hash1(j.div_euclid(self.weft_stripe), self.seed ^ 0x2) % self.ncol
+            };
             (self.weft[k as usize], p[0], p[1], hash1(j, self.seed ^ 0x3))
         };
         // Fibres: fine noise across the thread, slow along it, with a twist.
@@ -1109,12 +1130,7 @@ impl Pattern for Fabric {
         // Gaps between threads show the shadowed interior.
         let shade = 0.35 + 0.65 * smoothstep(0.0, 0.35, hmax);
         let kd = mul(col, shade * (1.0 + self.fibre * fib) * (1.0 + self.slub * srnd(th, 1)));
-        Texel {
-            kd,
-            ks: self.ks,
-            rough: (self.rough * (1.0 + 0.1 * fib)).min(1.0),
-            h: self.amp * (hmax + 0.05 * fib),
-        }
+        Texel { kd, ks: self.ks, rough: (self.rough * (1.0 + 0.1 * fib)).min(1.0), h: self.amp * (hmax + 0.05 * fib) }
     }
 }
 
@@ -1179,8 +1195,8 @@ impl Pattern for Leather {
         let crease = 1.0 - smoothstep(0.0, self.cw, border);
         let c2 = worley([p[0] * self.fine_freq, p[1] * self.fine_freq], self.seed ^ 0x3, 1.0);
         let fine = 1.0 - smoothstep(0.0, 0.15, c2.f2 - c2.f1);
-        let h = self.bulge * smoothstep(0.0, 0.6, border) - self.depth * crease
-            - self.fine_depth * fine / self.fine_freq;
+        let h =
+            self.bulge * smoothstep(0.0, 0.6, border) - self.depth * crease - self.fine_depth * fine / self.fine_freq;
         let mot = fbm([p[0] * 0.5, p[1] * 0.5], self.seed ^ 0x4, 3, 0.5);
         let shade = lerp(1.0, self.dark, crease.max(0.5 * fine));
         Texel {
@@ -1315,17 +1331,32 @@ impl Marble {
     fn new(rng: &mut Pcg64, ctx: &Ctx) -> Self {
         let (base, vein) = match rng.random_range(0..6) {
             // Carrara: white, grey veins.
-            0 => (hsv_lin(0.1, rng.uni(0.0, 0.05), rng.uni(0.85, 0.95)), hsv_lin(0.6, rng.uni(0.0, 0.1), rng.uni(0.3, 0.6))),
+            0 => (
+                hsv_lin(0.1, rng.uni(0.0, 0.05), rng.uni(0.85, 0.95)),
+                hsv_lin(0.6, rng.uni(0.0, 0.1), rng.uni(0.3, 0.6)),
+            ),
             // Nero Marquina: black, white veins.
             1 => (hsv_lin(rng.uni(0.0, 1.0), rng.uni(0.0, 0.1), rng.uni(0.03, 0.1)), grey(rng.uni(0.6, 0.85))),
             // Verde: dark green, light veins.
-            2 => (hsv_lin(rng.uni(0.3, 0.45), rng.uni(0.3, 0.6), rng.uni(0.15, 0.35)), hsv_lin(0.35, 0.1, rng.uni(0.6, 0.9))),
+            2 => (
+                hsv_lin(rng.uni(0.3, 0.45), rng.uni(0.3, 0.6), rng.uni(0.15, 0.35)),
+                hsv_lin(0.35, 0.1, rng.uni(0.6, 0.9)),
+            ),
             // Rosso / pink.
-            3 => (hsv_lin(rng.uni(-0.02, 0.05), rng.uni(0.2, 0.45), rng.uni(0.55, 0.8)), hsv_lin(0.0, 0.5, rng.uni(0.25, 0.45))),
+            3 => (
+                hsv_lin(rng.uni(-0.02, 0.05), rng.uni(0.2, 0.45), rng.uni(0.55, 0.8)),
+                hsv_lin(0.0, 0.5, rng.uni(0.25, 0.45)),
+            ),
             // Botticino / travertine beige.
-            4 => (hsv_lin(rng.uni(0.08, 0.12), rng.uni(0.15, 0.35), rng.uni(0.65, 0.85)), hsv_lin(0.07, 0.4, rng.uni(0.3, 0.5))),
+            4 => (
+                hsv_lin(rng.uni(0.08, 0.12), rng.uni(0.15, 0.35), rng.uni(0.65, 0.85)),
+                hsv_lin(0.07, 0.4, rng.uni(0.3, 0.5)),
+            ),
             // Calacatta: white, golden veins.
-            _ => (hsv_lin(0.1, rng.uni(0.0, 0.05), rng.uni(0.85, 0.95)), hsv_lin(0.1, rng.uni(0.25, 0.45), rng.uni(0.45, 0.65))),
+            _ => (
+                hsv_lin(0.1, rng.uni(0.0, 0.05), rng.uni(0.85, 0.95)),
+                hsv_lin(0.1, rng.uni(0.25, 0.45), rng.uni(0.45, 0.65)),
+            ),
         };
         let a = rng.uni(0.0, std::f32::consts::PI);
         let warp_freq = rng.uni(0.7, 2.0);
@@ -1406,8 +1437,9 @@ impl ScratchLayer {
         let yi = floor_i(q[1]);
         let mut s = 0.0f32;
         for dy in -1..=1 {
+            let row = row_hash(yi + dy, self.seed);
             for dx in -1..=1 {
-                let h = hash2(xi + dx, yi + dy, self.seed);
+                let h = cell_hash(xi + dx, row);
                 if rnd(h, 0) >= self.prob {
                     continue;
                 }
@@ -1469,8 +1501,14 @@ impl Scratched {
         let spread = if rng.chance(0.5) { rng.uni(0.05, 0.4) } else { std::f32::consts::FRAC_PI_2 };
         let s = ctx.seed(12);
         let layers = [
-            { let f = rng.uni(2.0, 6.0); ScratchLayer::new(rng, ctx, s ^ 0x1, f, angle, spread) },
-            { let f = rng.uni(8.0, 20.0); ScratchLayer::new(rng, ctx, s ^ 0x2, f, angle, spread) },
+            {
+                let f = rng.uni(2.0, 6.0);
+                ScratchLayer::new(rng, ctx, s ^ 0x1, f, angle, spread)
+            },
+            {
+                let f = rng.uni(8.0, 20.0);
+                ScratchLayer::new(rng, ctx, s ^ 0x2, f, angle, spread)
+            },
         ];
         let dents = rng.chance(0.6).then(|| {
             let f = ctx.cap(rng.uni(1.5, 5.0), 0.05);

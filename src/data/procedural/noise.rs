@@ -1,5 +1,5 @@
 //! Hand-written, allocation-free noise for the procedural generator: integer
-//! hashing, gradient noise, fbm/turbulence and cellular (Worley) noise.
+//! hashing, gradient and value noise, fbm and cellular (Worley) noise.
 //!
 //! Everything is a pure function of the coordinates and a `u32` seed, so
 //! results never depend on threads or call order. Coordinates are "pattern
@@ -23,7 +23,20 @@ pub fn mix32(mut h: u32) -> u32 {
 /// Hash of an integer lattice point under a seed.
 #[inline(always)]
 pub fn hash2(x: i32, y: i32, seed: u32) -> u32 {
-    mix32((x as u32) ^ mix32((y as u32).wrapping_add(seed.wrapping_mul(0x9e37_79b9))))
+    cell_hash(x, row_hash(y, seed))
+}
+
+/// Row part of [`hash2`]: loops over a 3x3 neighbourhood compute it once
+/// per row.
+#[inline(always)]
+pub fn row_hash(y: i32, seed: u32) -> u32 {
+    mix32((y as u32).wrapping_add(seed.wrapping_mul(0x9e37_79b9)))
+}
+
+/// Column part of [`hash2`]: `cell_hash(x, row_hash(y, s)) == hash2(x, y, s)`.
+#[inline(always)]
+pub fn cell_hash(x: i32, row: u32) -> u32 {
+    mix32((x as u32) ^ row)
 }
 
 /// Hash of one integer under a seed.
@@ -80,12 +93,40 @@ const GRAD: [V2; 16] = {
     let mut g = [[0.0f32; 2]; 16];
     // cos/sin of (k * 22.5 + 11.25) degrees.
     let c = [
-        0.980_785_3, 0.831_469_6, 0.555_570_2, 0.195_090_3, -0.195_090_3, -0.555_570_2, -0.831_469_6, -0.980_785_3,
-        -0.980_785_3, -0.831_469_6, -0.555_570_2, -0.195_090_3, 0.195_090_3, 0.555_570_2, 0.831_469_6, 0.980_785_3,
+        0.980_785_3,
+        0.831_469_6,
+        0.555_570_2,
+        0.195_090_3,
+        -0.195_090_3,
+        -0.555_570_2,
+        -0.831_469_6,
+        -0.980_785_3,
+        -0.980_785_3,
+        -0.831_469_6,
+        -0.555_570_2,
+        -0.195_090_3,
+        0.195_090_3,
+        0.555_570_2,
+        0.831_469_6,
+        0.980_785_3,
     ];
     let s = [
-        0.195_090_3, 0.555_570_2, 0.831_469_6, 0.980_785_3, 0.980_785_3, 0.831_469_6, 0.555_570_2, 0.195_090_3,
-        -0.195_090_3, -0.555_570_2, -0.831_469_6, -0.980_785_3, -0.980_785_3, -0.831_469_6, -0.555_570_2, -0.195_090_3,
+        0.195_090_3,
+        0.555_570_2,
+        0.831_469_6,
+        0.980_785_3,
+        0.980_785_3,
+        0.831_469_6,
+        0.555_570_2,
+        0.195_090_3,
+        -0.195_090_3,
+        -0.555_570_2,
+        -0.831_469_6,
+        -0.980_785_3,
+        -0.980_785_3,
+        -0.831_469_6,
+        -0.555_570_2,
+        -0.195_090_3,
     ];
     let mut k = 0;
     while k < 16 {
@@ -180,26 +221,6 @@ pub fn fbm(p: V2, seed: u32, octaves: u32, gain: f32) -> f32 {
     }
 }
 
-/// Turbulence: fbm of |noise|, in about [0, 1]; sharp creases for veins.
-#[inline]
-pub fn turbulence(p: V2, seed: u32, octaves: u32, gain: f32) -> f32 {
-    let mut q = p;
-    let mut amp = 1.0;
-    let mut sum = 0.0;
-    let mut norm = 0.0;
-    for o in 0..octaves {
-        sum += amp * gnoise(q, seed.wrapping_add(o.wrapping_mul(0x2c1b_3c6d))).abs();
-        norm += amp;
-        amp *= gain;
-        q = next_octave(q);
-    }
-    if norm > 0.0 {
-        sum / norm
-    } else {
-        0.0
-    }
-}
-
 /// Result of a cellular-noise lookup.
 #[derive(Clone, Copy, Debug)]
 pub struct Cell {
@@ -225,12 +246,14 @@ pub fn worley(p: V2, seed: u32, jitter: f32) -> Cell {
     let mut id = 0u32;
     let mut delta = [0.0f32; 2];
     for dy in -1..=1 {
+        let cy = yi + dy;
+        let row = row_hash(cy, seed);
         for dx in -1..=1 {
             let cx = xi + dx;
-            let cy = yi + dy;
-            let h = hash2(cx, cy, seed);
-            let jx = 0.5 + jitter * (unit(h) - 0.5);
-            let jy = 0.5 + jitter * (unit(mix32(h ^ 0x27d4_eb2f)) - 0.5);
+            let h = cell_hash(cx, row);
+            // Disjoint 16-bit halves of one hash: no second mix per cell.
+            let jx = 0.5 + jitter * ((h >> 16) as f32 * (1.0 / 65_536.0) - 0.5);
+            let jy = 0.5 + jitter * ((h & 0xffff) as f32 * (1.0 / 65_536.0) - 0.5);
             let ox = p[0] - (cx as f32 + jx);
             let oy = p[1] - (cy as f32 + jy);
             let d = ox * ox + oy * oy;
@@ -299,12 +322,10 @@ mod tests {
     }
 
     #[test]
-    fn fbm_and_turbulence_ranges() {
+    fn fbm_and_value_noise_ranges() {
         for p in grid(60, 0.29) {
             let f = fbm(p, 11, 6, 0.5);
             assert!(f.abs() <= 1.0001);
-            let t = turbulence(p, 11, 5, 0.5);
-            assert!((0.0..=1.0001).contains(&t));
             assert!((0.0..=1.0).contains(&vnoise(p, 2)));
         }
         assert_eq!(octaves_for(1.0, 1.0 / 64.0, 10), 6); // 32 cycles/unit at Nyquist
@@ -321,6 +342,9 @@ mod tests {
             assert!(c.f1 <= 1.4143, "f1 {}", c.f1);
             assert!((c.delta[0].hypot(c.delta[1]) - c.f1).abs() < 1e-5);
         }
+        // The id is the cell hash (the row-hash hoisting must agree with hash2).
+        let c = worley([2.5, 3.5], 4, 0.0);
+        assert_eq!(c.id, hash2(2, 3, 4));
         // No jitter: points at cell centres.
         let c = worley([2.5, 3.5], 1, 0.0);
         assert!(c.f1 < 1e-6 && (c.f2 - 1.0).abs() < 1e-6);
