@@ -2,4 +2,5 @@
 //! writers for on-disk layouts, and training samples rendered from them.
 
 pub mod loaders;
+pub mod procedural;
 pub mod samples;
