@@ -5,6 +5,7 @@ pub mod bench;
 pub mod materials;
 pub mod train;
 
+
 use crate::geometry::{fov_to_distance, LightView, MODEL_FOV_DEG};
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -24,6 +25,10 @@ pub enum Command {
     /// Procedural and on-disk SVBRDF datasets.
     #[command(subcommand)]
     Svbrdf(SvbrdfCommand),
+    /// Train M_est, ND_enc + M_render (and the discriminator) on SVBRDF renders.
+
+    /// Write a run's inference weights (M_est, ND_enc, M_render) and configuration to one file.
+
     /// Train M_est, ND_enc + M_render (and the discriminator) on SVBRDF renders.
     Train(train::TrainArgs),
     /// Write a run's inference weights (M_est, ND_enc, M_render) and configuration to one file.
@@ -158,6 +163,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Render(a) => materials::render(&a),
         Command::Svbrdf(SvbrdfCommand::Generate(a)) => materials::generate(&a),
         Command::Svbrdf(SvbrdfCommand::Preview(a)) => materials::preview(&a),
+
         Command::Train(a) => train::train(&a),
         Command::Export(a) => train::export(&a),
         Command::Bench(b) => bench::run(&b),

@@ -85,6 +85,27 @@ pub fn render_input(maps: &Tensor, fov_deg: f64) -> Tensor {
     render_directions(maps, &wi.unsqueeze(1), &wo.unsqueeze(1)).squeeze_dim(1)
 }
 
+/// Renders each material's co-located input and its K outputs, with their
+/// direction maps, with the CPU renderer; returns (input `[N, 3, H, W]`,
+/// outputs, wi, wo `[N, K, 3, H, W]`) on `device`.
+fn render_on_cpu(materials: &[Svbrdf], configs: &[LightView], fov_deg: f64, k: usize, device: Device) -> (Tensor, Tensor, Tensor, Tensor) {
+    let (h, w) = (materials[0].height() as i64, materials[0].width() as i64);
+    let (mut inputs, mut outputs, mut wis, mut wos) = (vec![], vec![], vec![], vec![]);
+    for (i, m) in materials.iter().enumerate() {
+        let mut all = vec![LightView::colocated(fov_deg)];
+        all.extend_from_slice(&configs[i * k..(i + 1) * k]);
+        let (r, wi, wo) = crate::svbrdf::cpu::render_with_directions(m, &all);
+        let shape = [1 + k as i64, 3, h, w];
+        let r = Tensor::from_slice(&r).view(shape);
+        inputs.push(r.get(0));
+        outputs.push(r.narrow(0, 1, k as i64));
+        wis.push(Tensor::from_slice(&wi).view(shape).narrow(0, 1, k as i64));
+        wos.push(Tensor::from_slice(&wo).view(shape).narrow(0, 1, k as i64));
+    }
+    let stack = |v: &[Tensor]| Tensor::stack(v, 0).to_device(device);
+    (stack(&inputs), stack(&outputs), stack(&wis), stack(&wos))
+}
+
 /// Builds one training batch: input renders plus K sampled output renders.
 pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R, device: Device) -> Result<TrainingBatch> {
     let maps = stack_maps(materials, device)?;
@@ -94,16 +115,16 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
 
     let (in_wi, in_wo) = input_directions(h, w, cfg.fov_deg, device);
     let hz = half_vector_z(&in_wi, &in_wo).expand([n, 1, h as i64, w as i64], false);
-    let mut input_linear = render_input(&maps, cfg.fov_deg);
+    let configs = sample_configs(rng, cfg.output_sampling, (n * k) as usize, cfg.fov_deg);
+    // Input and outputs are rendered together by the f32 CPU renderer (much
+    // faster than tensor ops on a CPU), then moved to the device.
+    let (rendered_input, targets, out_wi, out_wo) = render_on_cpu(materials, &configs, cfg.fov_deg, k as usize, device);
+    let mut input_linear = rendered_input;
     if cfg.ldr_input {
         input_linear = spaces::ldr_clamp(&input_linear);
     }
     let est = est_input(&input_linear, &hz);
 
-    let configs = sample_configs(rng, cfg.output_sampling, (n * k) as usize, cfg.fov_deg);
-    let (lights, views) = config_tensors(&configs, device);
-    let (out_wi, out_wo) = direction_maps_for(&lights.view([n, k, 3]), &views.view([n, k, 3]), h, w);
-    let targets = render_directions(&maps, &out_wi, &out_wo);
     Ok(TrainingBatch { maps, input_linear, est_input: est.to_kind(Kind::Float), out_wi, out_wo, targets, configs })
 }
 

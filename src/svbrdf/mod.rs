@@ -2,6 +2,7 @@
 //! paper's renderer (REFERENCE section 2) as batched tensor ops (`render`)
 //! and as a scalar oracle (`scalar`).
 
+pub mod cpu;
 pub mod render;
 pub mod scalar;
 

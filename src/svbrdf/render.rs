@@ -3,7 +3,7 @@
 
 use crate::geometry::{direction_maps, half_vectors, pixel_positions};
 use std::f64::consts::PI;
-use tch::{Kind, Tensor};
+use tch::Tensor;
 
 const DOT_EPS: f64 = 1e-8;
 
@@ -79,7 +79,7 @@ mod tests {
     use crate::svbrdf::scalar::{self, PixelMaterial};
     use rand::{Rng, SeedableRng};
     use rand_pcg::Pcg64;
-    use tch::Device;
+    use tch::{Device, Kind};
 
     fn random_maps(rng: &mut Pcg64, n: usize, h: usize, w: usize) -> Vec<f32> {
         let mut v = vec![0f32; n * 10 * h * w];
