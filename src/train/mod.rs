@@ -224,3 +224,6 @@ impl Trainer {
         Ok(out)
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,108 @@
+//! Training tests: over-fitting, exact resume, refused checkpoints.
+
+use super::run::{self, checkpoint_path, RunOptions};
+use super::*;
+use crate::data::procedural::{self, Family};
+use crate::data::samples::{make_batch, SampleConfig};
+use crate::geometry::Sampling;
+use crate::model::ModelConfig;
+use rand::SeedableRng;
+use rand_pcg::Pcg64;
+
+fn tiny_config() -> TrainConfig {
+    TrainConfig {
+        model: ModelConfig::tiny(),
+        material_size: 64,
+        crop: 32,
+        outputs_per_material: 2,
+        steps: 6,
+        checkpoint_every: 3,
+        preview_every: 0,
+        seed: 5,
+        ..Default::default()
+    }
+}
+
+#[test]
+fn tiny_model_overfits_one_material() {
+    let cfg = TrainConfig { lr: 2e-3, weight_lpips: 0.0, weight_adv: 0.0, pixel_sampling: PixelSampling::All, ..tiny_config() };
+    let mut trainer = Trainer::new(cfg, tch::Device::Cpu).unwrap();
+    // One material (twice: the batch holds two), a fixed set of 4 configurations.
+    let m = procedural::generate_family(Family::Tiles, 3, 32);
+    let sample = SampleConfig { outputs_per_material: 4, output_sampling: Sampling::Reflect, ..Default::default() };
+    let batch = make_batch(&[m.clone(), m], &sample, &mut Pcg64::seed_from_u64(9), tch::Device::Cpu).unwrap();
+    let first = trainer.train_step(&batch).unwrap().l1;
+    let mut last = first;
+    for _ in 0..300 {
+        let l = trainer.train_step(&batch).unwrap();
+        assert!(!l.skipped);
+        last = l.l1;
+    }
+    assert!(last <= first / 5.0, "L1 went from {first} to {last}");
+}
+
+fn all_weights(t: &Trainer) -> Vec<(String, tch::Tensor)> {
+    let mut v: Vec<(String, tch::Tensor)> = t
+        .model
+        .est_vs
+        .variables()
+        .into_iter()
+        .chain(t.model.renderer_vs.variables())
+        .chain(t.disc_vs.variables())
+        .collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    v
+}
+
+#[test]
+fn interrupted_and_resumed_run_equals_straight_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let straight = RunOptions { run_dir: dir.path().join("a"), device: tch::Device::Cpu, max_steps_this_run: None, progress: false };
+    let a = run::start(tiny_config(), &straight).unwrap();
+    assert_eq!(a.step, 6);
+
+    let half = RunOptions { run_dir: dir.path().join("b"), device: tch::Device::Cpu, max_steps_this_run: Some(3), progress: false };
+    let b = run::start(tiny_config(), &half).unwrap();
+    assert_eq!(b.step, 3);
+    drop(b); // "kill": only the checkpoint survives
+    let rest = RunOptions { max_steps_this_run: None, ..half };
+    let b = run::resume(&rest, None).unwrap();
+    assert_eq!(b.step, 6);
+
+    let (wa, wb) = (all_weights(&a), all_weights(&b));
+    assert_eq!(wa.len(), wb.len());
+    let mut worst = 0f64;
+    for ((na, ta), (nb, tb)) in wa.iter().zip(&wb) {
+        assert_eq!(na, nb);
+        worst = worst.max((ta - tb).abs().max().double_value(&[]));
+    }
+    assert!(worst <= 1e-6, "weights differ by {worst}");
+    // Both logs hold steps 1..=6 exactly once.
+    let steps: Vec<u64> = run::read_log(&dir.path().join("b")).iter().map(|l| l.step).collect();
+    assert_eq!(steps, vec![1, 2, 3, 4, 5, 6]);
+    assert!(dir.path().join("b").join("losses.png").exists());
+}
+
+#[test]
+fn damaged_or_foreign_checkpoints_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let opts = RunOptions { run_dir: dir.path().join("r"), device: tch::Device::Cpu, max_steps_this_run: Some(1), progress: false };
+    run::start(TrainConfig { steps: 1, weight_lpips: 0.0, ..tiny_config() }, &opts).unwrap();
+    let ckpt = checkpoint_path(&opts.run_dir);
+    // Another preset is refused.
+    let other = TrainConfig { model: ModelConfig::compact(), ..tiny_config() };
+    let e = Trainer::resume(&ckpt, tch::Device::Cpu, Some(&other)).err().unwrap();
+    assert!(format!("{e:#}").contains("cannot be resumed"), "{e:#}");
+    // A flipped byte is refused.
+    let mut bytes = std::fs::read(&ckpt).unwrap();
+    let n = bytes.len();
+    bytes[n / 2] ^= 0x10;
+    std::fs::write(&ckpt, &bytes).unwrap();
+    let e = Trainer::resume(&ckpt, tch::Device::Cpu, None).err().unwrap();
+    assert!(format!("{e:#}").contains("checkpoint"), "{e:#}");
+    // A truncated file is refused.
+    std::fs::write(&ckpt, &bytes[..n / 3]).unwrap();
+    assert!(Trainer::resume(&ckpt, tch::Device::Cpu, None).is_err());
+    // Starting a new run over an existing one is refused.
+    assert!(run::start(tiny_config(), &opts).is_err());
+}
