@@ -3,5 +3,6 @@
 
 pub mod geometry;
 pub mod image;
+pub mod model;
 pub mod spaces;
 pub mod svbrdf;
