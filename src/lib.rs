@@ -8,6 +8,7 @@ pub mod geometry;
 pub mod image;
 pub mod io;
 pub mod lpips;
+pub mod model;
 pub mod spaces;
 pub mod svbrdf;
 pub mod train;

@@ -1,0 +1,254 @@
+//! Network sizes: the paper's, a CPU-trainable `compact` one and a `tiny`
+//! one for tests. All presets share the same architecture; only widths change.
+
+use anyhow::{bail, ensure, Context, Result};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Sizes of M_est, ND_enc, M_render and the discriminator.
+///
+/// TOML files may give any subset of the fields; missing ones take the
+/// `paper` values. `name` only labels the configuration (it is part of
+/// [`ModelConfig::model_id`]).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelConfig {
+    /// Preset name or a user label for a custom configuration.
+    pub name: String,
+    /// M_est base width W (stages W, 2W, 4W, 8W). Must be even (HA layers
+    /// split their output in halves).
+    pub est_width: i64,
+    /// Neural parameters per pixel (M_est output channels).
+    pub neural_channels: i64,
+    /// Sinusoid frequencies per direction component (k = 0..n-1).
+    pub enc_frequencies: i64,
+    /// ND_enc hidden width (two hidden layers).
+    pub enc_hidden: i64,
+    /// ND_enc output width (the compressed direction code).
+    pub enc_out: i64,
+    /// M_render width of its five 128-wide layers.
+    pub render_hidden: i64,
+    /// M_render width of its penultimate (64-wide) layer.
+    pub render_narrow: i64,
+    /// Discriminator width of its first layer (doubles three times).
+    pub disc_width: i64,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        Self::paper()
+    }
+}
+
+/// Names accepted by [`ModelConfig::preset`].
+pub const PRESETS: [&str; 3] = ["paper", "compact", "tiny"];
+
+impl ModelConfig {
+    /// The sizes of the paper and the authors' code: M_est 84,008,960
+    /// parameters, ND_enc 297 -> 594 -> 594 -> 32, M_render 96 -> 128 x5 ->
+    /// 64 -> 3. About 1.04 TFLOP for one 256x256 M_est forward.
+    pub fn paper() -> Self {
+        Self {
+            name: "paper".into(),
+            est_width: 64,
+            neural_channels: 64,
+            enc_frequencies: 16,
+            enc_hidden: 594,
+            enc_out: 32,
+            render_hidden: 128,
+            render_narrow: 64,
+            disc_width: 64,
+        }
+    }
+
+    /// Trainable on a 2-core CPU in a few hours: W = 16, ND_enc
+    /// 297 -> 128 -> 128 -> 32, M_render 96 -> 64 x5 -> 32 -> 3, discriminator
+    /// width 32 (same architecture, narrower layers).
+    ///
+    /// Cost of one training step at crop 128, 2 materials, each rendered
+    /// under 1 input + 8 output configurations (18 frames = 294,912 pixel
+    /// rows for the renderer). Forward GFLOP from [`super::est_flops`] and
+    /// [`super::renderer_flops_per_row`]:
+    ///
+    /// | part (forward)            | paper | compact |
+    /// |---------------------------|-------|---------|
+    /// | M_est, 2 photos 128x128   | 520   | 35      |
+    /// | ND_enc, 294,912 rows      | 323   | 35      |
+    /// | M_render, 294,912 rows    | 51    | 15      |
+    ///
+    /// The paper's alternating step = M_est update (M_est forward + backward,
+    /// M_render forward + input gradients) then renderer update (ND_enc and
+    /// M_render forward + backward on the detached map); with ND_enc's
+    /// output shared by both updates that is about 3x M_est + 3x ND_enc +
+    /// 5x M_render forward costs: ~2.8 TFLOP per step at paper size, ~0.28
+    /// TFLOP for `compact`. M_est at W = 16 is 16x cheaper than W = 64, and
+    /// the narrower ND_enc is 9x cheaper per row.
+    ///
+    /// Measured on the 2-core development machine (`bench_train` test, debug
+    /// build with optimised dependencies): 5.2 s per step with 2 threads
+    /// (9.2 s with 1), i.e. about 2,000 steps in 3 hours. Per-row costs are
+    /// memory-bound beyond the matmuls (encoding, activations), which is why
+    /// M_render is also narrowed: with the paper's 128-wide M_render the
+    /// step took 14.0 s instead of 9.2 s (1 thread).
+    pub fn compact() -> Self {
+        Self {
+            name: "compact".into(),
+            est_width: 16,
+            enc_hidden: 128,
+            render_hidden: 64,
+            render_narrow: 32,
+            disc_width: 32,
+            ..Self::paper()
+        }
+    }
+
+    /// For tests: the same architecture at toy widths (M_est W = 8,
+    /// 1,338,176 parameters).
+    pub fn tiny() -> Self {
+        Self {
+            name: "tiny".into(),
+            est_width: 8,
+            neural_channels: 16,
+            enc_frequencies: 16,
+            enc_hidden: 32,
+            enc_out: 8,
+            render_hidden: 16,
+            render_narrow: 8,
+            disc_width: 8,
+        }
+    }
+
+    /// A preset by name (`paper`, `compact`, `tiny`).
+    pub fn preset(name: &str) -> Result<Self> {
+        match name {
+            "paper" => Ok(Self::paper()),
+            "compact" => Ok(Self::compact()),
+            "tiny" => Ok(Self::tiny()),
+            other => bail!("unknown model preset '{other}'; available presets: {}", PRESETS.join(", ")),
+        }
+    }
+
+    /// Parses a TOML configuration; missing fields take the paper values.
+    pub fn from_toml_str(text: &str) -> Result<Self> {
+        let cfg: Self = toml::from_str(text).context("invalid model configuration TOML")?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Loads a TOML configuration file (see [`ModelConfig::from_toml_str`]).
+    pub fn from_toml_file(path: impl AsRef<Path>) -> Result<Self> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading model config {}", path.display()))?;
+        Self::from_toml_str(&text).with_context(|| format!("in model config {}", path.display()))
+    }
+
+    /// TOML text of this configuration (round-trips through `from_toml_str`).
+    pub fn to_toml_string(&self) -> Result<String> {
+        Ok(toml::to_string(self)?)
+    }
+
+    /// Checks that the sizes describe a buildable network.
+    pub fn validate(&self) -> Result<()> {
+        ensure!(
+            self.est_width >= 2 && self.est_width % 2 == 0,
+            "est_width must be an even number >= 2 (HA layers split channels in halves), got {}",
+            self.est_width
+        );
+        for (name, v) in [
+            ("neural_channels", self.neural_channels),
+            ("enc_hidden", self.enc_hidden),
+            ("enc_out", self.enc_out),
+            ("render_hidden", self.render_hidden),
+            ("render_narrow", self.render_narrow),
+            ("disc_width", self.disc_width),
+        ] {
+            ensure!(v >= 1, "{name} must be >= 1, got {v}");
+        }
+        ensure!(
+            (0..=24).contains(&self.enc_frequencies),
+            "enc_frequencies must be in 0..=24 (2^k must stay exact in f32), got {}",
+            self.enc_frequencies
+        );
+        Ok(())
+    }
+
+    /// Width of the sinusoidal direction encoding: 9 + 2 * 9 * frequencies
+    /// (297 for the paper).
+    pub fn encoding_width(&self) -> i64 {
+        9 + 18 * self.enc_frequencies
+    }
+
+    /// Stable identifier: the name and a 64-bit FNV-1a hash of every size.
+    /// Checkpoints record it so a model refuses weights of another shape.
+    pub fn model_id(&self) -> String {
+        let canonical = format!(
+            "name={};est_width={};neural_channels={};enc_frequencies={};enc_hidden={};enc_out={};render_hidden={};render_narrow={};disc_width={}",
+            self.name,
+            self.est_width,
+            self.neural_channels,
+            self.enc_frequencies,
+            self.enc_hidden,
+            self.enc_out,
+            self.render_hidden,
+            self.render_narrow,
+            self.disc_width
+        );
+        format!("{}-{:016x}", self.name, fnv1a64(canonical.as_bytes()))
+    }
+}
+
+/// FNV-1a: tiny, and stable across Rust versions (unlike `DefaultHasher`).
+fn fnv1a64(bytes: &[u8]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for &b in bytes {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_and_errors() {
+        for name in PRESETS {
+            let c = ModelConfig::preset(name).unwrap();
+            assert_eq!(c.name, name);
+            c.validate().unwrap();
+        }
+        assert_eq!(ModelConfig::paper().encoding_width(), 297);
+        let err = ModelConfig::preset("huge").unwrap_err().to_string();
+        assert!(err.contains("paper, compact, tiny"), "{err}");
+    }
+
+    #[test]
+    fn model_id_is_stable_and_distinguishes() {
+        let p = ModelConfig::paper();
+        assert_eq!(p.model_id(), ModelConfig::paper().model_id());
+        assert!(p.model_id().starts_with("paper-"));
+        assert_ne!(p.model_id(), ModelConfig::compact().model_id());
+        let mut q = p.clone();
+        q.enc_hidden = 593;
+        assert_ne!(p.model_id(), q.model_id());
+        // Pinned: changing the hash would orphan existing checkpoints.
+        assert_eq!(fnv1a64(b"a"), 0xaf63dc4c8601ec8c);
+    }
+
+    #[test]
+    fn toml_round_trip_and_partial() {
+        let c = ModelConfig::compact();
+        let text = c.to_toml_string().unwrap();
+        assert_eq!(ModelConfig::from_toml_str(&text).unwrap(), c);
+        let partial = ModelConfig::from_toml_str("name = \"mine\"\nest_width = 32\n").unwrap();
+        assert_eq!(partial.est_width, 32);
+        assert_eq!(partial.enc_hidden, 594);
+        assert!(ModelConfig::from_toml_str("est_width = 7").is_err());
+        assert!(ModelConfig::from_toml_str("bogus = 1").is_err());
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.toml");
+        std::fs::write(&path, text).unwrap();
+        assert_eq!(ModelConfig::from_toml_file(&path).unwrap(), c);
+    }
+}

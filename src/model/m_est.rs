@@ -1,0 +1,605 @@
+//! M_est: the highlight-aware U-Net mapping a photo (ln(1+RGB) and h_z) to
+//! a map of neural material parameters (REFERENCE section 4).
+//!
+//! Layout (W = `est_width`; every conv is bias-free, 3x3 and 7x7 convs use
+//! replicate padding):
+//!
+//! ```text
+//! stem   7x7 conv 4 -> W
+//! enc1   HA-res(W -> W), HA-res(W)                       full resolution
+//! enc2   HA-res(W -> 2W, stride 2, 1x1 skip), HA-res(2W)  1/2
+//! enc3   HA-res(2W -> 4W, s2), HA-res(4W)                 1/4
+//! enc4   HA-res(4W -> 8W, s2), HA-res(8W)                 1/8
+//! arctan on enc4's output (the bottleneck)
+//! dec4   Up(8W -> 8W), HA-res(8W)                         -> 1/4
+//! dec3   concat enc3 (12W), Up(12W -> 4W), HA-res(4W)     -> 1/2
+//! dec2   concat enc2 (6W),  Up(6W -> 2W),  HA-res(2W)     -> 1
+//! dec1   concat enc1 (3W),  HA-res(3W -> W, 1x1 skip), HA-res(W)
+//! head   7x7 conv W -> neural_channels, no activation
+//! ```
+//!
+//! How the published parameter counts (84,008,960 / 21,060,608 / 5,294,336 /
+//! 1,338,176 for W = 64/32/16/8) pin this down: they fit exactly
+//! 20,453 W^2 + 3,648 W with no constant term, so no layer has a bias (a
+//! head bias would add a constant 64). The encoder above gives 10,959 W^2;
+//! the remaining 9,494 W^2 is matched only when the decoder's residual blocks
+//! are highlight-aware too ("residual blocks as in the encoder") and the
+//! skip features are concatenated *before* each upsampling block, so the
+//! up-blocks read 8W, 12W and 6W channels (1,856 + 1,104 + 276 W^2 for the
+//! three up-blocks, 4,608 + 1,152 + 288 + 138 + 72 W^2 for the HA blocks).
+//! The linear term: stem 196 W + head 3,136 W + BatchNorm affine parameters
+//! (2 per channel, 149 W channels: 74 W encoder, 75 W decoder) = 3,630 W;
+//! the last 18 W are two normalisation layers the reference implementation
+//! constructs but never applies (a W-channel BatchNorm after the stem and
+//! an 8W LayerNorm at the bottleneck). They are kept as trainable but unused
+//! variables under `est.compat.*` only so that the count, and a checkpoint's
+//! variable set, match the published model; they never touch the forward
+//! pass and never receive gradients.
+
+use super::config::ModelConfig;
+use super::layers::{conv, conv_init, conv_rep, conv_t, leaky, pad_rep, per_channel, torch_default_init, Bn};
+use anyhow::{ensure, Result};
+use tch::nn::{self, Init};
+use tch::{Kind, Tensor};
+
+/// Channels of M_est's input: ln(1 + RGB) and h_z.
+pub const EST_INPUT_CHANNELS: i64 = 4;
+
+/// Slope of the LeakyReLU on the HA feature branch.
+const HA_FEAT_SLOPE: f64 = 0.1;
+
+/// Checks an M_est input `[N, 4, H, W]` with H, W positive multiples of 8.
+pub fn check_est_input(x: &Tensor) -> Result<(i64, i64)> {
+    let s = x.size();
+    ensure!(s.len() == 4, "M_est input must be [N, 4, H, W], got shape {s:?}");
+    ensure!(s[1] == EST_INPUT_CHANNELS, "M_est input must have 4 channels (ln(1+RGB), h_z), got shape {s:?}");
+    let (h, w) = (s[2], s[3]);
+    ensure!(
+        h >= 8 && w >= 8 && h % 8 == 0 && w % 8 == 0,
+        "M_est needs H and W to be positive multiples of 8 (three 2x downsamplings), got {h}x{w}"
+    );
+    Ok((h, w))
+}
+
+/// A highlight-aware layer C -> P with stride s (all 3x3, replicate padded):
+/// out = sigmoid(gate(x)) * LeakyReLU_0.1(feat(InstanceNorm(x)))
+///       + concat(incep.b(incep.a(x)), incep.c(x)).
+#[derive(Debug)]
+pub struct HaLayer {
+    /// `[P, C, 3, 3]`, stride s.
+    pub gate: Tensor,
+    /// `[P, C, 3, 3]`, stride s, applied to the instance-normalised input.
+    pub feat: Tensor,
+    /// `[P, C, 3, 3]`, stride 1.
+    pub incep_a: Tensor,
+    /// `[P/2, P, 3, 3]`, stride s, applied to incep_a's output.
+    pub incep_b: Tensor,
+    /// `[P/2, C, 3, 3]`, stride s.
+    pub incep_c: Tensor,
+    pub stride: i64,
+}
+
+impl HaLayer {
+    fn new(p: &nn::Path, cin: i64, cout: i64, stride: i64) -> Self {
+        let w = |q: nn::Path, o: i64, i: i64| q.var("weight", &[o, i, 3, 3], conv_init());
+        Self {
+            gate: w(p / "gate", cout, cin),
+            feat: w(p / "feat", cout, cin),
+            incep_a: w(p / "incep" / "a", cout, cin),
+            incep_b: w(p / "incep" / "b", cout / 2, cout),
+            incep_c: w(p / "incep" / "c", cout / 2, cin),
+            stride,
+        }
+    }
+
+    /// x: `[N, C, H, W]` -> `[N, P, H/s, W/s]`.
+    fn forward(&self, x: &Tensor) -> Tensor {
+        let s = self.stride;
+        let xp = pad_rep(x, 1);
+        let gate = conv(&xp, &self.gate, None, s).sigmoid();
+        let xn = instance_norm(x);
+        let feat = leaky(&conv_rep(&xn, &self.feat, None, s), HA_FEAT_SLOPE);
+        let a = conv(&xp, &self.incep_a, None, 1);
+        let b = conv_rep(&a, &self.incep_b, None, s);
+        let c = conv(&xp, &self.incep_c, None, s);
+        gate * feat + Tensor::cat(&[b, c], 1)
+    }
+}
+
+/// InstanceNorm without affine parameters (PyTorch's defaults, eps 1e-5).
+/// x: `[N, C, H, W]`.
+fn instance_norm(x: &Tensor) -> Tensor {
+    x.instance_norm(None::<&Tensor>, None, None, None, true, 0.1, 1e-5, true)
+}
+
+/// Projection on a residual block's identity path: 1x1 conv (stride s) + BN.
+#[derive(Debug)]
+pub struct Skip {
+    /// `[P, C, 1, 1]`.
+    pub conv: Tensor,
+    pub bn: Bn,
+}
+
+/// Residual block of two HA layers:
+/// relu(bn2(ha2(relu(bn1(ha1(x))))) + skip(x)).
+#[derive(Debug)]
+pub struct ResBlock {
+    pub ha1: HaLayer,
+    pub bn1: Bn,
+    pub ha2: HaLayer,
+    pub bn2: Bn,
+    pub skip: Option<Skip>,
+    pub stride: i64,
+}
+
+impl ResBlock {
+    fn new(p: &nn::Path, cin: i64, cout: i64, stride: i64) -> Self {
+        let skip = (cin != cout || stride != 1).then(|| Skip {
+            conv: (p / "skip" / "conv").var("weight", &[cout, cin, 1, 1], conv_init()),
+            bn: Bn::new(&(p / "skip" / "bn"), cout),
+        });
+        Self {
+            ha1: HaLayer::new(&(p / "ha1"), cin, cout, stride),
+            bn1: Bn::new(&(p / "bn1"), cout),
+            ha2: HaLayer::new(&(p / "ha2"), cout, cout, 1),
+            bn2: Bn::new(&(p / "bn2"), cout),
+            skip,
+            stride,
+        }
+    }
+
+    /// x: `[N, C, H, W]` -> `[N, P, H/s, W/s]`.
+    fn forward_t(&self, x: &Tensor, train: bool) -> Tensor {
+        let out = self.bn1.forward_t(&self.ha1.forward(x), train).relu();
+        let out = self.bn2.forward_t(&self.ha2.forward(&out), train);
+        let id = match &self.skip {
+            Some(s) => s.bn.forward_t(&conv(x, &s.conv, None, self.stride), train),
+            None => x.shallow_clone(),
+        };
+        (out + id).relu()
+    }
+}
+
+/// Residual 2x upsampling block:
+/// relu(bn2(conv3x3(relu(bn1(tconv4x4(x))))) + skip_bn(tconv2x2(x))).
+#[derive(Debug)]
+pub struct UpBlock {
+    /// `[C, P, 4, 4]`, stride 2, padding 1.
+    pub tconv: Tensor,
+    pub bn1: Bn,
+    /// `[P, P, 3, 3]`, replicate padded.
+    pub conv: Tensor,
+    pub bn2: Bn,
+    /// `[C, P, 2, 2]`, stride 2.
+    pub skip_tconv: Tensor,
+    pub skip_bn: Bn,
+}
+
+impl UpBlock {
+    fn new(p: &nn::Path, cin: i64, cout: i64) -> Self {
+        // Transposed convs keep PyTorch's default init (as in the reference).
+        Self {
+            tconv: (p / "tconv").var("weight", &[cin, cout, 4, 4], torch_default_init()),
+            bn1: Bn::new(&(p / "bn1"), cout),
+            conv: (p / "conv").var("weight", &[cout, cout, 3, 3], conv_init()),
+            bn2: Bn::new(&(p / "bn2"), cout),
+            skip_tconv: (p / "skip" / "tconv").var("weight", &[cin, cout, 2, 2], torch_default_init()),
+            skip_bn: Bn::new(&(p / "skip" / "bn"), cout),
+        }
+    }
+
+    /// x: `[N, C, H, W]` -> `[N, P, 2H, 2W]`.
+    fn forward_t(&self, x: &Tensor, train: bool) -> Tensor {
+        let out = self.bn1.forward_t(&conv_t(x, &self.tconv, None, 2, 1), train).relu();
+        let out = self.bn2.forward_t(&conv_rep(&out, &self.conv, None, 1), train);
+        let id = self.skip_bn.forward_t(&conv_t(x, &self.skip_tconv, None, 2, 0), train);
+        (out + id).relu()
+    }
+}
+
+/// One decoder stage: an optional upsampling block then residual blocks.
+#[derive(Debug)]
+pub struct DecStage {
+    pub up: Option<UpBlock>,
+    pub blocks: Vec<ResBlock>,
+}
+
+impl DecStage {
+    fn forward_t(&self, x: &Tensor, train: bool) -> Tensor {
+        let mut x = match &self.up {
+            Some(u) => u.forward_t(x, train),
+            None => x.shallow_clone(),
+        };
+        for b in &self.blocks {
+            x = b.forward_t(&x, train);
+        }
+        x
+    }
+}
+
+/// The highlight-aware U-Net.
+#[derive(Debug)]
+pub struct MEst {
+    /// `[W, 4, 7, 7]`.
+    pub stem: Tensor,
+    /// Encoder stages 1..4, two residual blocks each.
+    pub enc: Vec<Vec<ResBlock>>,
+    /// Decoder stages in execution order: dec4, dec3, dec2, dec1.
+    pub dec: Vec<DecStage>,
+    /// `[neural_channels, W, 7, 7]`.
+    pub head: Tensor,
+    pub width: i64,
+    pub out_channels: i64,
+}
+
+impl MEst {
+    /// Creates M_est's variables under `p` (conventionally `est`).
+    pub fn new(p: &nn::Path, cfg: &ModelConfig) -> Result<Self> {
+        cfg.validate()?;
+        let w = cfg.est_width;
+        let widths = [w, 2 * w, 4 * w, 8 * w];
+        let stem = (p / "stem").var("weight", &[w, EST_INPUT_CHANNELS, 7, 7], conv_init());
+        let mut enc = Vec::new();
+        let mut cin = w;
+        for (i, &c) in widths.iter().enumerate() {
+            let q = p / format!("enc{}", i + 1);
+            let stride = if i == 0 { 1 } else { 2 };
+            enc.push(vec![ResBlock::new(&(&q / 0), cin, c, stride), ResBlock::new(&(&q / 1), c, c, 1)]);
+            cin = c;
+        }
+        // Decoder: dec4, dec3, dec2 = [Up(cin -> c), HA-res(c)], where cin
+        // includes the concatenated encoder features (none at dec4);
+        // dec1 = [HA-res(3W -> W), HA-res(W)].
+        let mut dec = Vec::new();
+        for (stage, cin, c) in [(4, 8 * w, 8 * w), (3, 12 * w, 4 * w), (2, 6 * w, 2 * w)] {
+            let q = p / format!("dec{stage}");
+            dec.push(DecStage { up: Some(UpBlock::new(&(&q / "up"), cin, c)), blocks: vec![ResBlock::new(&(&q / 0), c, c, 1)] });
+        }
+        let q = p / "dec1";
+        dec.push(DecStage { up: None, blocks: vec![ResBlock::new(&(&q / 0), 3 * w, w, 1), ResBlock::new(&(&q / 1), w, w, 1)] });
+        let head = (p / "head").var("weight", &[cfg.neural_channels, w, 7, 7], conv_init());
+        // Unused, see the module docs.
+        let compat = p / "compat";
+        let _ = (&compat / "stem_bn").var("weight", &[w], Init::Const(1.0));
+        let _ = (&compat / "stem_bn").var("bias", &[w], Init::Const(0.0));
+        let _ = (&compat / "bottleneck_ln").var("weight", &[8 * w], Init::Const(1.0));
+        let _ = (&compat / "bottleneck_ln").var("bias", &[8 * w], Init::Const(0.0));
+        Ok(Self { stem, enc, dec, head, width: w, out_channels: cfg.neural_channels })
+    }
+
+    /// x: `[N, 4, H, W]` (ln(1+RGB), h_z), H and W multiples of 8 ->
+    /// neural map `[N, neural_channels, H, W]`. `train` selects BatchNorm
+    /// batch statistics (and running-stat updates) vs running statistics.
+    pub fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        let (h, w) = check_est_input(x)?;
+        let n = x.size()[0];
+        ensure!(
+            !train || n * (h / 8) * (w / 8) > 1,
+            "training-mode BatchNorm needs more than one value per channel at 1/8 resolution: use a batch of 2 or inputs larger than 8x8 (got {n} x {h}x{w})"
+        );
+        let mut h = conv_rep(x, &self.stem, None, 1);
+        let mut skips = Vec::with_capacity(4);
+        for stage in &self.enc {
+            for b in stage {
+                h = b.forward_t(&h, train);
+            }
+            skips.push(h.shallow_clone());
+        }
+        h = h.arctan();
+        for (i, st) in self.dec.iter().enumerate() {
+            if i > 0 {
+                // Before dec3/dec2/dec1: the encoder features of enc3/enc2/enc1.
+                h = Tensor::cat(&[&h, &skips[3 - i]], 1);
+            }
+            h = st.forward_t(&h, train);
+        }
+        Ok(conv_rep(&h, &self.head, None, 1))
+    }
+
+    /// Inference-only copy with every BatchNorm folded away (eval-mode
+    /// statistics) and convs sharing an input merged. See [`FoldedMEst`].
+    pub fn fold_batchnorm(&self) -> FoldedMEst {
+        tch::no_grad(|| FoldedMEst {
+            stem: self.stem.detach().copy(),
+            enc: self.enc.iter().map(|s| s.iter().map(FoldedRes::new).collect()).collect(),
+            dec: self
+                .dec
+                .iter()
+                .map(|s| FoldedDec { up: s.up.as_ref().map(FoldedUp::new), blocks: s.blocks.iter().map(FoldedRes::new).collect() })
+                .collect(),
+            head: self.head.detach().copy(),
+            channels_last: false,
+        })
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Inference with BatchNorm folded into the convolutions.
+//
+// Folded (all eval-mode BNs of the network):
+// - conv -> BN pairs: the 1x1 skip convs + BN of the encoder/decoder residual
+//   blocks, and in every up-block tconv4x4 -> bn1, conv3x3 -> bn2 and
+//   tconv2x2 -> skip BN. Weights are scaled per output channel, the shift
+//   becomes a conv bias.
+// - HA layer -> BN (bn1, bn2 of every residual block): the HA output is
+//   gate * feat + incep, so BN's y = s (gate * feat + incep) + t splits into
+//   incep' = s incep + t, folded into the two final inception convs (weights
+//   and bias, per output half), and s * feat, folded into the feat conv's
+//   weights when every s > 0 (LeakyReLU is positively homogeneous); a
+//   channel-wise multiply remains only for BNs with a non-positive scale.
+// Also, the convs reading the same padded input (gate, incep.a, incep.c at
+// stride 1; gate and incep.c at stride 2) run as one wider convolution.
+// ---------------------------------------------------------------------------
+
+/// BatchNorm-free M_est for inference; equal to `MEst::forward_t(x, false)`
+/// up to float rounding.
+#[derive(Debug)]
+pub struct FoldedMEst {
+    stem: Tensor,
+    enc: Vec<Vec<FoldedRes>>,
+    dec: Vec<FoldedDec>,
+    head: Tensor,
+    channels_last: bool,
+}
+
+#[derive(Debug)]
+struct FoldedHa {
+    /// gate (+ incep_a at stride 1) + incep_c', merged on output channels.
+    merged: Tensor,
+    merged_bias: Tensor,
+    /// incep_a on its own at stride 2 (it runs at stride 1).
+    incep_a: Option<Tensor>,
+    incep_b: Tensor,
+    incep_b_bias: Tensor,
+    feat: Tensor,
+    /// `[1, P, 1, 1]` when the BN scale could not go into `feat`.
+    feat_scale: Option<Tensor>,
+    stride: i64,
+    out: i64,
+}
+
+impl FoldedHa {
+    /// Folds `ha` followed by eval-mode `bn`.
+    fn new(ha: &HaLayer, bn: &Bn) -> Self {
+        let (s, t) = bn.eval_affine();
+        let p = ha.gate.size()[0];
+        let half = p / 2;
+        let sb = s.narrow(0, 0, half);
+        let sc = s.narrow(0, half, half);
+        let w4 = |v: &Tensor| v.view([-1, 1, 1, 1]);
+        let incep_b = ha.incep_b.detach() * w4(&sb);
+        let incep_c = ha.incep_c.detach() * w4(&sc);
+        let (feat, feat_scale) = if bool::try_from(s.gt(0.0).all()).unwrap_or(false) {
+            (ha.feat.detach() * w4(&s), None)
+        } else {
+            (ha.feat.detach().copy(), Some(per_channel(&s)))
+        };
+        let zeros = |n: i64| Tensor::zeros([n], (s.kind(), s.device()));
+        let (merged, merged_bias, incep_a) = if ha.stride == 1 {
+            (
+                Tensor::cat(&[ha.gate.detach(), ha.incep_a.detach(), incep_c], 0),
+                Tensor::cat(&[zeros(2 * p), t.narrow(0, half, half)], 0),
+                None,
+            )
+        } else {
+            (
+                Tensor::cat(&[ha.gate.detach(), incep_c], 0),
+                Tensor::cat(&[zeros(p), t.narrow(0, half, half)], 0),
+                Some(ha.incep_a.detach().copy()),
+            )
+        };
+        Self {
+            merged,
+            merged_bias,
+            incep_a,
+            incep_b,
+            incep_b_bias: t.narrow(0, 0, half).copy(),
+            feat,
+            feat_scale,
+            stride: ha.stride,
+            out: p,
+        }
+    }
+
+    /// x: `[N, C, H, W]` -> `[N, P, H/s, W/s]` = bn(ha(x)).
+    fn forward(&self, x: &Tensor) -> Tensor {
+        let (p, half, s) = (self.out, self.out / 2, self.stride);
+        let xp = pad_rep(x, 1);
+        let m = conv(&xp, &self.merged, Some(&self.merged_bias), s);
+        let gate = m.narrow(1, 0, p).sigmoid();
+        let (a, c) = match &self.incep_a {
+            None => (m.narrow(1, p, p), m.narrow(1, 2 * p, half)),
+            Some(wa) => (conv(&xp, wa, None, 1), m.narrow(1, p, half)),
+        };
+        let b = conv_rep(&a, &self.incep_b, Some(&self.incep_b_bias), s);
+        let mut feat = leaky(&conv_rep(&instance_norm(x), &self.feat, None, s), HA_FEAT_SLOPE);
+        if let Some(sc) = &self.feat_scale {
+            feat *= sc;
+        }
+        gate * feat + Tensor::cat(&[b, c], 1)
+    }
+}
+
+/// A conv (or transposed conv) with BN folded in: weight and bias.
+#[derive(Debug)]
+struct FoldedConv {
+    w: Tensor,
+    b: Tensor,
+}
+
+impl FoldedConv {
+    /// conv weight `[P, C, k, k]` followed by `bn`.
+    fn conv(w: &Tensor, bn: &Bn) -> Self {
+        let (s, t) = bn.eval_affine();
+        Self { w: w.detach() * s.view([-1, 1, 1, 1]), b: t }
+    }
+
+    /// transposed-conv weight `[C, P, k, k]` followed by `bn`.
+    fn tconv(w: &Tensor, bn: &Bn) -> Self {
+        let (s, t) = bn.eval_affine();
+        Self { w: w.detach() * s.view([1, -1, 1, 1]), b: t }
+    }
+}
+
+#[derive(Debug)]
+struct FoldedRes {
+    ha1: FoldedHa,
+    ha2: FoldedHa,
+    skip: Option<FoldedConv>,
+    stride: i64,
+}
+
+impl FoldedRes {
+    fn new(r: &ResBlock) -> Self {
+        Self {
+            ha1: FoldedHa::new(&r.ha1, &r.bn1),
+            ha2: FoldedHa::new(&r.ha2, &r.bn2),
+            skip: r.skip.as_ref().map(|s| FoldedConv::conv(&s.conv, &s.bn)),
+            stride: r.stride,
+        }
+    }
+
+    fn forward(&self, x: &Tensor) -> Tensor {
+        let out = self.ha2.forward(&self.ha1.forward(x).relu());
+        let id = match &self.skip {
+            Some(s) => conv(x, &s.w, Some(&s.b), self.stride),
+            None => x.shallow_clone(),
+        };
+        (out + id).relu()
+    }
+}
+
+#[derive(Debug)]
+struct FoldedUp {
+    tconv: FoldedConv,
+    conv: FoldedConv,
+    skip: FoldedConv,
+}
+
+impl FoldedUp {
+    fn new(u: &UpBlock) -> Self {
+        Self {
+            tconv: FoldedConv::tconv(&u.tconv, &u.bn1),
+            conv: FoldedConv::conv(&u.conv, &u.bn2),
+            skip: FoldedConv::tconv(&u.skip_tconv, &u.skip_bn),
+        }
+    }
+
+    fn forward(&self, x: &Tensor) -> Tensor {
+        let out = conv_t(x, &self.tconv.w, Some(&self.tconv.b), 2, 1).relu();
+        let out = conv_rep(&out, &self.conv.w, Some(&self.conv.b), 1);
+        let id = conv_t(x, &self.skip.w, Some(&self.skip.b), 2, 0);
+        (out + id).relu()
+    }
+}
+
+#[derive(Debug)]
+struct FoldedDec {
+    up: Option<FoldedUp>,
+    blocks: Vec<FoldedRes>,
+}
+
+impl FoldedMEst {
+    /// x: `[N, 4, H, W]`, H and W multiples of 8 -> `[N, neural_channels, H, W]`.
+    /// Runs without autograd.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        check_est_input(x)?;
+        Ok(tch::no_grad(|| {
+            let x = if self.channels_last { to_channels_last(x) } else { x.shallow_clone() };
+            let mut h = conv_rep(&x, &self.stem, None, 1);
+            let mut skips = Vec::with_capacity(4);
+            for stage in &self.enc {
+                for b in stage {
+                    h = b.forward(&h);
+                }
+                skips.push(h.shallow_clone());
+            }
+            h = h.arctan();
+            for (i, st) in self.dec.iter().enumerate() {
+                if i > 0 {
+                    h = Tensor::cat(&[&h, &skips[3 - i]], 1);
+                }
+                if let Some(u) = &st.up {
+                    h = u.forward(&h);
+                }
+                for b in &st.blocks {
+                    h = b.forward(&h);
+                }
+            }
+            conv_rep(&h, &self.head, None, 1).contiguous()
+        }))
+    }
+
+    /// Converts every weight to `kind` (e.g. Double for checks).
+    pub fn to_kind(&mut self, kind: Kind) {
+        self.map_weights(|t| t.to_kind(kind));
+    }
+
+    /// Stores 4-D weights, and runs activations, in channels-last (NHWC)
+    /// memory order. Off by default: on the 2-core development CPU it
+    /// changed the paper-size 256x256 forward by under 5% (6.3-6.6 s vs 6.6 s).
+    pub fn set_channels_last(&mut self, on: bool) {
+        self.channels_last = on;
+        self.map_weights(|t| if t.dim() == 4 { if on { to_channels_last(t) } else { t.contiguous() } } else { t.shallow_clone() });
+    }
+
+    fn map_weights(&mut self, f: impl Fn(&Tensor) -> Tensor) {
+        let g = |t: &mut Tensor| *t = f(t);
+        g(&mut self.stem);
+        g(&mut self.head);
+        let res = |r: &mut FoldedRes| {
+            for ha in [&mut r.ha1, &mut r.ha2] {
+                for t in [&mut ha.merged, &mut ha.merged_bias, &mut ha.incep_b, &mut ha.incep_b_bias, &mut ha.feat] {
+                    g(t);
+                }
+                ha.incep_a.iter_mut().chain(ha.feat_scale.iter_mut()).for_each(g);
+            }
+            if let Some(s) = r.skip.as_mut() {
+                g(&mut s.w);
+                g(&mut s.b);
+            }
+        };
+        self.enc.iter_mut().flatten().for_each(res);
+        for d in &mut self.dec {
+            d.blocks.iter_mut().for_each(res);
+            if let Some(u) = d.up.as_mut() {
+                for c in [&mut u.tconv, &mut u.conv, &mut u.skip] {
+                    g(&mut c.w);
+                    g(&mut c.b);
+                }
+            }
+        }
+    }
+}
+
+/// Same logical `[N, C, H, W]` tensor with NHWC strides.
+pub fn to_channels_last(t: &Tensor) -> Tensor {
+    t.permute([0, 2, 3, 1]).contiguous().permute([0, 3, 1, 2])
+}
+
+/// Analytic multiply-adds x 2 of one M_est forward on an h x w input
+/// (convolutions only; normalisations and activations are negligible).
+pub fn est_flops(cfg: &ModelConfig, h: i64, w: i64) -> f64 {
+    let wd = cfg.est_width as f64;
+    let px = |scale: i64| ((h / scale) * (w / scale)) as f64;
+    // HA layer C -> P producing an output of `out_px` pixels (input `in_px`).
+    let ha = |c: f64, p: f64, in_px: f64, out_px: f64| 9.0 * (2.0 * c * p + c * p / 2.0 + p * p / 2.0) * out_px + 9.0 * c * p * in_px;
+    let res = |c: f64, p: f64, in_px: f64, out_px: f64| {
+        ha(c, p, in_px, out_px) + ha(p, p, out_px, out_px) + if c != p { c * p * out_px } else { 0.0 }
+    };
+    let up = |c: f64, p: f64, out_px: f64| (16.0 * c * p / 4.0 + 9.0 * p * p + 4.0 * c * p / 4.0) * out_px;
+    let mut macs = 4.0 * 49.0 * wd * px(1) + cfg.neural_channels as f64 * 49.0 * wd * px(1);
+    let ws = [wd, 2.0 * wd, 4.0 * wd, 8.0 * wd];
+    let mut cin = wd;
+    for (i, &c) in ws.iter().enumerate() {
+        let (in_s, out_s) = if i == 0 { (1, 1) } else { (1 << (i - 1), 1 << i) };
+        macs += res(cin, c, px(in_s), px(out_s)) + res(c, c, px(out_s), px(out_s));
+        cin = c;
+    }
+    // dec4..dec2: Up(cin -> c) to scale `s`, then HA-res(c).
+    for (cin, c, s) in [(8.0 * wd, 8.0 * wd, 4), (12.0 * wd, 4.0 * wd, 2), (6.0 * wd, 2.0 * wd, 1)] {
+        macs += up(cin, c, px(s)) + res(c, c, px(s), px(s));
+    }
+    macs += res(3.0 * wd, wd, px(1), px(1)) + res(wd, wd, px(1), px(1));
+    2.0 * macs
+}

@@ -1,0 +1,393 @@
+//! The two-stage network: M_est (photo -> neural material map) and the
+//! neural renderer (ND_enc + M_render: neural params + directions ->
+//! ln(1 + radiance)), plus the training-only conditional discriminator.
+//!
+//! Variables live in separate VarStores so training can alternate
+//! optimizers: `est.*` (M_est), `renderer.*` (ND_enc and M_render) and
+//! `disc.*` (the discriminator, see [`Discriminator::with_store`]).
+//! Checkpoints ([`Model::save`]) hold `est.*` and `renderer.*` only.
+
+pub mod config;
+pub mod discriminator;
+mod layers;
+pub mod m_est;
+pub mod m_render;
+pub mod nd_enc;
+
+pub use config::{ModelConfig, PRESETS};
+pub use discriminator::Discriminator;
+pub use m_est::{est_flops, FoldedMEst, MEst};
+pub use m_render::MRender;
+pub use nd_enc::{encode_directions, NdEnc};
+
+use crate::geometry::{direction_maps, fov_to_distance, half_vectors, pixel_positions};
+use anyhow::{bail, ensure, Context, Result};
+use std::collections::HashMap;
+use std::path::Path;
+use std::time::Instant;
+use tch::{nn, Device, Kind, Tensor};
+
+/// ND_enc + M_render: the per-pixel neural BRDF.
+#[derive(Debug)]
+pub struct NeuralRenderer {
+    pub nd_enc: NdEnc,
+    pub m_render: MRender,
+}
+
+impl NeuralRenderer {
+    /// Variables `<p>.nd_enc.*` and `<p>.m_render.*` (p conventionally `renderer`).
+    pub fn new(p: &nn::Path, cfg: &ModelConfig) -> Result<Self> {
+        cfg.validate()?;
+        Ok(Self { nd_enc: NdEnc::new(&(p / "nd_enc"), cfg), m_render: MRender::new(&(p / "m_render"), cfg) })
+    }
+
+    /// Renders whole images.
+    /// neural_map: `[N, C, H, W]`; wi, wo: `[N, K, 3, H, W]` unit vectors
+    /// (towards light and camera) -> ln(1 + R) `[N, K, 3, H, W]`.
+    pub fn forward_maps(&self, neural_map: &Tensor, wi: &Tensor, wo: &Tensor) -> Result<Tensor> {
+        self.render_code(neural_map, &self.encode_maps(wi, wo)?)
+    }
+
+    /// ND_enc of whole direction maps, reusable across renders of the same
+    /// light/view configurations (e.g. by both updates of a training step).
+    /// wi, wo: `[N, K, 3, H, W]` -> direction code `[N, K, enc_out, H, W]`
+    /// (a permuted view of channels-last storage, which is what
+    /// [`NeuralRenderer::render_code`] reads without copying).
+    pub fn encode_maps(&self, wi: &Tensor, wo: &Tensor) -> Result<Tensor> {
+        let d = wi.size();
+        ensure!(d.len() == 5 && d[2] == 3, "wi must be [N, K, 3, H, W], got {d:?}");
+        ensure!(wo.size() == d, "wo {:?} must match wi {d:?}", wo.size());
+        let rows = |t: &Tensor| t.permute([0, 1, 3, 4, 2]);
+        Ok(self.nd_enc.forward(&rows(wi), &rows(wo)).permute([0, 1, 4, 2, 3]))
+    }
+
+    /// M_render of a neural map under pre-encoded directions.
+    /// neural_map: `[N, C, H, W]`; code: `[N, K, enc_out, H, W]` (from
+    /// [`NeuralRenderer::encode_maps`]) -> ln(1 + R) `[N, K, 3, H, W]`.
+    pub fn render_code(&self, neural_map: &Tensor, code: &Tensor) -> Result<Tensor> {
+        let s = neural_map.size();
+        ensure!(s.len() == 4, "neural map must be [N, C, H, W], got {s:?}");
+        let (n, c, h, w) = (s[0], s[1], s[2], s[3]);
+        ensure!(c == self.m_render.neural_channels, "neural map has {c} channels, the renderer expects {}", self.m_render.neural_channels);
+        let d = code.size();
+        let e = self.m_render.code_width();
+        ensure!(
+            d.len() == 5 && d[0] == n && d[2] == e && d[3] == h && d[4] == w,
+            "direction code must be [N, K, {e}, H, W] = [{n}, K, {e}, {h}, {w}], got {d:?}"
+        );
+        let k = d[1];
+        // Channels-last rows: params [N, 1, HW, C] broadcast against the
+        // code [N, K, HW, E] in M_render's split first layer.
+        let params = neural_map.permute([0, 2, 3, 1]).reshape([n, 1, h * w, c]);
+        let code = code.permute([0, 1, 3, 4, 2]).reshape([n, k, h * w, e]);
+        let out = self.m_render.forward(&params, &code); // [N, K, HW, 3]
+        Ok(out.view([n, k, h, w, 3]).permute([0, 1, 4, 2, 3]).contiguous())
+    }
+
+    /// Renders arbitrary rows (what a path tracer calls per shading point).
+    /// params: `[R, C]`; wi, wo: `[R, 3]` -> ln(1 + R) `[R, 3]`.
+    pub fn forward_rows(&self, params: &Tensor, wi: &Tensor, wo: &Tensor) -> Result<Tensor> {
+        let s = params.size();
+        ensure!(
+            s.len() == 2 && s[1] == self.m_render.neural_channels,
+            "params must be [R, {}], got {s:?}",
+            self.m_render.neural_channels
+        );
+        for (name, t) in [("wi", wi), ("wo", wo)] {
+            nd_enc::check_dirs(name, t)?;
+            ensure!(t.size() == [s[0], 3], "{name} must be [R, 3] = [{}, 3], got {:?}", s[0], t.size());
+        }
+        let code = self.nd_enc.forward(wi, wo);
+        Ok(self.m_render.forward(params, &code))
+    }
+}
+
+/// M_est and the neural renderer with their VarStores.
+#[derive(Debug)]
+pub struct Model {
+    pub config: ModelConfig,
+    /// Holds `est.*`.
+    pub est_vs: nn::VarStore,
+    /// Holds `renderer.*`.
+    pub renderer_vs: nn::VarStore,
+    pub est: MEst,
+    pub renderer: NeuralRenderer,
+}
+
+/// Metadata key of the checkpoint format tag.
+const FORMAT_KEY: &str = "format";
+const FORMAT: &str = "flashmat-model-v1";
+
+impl Model {
+    /// Fresh, randomly initialised networks.
+    pub fn new(config: &ModelConfig, device: Device) -> Result<Self> {
+        config.validate()?;
+        let est_vs = nn::VarStore::new(device);
+        let renderer_vs = nn::VarStore::new(device);
+        let est = MEst::new(&(est_vs.root() / "est"), config)?;
+        let renderer = NeuralRenderer::new(&(renderer_vs.root() / "renderer"), config)?;
+        Ok(Self { config: config.clone(), est_vs, renderer_vs, est, renderer })
+    }
+
+    /// See [`ModelConfig::model_id`].
+    pub fn model_id(&self) -> String {
+        self.config.model_id()
+    }
+
+    pub fn device(&self) -> Device {
+        self.est_vs.device()
+    }
+
+    /// M_est forward (autograd as the caller's context).
+    /// x: `[N, 4, H, W]` -> `[N, C, H, W]`.
+    pub fn est_forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        self.est.forward_t(x, train)
+    }
+
+    /// Inference: no autograd, eval-mode statistics folded into the
+    /// convolutions (folding costs one pass over the weights; keep a
+    /// [`FoldedMEst`] from [`MEst::fold_batchnorm`] for repeated calls).
+    /// x: `[N, 4, H, W]` -> `[N, C, H, W]`.
+    pub fn est_inference(&self, x: &Tensor) -> Result<Tensor> {
+        self.est.fold_batchnorm().forward(x)
+    }
+
+    /// Trainable parameter counts (M_est, renderer).
+    pub fn param_counts(&self) -> (i64, i64) {
+        (count_trainable(&self.est_vs), count_trainable(&self.renderer_vs))
+    }
+
+    /// Every variable of M_est and the renderer (`est.*`, `renderer.*`,
+    /// including BatchNorm running statistics), sorted by name. Shallow
+    /// copies: they share storage with the model.
+    pub fn named_variables(&self) -> Vec<(String, Tensor)> {
+        let mut named: Vec<(String, Tensor)> = self.est_vs.variables().into_iter().chain(self.renderer_vs.variables()).collect();
+        named.sort_by(|a, b| a.0.cmp(&b.0));
+        named
+    }
+
+    /// Copies values into the model by name (e.g. from an archive). Every
+    /// model variable must be present with its shape, and no other name.
+    pub fn load_named(&mut self, named: &HashMap<String, Tensor>) -> Result<()> {
+        let vars = self.named_variables();
+        for n in named.keys() {
+            ensure!(vars.iter().any(|(v, _)| v == n), "unexpected variable '{n}' for model '{}'", self.model_id());
+        }
+        for (name, mut var) in vars {
+            let src = named.get(&name).with_context(|| format!("variable '{name}' is missing"))?;
+            ensure!(src.size() == var.size(), "variable '{name}' has shape {:?}, the model expects {:?}", src.size(), var.size());
+            let src = src.to_device(var.device()).to_kind(var.kind());
+            tch::no_grad(|| var.copy_(&src));
+        }
+        Ok(())
+    }
+
+    /// Writes `est.*` and `renderer.*` (including BatchNorm running
+    /// statistics) as f32 safetensors, with the model id and configuration
+    /// in the metadata.
+    pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
+        let path = path.as_ref();
+        let named = self.named_variables();
+        let data: Vec<(String, Vec<usize>, Vec<u8>)> = named
+            .iter()
+            .map(|(name, t)| {
+                let t = t.detach().to_device(Device::Cpu).to_kind(Kind::Float).contiguous();
+                let shape: Vec<usize> = t.size().iter().map(|&d| d as usize).collect();
+                let v: Vec<f32> = Vec::try_from(t.flatten(0, -1))?;
+                Ok((name.clone(), shape, v.iter().flat_map(|x| x.to_le_bytes()).collect()))
+            })
+            .collect::<Result<_>>()?;
+        let views = data
+            .iter()
+            .map(|(name, shape, bytes)| Ok((name.as_str(), safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape.clone(), bytes)?)))
+            .collect::<Result<Vec<_>>>()?;
+        let meta = HashMap::from([
+            (FORMAT_KEY.to_string(), FORMAT.to_string()),
+            ("model_id".to_string(), self.model_id()),
+            ("config".to_string(), self.config.to_toml_string()?),
+        ]);
+        safetensors::serialize_to_file(views, Some(meta), path).with_context(|| format!("writing checkpoint {}", path.display()))?;
+        Ok(())
+    }
+
+    /// The configuration stored in a checkpoint written by [`Model::save`].
+    pub fn checkpoint_config(path: impl AsRef<Path>) -> Result<ModelConfig> {
+        let path = path.as_ref();
+        let bytes = std::fs::read(path).with_context(|| format!("reading checkpoint {}", path.display()))?;
+        let meta = checkpoint_metadata(&bytes).with_context(|| format!("in checkpoint {}", path.display()))?;
+        let text = meta.get("config").with_context(|| format!("checkpoint {} has no model configuration", path.display()))?;
+        ModelConfig::from_toml_str(text)
+    }
+
+    /// Builds the model a checkpoint describes and loads its weights.
+    pub fn from_checkpoint(path: impl AsRef<Path>, device: Device) -> Result<Self> {
+        let cfg = Self::checkpoint_config(&path)?;
+        let mut m = Self::new(&cfg, device)?;
+        m.load(path)?;
+        Ok(m)
+    }
+
+    /// Loads weights saved by [`Model::save`]. Refuses checkpoints of
+    /// another configuration (model id) and any missing, extra or
+    /// mis-shaped variable.
+    pub fn load(&mut self, path: impl AsRef<Path>) -> Result<()> {
+        let path = path.as_ref();
+        let bytes = std::fs::read(path).with_context(|| format!("reading checkpoint {}", path.display()))?;
+        let meta = checkpoint_metadata(&bytes).with_context(|| format!("in checkpoint {}", path.display()))?;
+        let id = meta.get("model_id").map(String::as_str).unwrap_or("<none>");
+        ensure!(
+            id == self.model_id(),
+            "checkpoint {} was written by model '{id}', this model is '{}' (another preset or configuration)",
+            path.display(),
+            self.model_id()
+        );
+        let st = safetensors::SafeTensors::deserialize(&bytes).with_context(|| format!("parsing checkpoint {}", path.display()))?;
+        let mut named = HashMap::new();
+        for (name, view) in st.tensors() {
+            ensure!(view.dtype() == safetensors::Dtype::F32, "variable '{name}' is {:?}, expected F32", view.dtype());
+            let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
+            let vals: Vec<f32> = view.data().chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+            named.insert(name, Tensor::from_slice(&vals).view(shape.as_slice()));
+        }
+        self.load_named(&named).with_context(|| format!("loading checkpoint {}", path.display()))
+    }
+}
+
+fn checkpoint_metadata(bytes: &[u8]) -> Result<HashMap<String, String>> {
+    let (_, meta) = safetensors::SafeTensors::read_metadata(bytes).context("not a safetensors file")?;
+    let map = meta.metadata().clone().unwrap_or_default();
+    match map.get(FORMAT_KEY) {
+        Some(f) if f == FORMAT => Ok(map),
+        Some(f) => bail!("unsupported checkpoint format '{f}' (expected {FORMAT})"),
+        None => bail!("not a flashmat model checkpoint (no '{FORMAT_KEY}' metadata)"),
+    }
+}
+
+/// Number of trainable scalars in a VarStore.
+pub fn count_trainable(vs: &nn::VarStore) -> i64 {
+    vs.trainable_variables().iter().map(|t| t.numel() as i64).sum()
+}
+
+/// M_est input from a linear photo and its h_z map.
+/// photo: `[N, 3, H, W]` linear RGB; hz: `[N or 1, 1, H, W]` -> `[N, 4, H, W]`.
+pub fn est_input(photo_linear: &Tensor, hz: &Tensor) -> Tensor {
+    let n = photo_linear.size()[0];
+    let s = hz.size();
+    Tensor::cat(&[photo_linear.log1p(), hz.expand([n, 1, s[2], s[3]], false)], 1)
+}
+
+/// h_z of the co-located input configuration (light and camera at
+/// (0, 0, 1/tan(fov/2))): `[1, 1, H, W]`.
+pub fn colocated_hz(h: usize, w: usize, fov_deg: f64, opts: (Kind, Device)) -> Tensor {
+    let pos = pixel_positions(h, w, opts);
+    let d = fov_to_distance(fov_deg);
+    let point = Tensor::from_slice(&[0.0, 0.0, d]).to_kind(opts.0).to_device(opts.1).view([1, 3]);
+    let dirs = direction_maps(&pos, &point);
+    half_vectors(&dirs, &dirs).narrow(1, 2, 1)
+}
+
+/// FLOPs per row of ND_enc + M_render.
+pub fn renderer_flops_per_row(cfg: &ModelConfig) -> f64 {
+    NdEnc::flops_per_row(cfg) + MRender::flops_per_row(cfg)
+}
+
+/// Inference timings from [`bench_infer`].
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct InferTimings {
+    pub model_id: String,
+    pub size: usize,
+    pub threads: i32,
+    pub runs: usize,
+    /// Median seconds of one M_est forward (folded BatchNorm, no autograd).
+    pub est_s: f64,
+    /// Median seconds of ND_enc + M_render for one size x size frame.
+    pub render_s: f64,
+    pub est_gflop: f64,
+    pub render_gflop: f64,
+}
+
+impl std::fmt::Display for InferTimings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} @ {}x{} ({} threads, median of {}): M_est {:.3} s ({:.1} GFLOP, {:.1} GFLOP/s); ND_enc+M_render {:.3} s/frame ({:.1} GFLOP, {:.1} GFLOP/s)",
+            self.model_id,
+            self.size,
+            self.size,
+            self.threads,
+            self.runs,
+            self.est_s,
+            self.est_gflop,
+            self.est_gflop / self.est_s,
+            self.render_s,
+            self.render_gflop,
+            self.render_gflop / self.render_s
+        )
+    }
+}
+
+fn sync(device: Device) {
+    if let Device::Cuda(i) = device {
+        tch::Cuda::synchronize(i as i64);
+    }
+}
+
+fn median_time(runs: usize, device: Device, mut f: impl FnMut() -> Result<()>) -> Result<f64> {
+    f()?; // warm-up
+    sync(device);
+    let mut times = Vec::with_capacity(runs);
+    for _ in 0..runs {
+        let t = Instant::now();
+        f()?;
+        sync(device);
+        times.push(t.elapsed().as_secs_f64());
+    }
+    times.sort_by(|a, b| a.total_cmp(b));
+    Ok(times[times.len() / 2])
+}
+
+/// Times inference of a randomly initialised model: one M_est forward of a
+/// size x size photo (folded BatchNorm, no autograd) and ND_enc + M_render
+/// for one size x size frame; medians of 3 runs after a warm-up. Uses the
+/// current `tch::get_num_threads()`.
+///
+/// Measured at 256x256 on the 2-core development machine (release build,
+/// OMP_WAIT_POLICY=PASSIVE, 2 threads; 1 thread in parentheses):
+/// paper M_est 7.4 s (12.2 s), ND_enc + M_render 1.09 s/frame (1.71 s);
+/// compact 0.73 s (0.97 s) and 0.23 s/frame (0.37 s); tiny 0.28 s and
+/// 0.18 s/frame. The authors' PyTorch M_est takes about 20 s there.
+pub fn bench_infer(cfg: &ModelConfig, size: usize, device: Device) -> Result<InferTimings> {
+    bench_infer_runs(cfg, size, device, 3)
+}
+
+/// [`bench_infer`] with a chosen number of timed runs.
+pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: usize) -> Result<InferTimings> {
+    ensure!(runs >= 1, "need at least one timed run");
+    let model = Model::new(cfg, device)?;
+    let folded = model.est.fold_batchnorm();
+    let s = size as i64;
+    let opts = (Kind::Float, device);
+    let x = Tensor::cat(&[Tensor::rand([1, 3, s, s], opts), colocated_hz(size, size, 28.0, opts)], 1);
+    let est_s = median_time(runs, device, || folded.forward(&x).map(drop))?;
+    let map = folded.forward(&x)?;
+    let dirs = |z: f32| {
+        let v = Tensor::randn([1, 1, 3, s, s], opts) * 0.3 + Tensor::from_slice(&[0.0f32, 0.0, z]).to_device(device).view([1, 1, 3, 1, 1]);
+        &v / v.square().sum_dim_intlist([2i64].as_slice(), true, Kind::Float).sqrt()
+    };
+    let (wi, wo) = (dirs(1.0), dirs(1.0));
+    let render_s = tch::no_grad(|| median_time(runs, device, || model.renderer.forward_maps(&map, &wi, &wo).map(drop)))?;
+    let px = (s * s) as f64;
+    Ok(InferTimings {
+        model_id: cfg.model_id(),
+        size,
+        threads: tch::get_num_threads(),
+        runs,
+        est_s,
+        render_s,
+        est_gflop: est_flops(cfg, s, s) / 1e9,
+        render_gflop: renderer_flops_per_row(cfg) * px / 1e9,
+    })
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,392 @@
+use super::*;
+use std::time::Instant;
+
+fn est_params(width: i64) -> i64 {
+    let cfg = ModelConfig { est_width: width, ..ModelConfig::paper() };
+    let vs = nn::VarStore::new(Device::Cpu);
+    MEst::new(&(vs.root() / "est"), &cfg).unwrap();
+    count_trainable(&vs)
+}
+
+#[test]
+fn m_est_parameter_counts() {
+    assert_eq!(est_params(8), 1_338_176);
+    assert_eq!(est_params(16), 5_294_336);
+    assert_eq!(est_params(32), 21_060_608);
+    assert_eq!(est_params(64), 84_008_960);
+}
+
+#[test]
+fn renderer_parameter_counts() {
+    let vs = nn::VarStore::new(Device::Cpu);
+    let r = NeuralRenderer::new(&(vs.root() / "renderer"), &ModelConfig::paper()).unwrap();
+    assert_eq!(count_trainable(&vs), 548_262 + 86_208);
+    assert_eq!(r.nd_enc.layers.iter().map(|t| t.numel()).sum::<usize>(), 548_262);
+    assert_eq!(r.m_render.layers.iter().map(|t| t.numel()).sum::<usize>(), 86_208);
+}
+
+#[test]
+fn variable_names_are_hierarchical() {
+    let m = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+    let est = m.est_vs.variables();
+    for name in [
+        "est.stem.weight",
+        "est.enc1.0.ha1.gate.weight",
+        "est.enc1.0.ha1.feat.weight",
+        "est.enc1.0.ha1.incep.a.weight",
+        "est.enc2.0.skip.conv.weight",
+        "est.enc2.0.skip.bn.running_var",
+        "est.enc4.1.bn2.weight",
+        "est.dec4.up.tconv.weight",
+        "est.dec3.up.skip.tconv.weight",
+        "est.dec2.0.ha2.incep.c.weight",
+        "est.dec1.0.skip.conv.weight",
+        "est.dec1.1.ha1.gate.weight",
+        "est.head.weight",
+        "est.compat.stem_bn.weight",
+    ] {
+        assert!(est.contains_key(name), "missing {name}");
+    }
+    let ren = m.renderer_vs.variables();
+    for name in ["renderer.nd_enc.0.weight", "renderer.nd_enc.2.weight", "renderer.m_render.0.weight", "renderer.m_render.6.weight"] {
+        assert!(ren.contains_key(name), "missing {name}");
+    }
+    assert!(est.keys().all(|k| k.starts_with("est.")) && ren.keys().all(|k| k.starts_with("renderer.")));
+    // dec3's up-block reads the concat of dec4 (8W) and enc3 (4W).
+    assert_eq!(est["est.dec3.up.tconv.weight"].size(), [96, 32, 4, 4]);
+    assert_eq!(est["est.dec1.0.ha1.gate.weight"].size(), [8, 24, 3, 3]);
+}
+
+#[test]
+fn m_est_shapes_and_size_errors() {
+    let cfg = ModelConfig::tiny();
+    let m = Model::new(&cfg, Device::Cpu).unwrap();
+    for (h, w) in [(16, 24), (40, 8), (8, 8)] {
+        let x = Tensor::randn([2, 4, h, w], (Kind::Float, Device::Cpu));
+        let y = m.est_forward_t(&x, true).unwrap();
+        assert_eq!(y.size(), [2, cfg.neural_channels, h, w]);
+        let y = m.est_inference(&x).unwrap();
+        assert_eq!(y.size(), [2, cfg.neural_channels, h, w]);
+    }
+    let bad = Tensor::zeros([1, 4, 20, 20], (Kind::Float, Device::Cpu));
+    let err = m.est_forward_t(&bad, false).unwrap_err().to_string();
+    assert!(err.contains("multiples of 8") && err.contains("20x20"), "{err}");
+    assert!(m.est_inference(&bad).is_err());
+    let bad = Tensor::zeros([1, 3, 16, 16], (Kind::Float, Device::Cpu));
+    assert!(m.est_forward_t(&bad, false).unwrap_err().to_string().contains("4 channels"));
+    // A single 8x8 photo leaves one value per channel for BatchNorm.
+    let one = Tensor::zeros([1, 4, 8, 8], (Kind::Float, Device::Cpu));
+    assert!(m.est_forward_t(&one, true).unwrap_err().to_string().contains("BatchNorm"));
+    assert!(m.est_forward_t(&one, false).is_ok());
+}
+
+#[test]
+fn training_mode_backpropagates_and_updates_running_stats() {
+    let m = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+    let x = Tensor::randn([2, 4, 16, 16], (Kind::Float, Device::Cpu));
+    let rm = m.est_vs.variables()["est.enc1.0.bn1.running_mean"].copy();
+    let y = m.est_forward_t(&x, true).unwrap();
+    y.square().mean(Kind::Float).backward();
+    let g = m.est.stem.grad();
+    assert!(g.defined() && g.abs().sum(Kind::Float).double_value(&[]) > 0.0);
+    let rm2 = m.est_vs.variables()["est.enc1.0.bn1.running_mean"].copy();
+    assert!((rm2 - rm).abs().max().double_value(&[]) > 0.0);
+}
+
+/// Randomises BatchNorm statistics and affine parameters so folding is
+/// exercised for real (including negative scales).
+fn randomise_batchnorms(vs: &nn::VarStore) {
+    tch::manual_seed(7);
+    let mut vars: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+    vars.sort_by(|a, b| a.0.cmp(&b.0));
+    let mut bn_count = 0;
+    tch::no_grad(|| {
+        for (name, mut t) in vars {
+            let n = t.size()[0];
+            let opts = (Kind::Float, Device::Cpu);
+            let u = Tensor::rand([n], opts);
+            if name.ends_with("running_var") {
+                t.copy_(&(u * 1.5 + 0.5));
+            } else if name.ends_with("running_mean") {
+                t.copy_(&((u - 0.5) * 0.4));
+            } else if name.contains("bn") && name.ends_with(".weight") && !name.contains("compat") {
+                // Every third BN gets some negative scales: both the folded
+                // and the explicit-scale HA paths are exercised.
+                bn_count += 1;
+                let sign = if bn_count % 3 == 0 { Tensor::rand([n], opts).gt(0.2).to_kind(Kind::Float) * 2.0 - 1.0 } else { Tensor::ones([n], opts) };
+                t.copy_(&((u + 0.5) * sign));
+            } else if name.contains("bn") && name.ends_with(".bias") {
+                t.copy_(&((u - 0.5) * 0.4));
+            }
+        }
+    });
+}
+
+#[test]
+fn folded_batchnorm_equals_eval_forward() {
+    let m = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+    randomise_batchnorms(&m.est_vs);
+    let x = Tensor::randn([2, 4, 24, 16], (Kind::Float, Device::Cpu));
+    let eval = tch::no_grad(|| m.est_forward_t(&x, false)).unwrap();
+    let folded = m.est.fold_batchnorm();
+    let y = folded.forward(&x).unwrap();
+    let scale = eval.abs().max().double_value(&[]);
+    let diff = (&y - &eval).abs().max().double_value(&[]);
+    assert!(diff <= 1e-4 * scale.max(1.0), "folded differs by {diff} (scale {scale})");
+    let mut folded_cl = m.est.fold_batchnorm();
+    folded_cl.set_channels_last(true);
+    let diff = (folded_cl.forward(&x).unwrap() - &eval).abs().max().double_value(&[]);
+    assert!(diff <= 1e-4 * scale.max(1.0), "channels-last folded differs by {diff} (scale {scale})");
+    // In float64 the two agree to rounding: the folding algebra is exact.
+    let mut m64 = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+    m64.est_vs.copy(&m.est_vs).unwrap();
+    m64.est_vs.double();
+    let x64 = x.to_kind(Kind::Double);
+    let e64 = tch::no_grad(|| m64.est_forward_t(&x64, false)).unwrap();
+    let d64 = (m64.est.fold_batchnorm().forward(&x64).unwrap() - &e64).abs().max().double_value(&[]);
+    assert!(d64 < 1e-10 * scale.max(1.0), "f64 folded differs by {d64}");
+    // Some BN of the randomised model has a negative scale, so the
+    // non-foldable feat path is covered too.
+    assert!(m.est_vs.variables().iter().any(|(k, t)| k.contains("bn") && k.ends_with("weight") && t.min().double_value(&[]) < 0.0));
+}
+
+#[test]
+fn forward_rows_equals_forward_maps() {
+    let cfg = ModelConfig::tiny();
+    let m = Model::new(&cfg, Device::Cpu).unwrap();
+    let (n, k, h, w, c) = (2, 3, 4, 5, cfg.neural_channels);
+    let opts = (Kind::Float, Device::Cpu);
+    let map = Tensor::randn([n, c, h, w], opts);
+    let unit = |t: Tensor| &t / t.square().sum_dim_intlist([2i64].as_slice(), true, Kind::Float).sqrt();
+    let wi = unit(Tensor::randn([n, k, 3, h, w], opts) + 0.5);
+    let wo = unit(Tensor::randn([n, k, 3, h, w], opts) + 0.5);
+    let maps = m.renderer.forward_maps(&map, &wi, &wo).unwrap();
+    assert_eq!(maps.size(), [n, k, 3, h, w]);
+    // Gather every (material, configuration, pixel) as one row list.
+    let params = map.unsqueeze(1).expand([n, k, c, h, w], false).permute([0, 1, 3, 4, 2]).reshape([-1, c]);
+    let rows = |t: &Tensor| t.permute([0, 1, 3, 4, 2]).reshape([-1, 3]);
+    let out = m.renderer.forward_rows(&params, &rows(&wi), &rows(&wo)).unwrap();
+    let diff = (out - rows(&maps)).abs().max().double_value(&[]);
+    assert!(diff < 1e-5, "rows vs maps differ by {diff}");
+    // One pixel by hand: material 1, configuration 2, pixel (3, 4).
+    let p = map.get(1).select(1, 3).select(1, 4).view([1, c]);
+    let one = m.renderer.forward_rows(&p, &wi.get(1).get(2).select(1, 3).select(1, 4).view([1, 3]), &wo.get(1).get(2).select(1, 3).select(1, 4).view([1, 3])).unwrap();
+    let want = maps.get(1).get(2).select(1, 3).select(1, 4).view([1, 3]);
+    assert!((one - want).abs().max().double_value(&[]) < 1e-5);
+    // Shared direction code: same result, documented shape.
+    let code = m.renderer.encode_maps(&wi, &wo).unwrap();
+    assert_eq!(code.size(), [n, k, cfg.enc_out, h, w]);
+    let again = m.renderer.render_code(&map, &code).unwrap();
+    assert_eq!((again - &maps).abs().max().double_value(&[]), 0.0);
+    // Gradients through both paths agree too.
+    let g = |out: Tensor| {
+        out.sum(Kind::Float).backward();
+        let w = &m.renderer.m_render.layers[1];
+        let gr = w.grad().copy();
+        let mut gg = w.grad();
+        let _ = gg.zero_();
+        gr
+    };
+    let ga = g(m.renderer.forward_maps(&map, &wi, &wo).unwrap());
+    let gb = g(m.renderer.forward_rows(&params, &rows(&wi), &rows(&wo)).unwrap());
+    assert!((&ga - &gb).abs().max().double_value(&[]) < 1e-4 * (1.0 + ga.abs().max().double_value(&[])));
+    // Shape errors are reported, not panics.
+    assert!(m.renderer.forward_rows(&params, &rows(&wi).narrow(0, 0, 3), &rows(&wo)).is_err());
+    assert!(m.renderer.render_code(&map, &code.narrow(2, 0, 2)).is_err());
+    assert!(m.renderer.forward_maps(&map.narrow(1, 0, 3), &wi, &wo).is_err());
+}
+
+#[test]
+fn renderer_backpropagates_to_params_and_weights() {
+    let cfg = ModelConfig::tiny();
+    let m = Model::new(&cfg, Device::Cpu).unwrap();
+    let params = Tensor::randn([6, cfg.neural_channels], (Kind::Float, Device::Cpu)).set_requires_grad(true);
+    let d = Tensor::from_slice(&[0.0f32, 0.6, 0.8]).view([1, 3]).expand([6, 3], false);
+    let out = m.renderer.forward_rows(&params, &d, &d).unwrap();
+    out.sum(Kind::Float).backward();
+    assert!(params.grad().abs().sum(Kind::Float).double_value(&[]) > 0.0);
+    assert!(m.renderer.nd_enc.layers[0].grad().defined());
+}
+
+#[test]
+fn renderer_gradients_match_finite_differences() {
+    // The MLPs apply their activations in place; check autograd stays exact.
+    let cfg = ModelConfig::tiny();
+    let mut m = Model::new(&cfg, Device::Cpu).unwrap();
+    m.renderer_vs.double();
+    let opts = (Kind::Double, Device::Cpu);
+    let params = Tensor::randn([5, cfg.neural_channels], opts);
+    let unit = |t: Tensor| &t / t.square().sum_dim_intlist([1i64].as_slice(), true, Kind::Double).sqrt();
+    let wi = unit(Tensor::randn([5, 3], opts) + 1.0);
+    let wo = unit(Tensor::randn([5, 3], opts) + 1.0);
+    let loss = |m: &Model| m.renderer.forward_rows(&params, &wi, &wo).unwrap().sum(Kind::Double);
+    loss(&m).backward();
+    for w in [&m.renderer.nd_enc.layers[0], &m.renderer.nd_enc.layers[1], &m.renderer.m_render.layers[0], &m.renderer.m_render.layers[3]] {
+        let g = w.grad();
+        for idx in [[0i64, 0], [1, 2], [3, 1]] {
+            let eps = 1e-6;
+            let orig = w.double_value(&idx);
+            let mut w = w.shallow_clone();
+            let set = |w: &mut Tensor, v: f64| {
+                let _ = tch::no_grad(|| w.get(idx[0]).get(idx[1]).fill_(v));
+            };
+            set(&mut w, orig + eps);
+            let up = tch::no_grad(|| loss(&m)).double_value(&[]);
+            set(&mut w, orig - eps);
+            let down = tch::no_grad(|| loss(&m)).double_value(&[]);
+            set(&mut w, orig);
+            let fd = (up - down) / (2.0 * eps);
+            let ad = g.double_value(&idx);
+            assert!((fd - ad).abs() < 1e-6 * (1.0 + ad.abs()), "{:?} {idx:?}: fd {fd} vs autograd {ad}", w.size());
+        }
+    }
+}
+
+#[test]
+fn save_load_round_trip_and_refusals() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.safetensors");
+    let m = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+    randomise_batchnorms(&m.est_vs);
+    m.save(&path).unwrap();
+    assert_eq!(Model::checkpoint_config(&path).unwrap(), ModelConfig::tiny());
+    let m2 = Model::from_checkpoint(&path, Device::Cpu).unwrap();
+    let x = Tensor::randn([1, 4, 16, 16], (Kind::Float, Device::Cpu));
+    let a = m.est_inference(&x).unwrap();
+    let b = m2.est_inference(&x).unwrap();
+    assert_eq!((a - b).abs().max().double_value(&[]), 0.0);
+    let (va, vb) = (m.renderer_vs.variables(), m2.renderer_vs.variables());
+    for (k, t) in &va {
+        assert!(t.equal(&vb[k]), "{k}");
+    }
+    // Another configuration is refused with a clear message.
+    let other = ModelConfig { name: "tiny".into(), enc_hidden: 40, ..ModelConfig::tiny() };
+    let mut m3 = Model::new(&other, Device::Cpu).unwrap();
+    let err = m3.load(&path).unwrap_err().to_string();
+    assert!(err.contains("another preset or configuration"), "{err}");
+    // By-name loading (what an archive-based exporter would use).
+    let mut named: HashMap<String, Tensor> = m.named_variables().into_iter().collect();
+    let mut m4 = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+    m4.load_named(&named).unwrap();
+    assert!(m4.est_vs.variables()["est.head.weight"].equal(&m.est_vs.variables()["est.head.weight"]));
+    named.insert("est.bogus".into(), Tensor::zeros([1], (Kind::Float, Device::Cpu)));
+    assert!(m4.load_named(&named).unwrap_err().to_string().contains("est.bogus"));
+    named.remove("est.bogus");
+    named.remove("est.stem.weight");
+    assert!(m4.load_named(&named).unwrap_err().to_string().contains("est.stem.weight"));
+    // A safetensors file that is not ours.
+    let foreign = dir.path().join("f.safetensors");
+    m.est_vs.save(&foreign).unwrap();
+    let err = format!("{:#}", Model::from_checkpoint(&foreign, Device::Cpu).unwrap_err());
+    assert!(err.contains("not a flashmat"), "{err}");
+}
+
+#[test]
+fn colocated_hz_is_one_at_centre() {
+    let hz = colocated_hz(8, 8, 28.0, (Kind::Double, Device::Cpu));
+    assert_eq!(hz.size(), [1, 1, 8, 8]);
+    let centre = hz.double_value(&[0, 0, 3, 3]);
+    let corner = hz.double_value(&[0, 0, 0, 0]);
+    assert!(centre > 0.99 && corner < centre && corner > 0.9);
+    let photo = Tensor::ones([2, 3, 8, 8], (Kind::Double, Device::Cpu));
+    let x = est_input(&photo, &hz);
+    assert_eq!(x.size(), [2, 4, 8, 8]);
+    assert!((x.double_value(&[1, 0, 2, 2]) - 2f64.ln()).abs() < 1e-12);
+}
+
+#[test]
+fn flop_model_matches_reference_figures() {
+    // REFERENCE: ~1.04 TFLOP at W=64, ~70 GFLOP at W=16 for 256x256;
+    // ND_enc + M_render ~83 GFLOP per 256x256 frame.
+    let p = est_flops(&ModelConfig::paper(), 256, 256) / 1e9;
+    assert!((p / 1040.0 - 1.0).abs() < 0.05, "{p}");
+    let c = est_flops(&ModelConfig::compact(), 256, 256) / 1e9;
+    assert!((c / 70.0 - 1.0).abs() < 0.1, "{c}");
+    let r = renderer_flops_per_row(&ModelConfig::paper()) * 65536.0 / 1e9;
+    assert!((r / 83.0 - 1.0).abs() < 0.05, "{r}");
+    // The table in ModelConfig::compact's docs (crop 128, 18 frames).
+    let (c, rows) = (ModelConfig::compact(), 2.0 * 9.0 * 128.0 * 128.0);
+    let near = |x: f64, want: f64| (x / 1e9 / want - 1.0).abs() < 0.05;
+    assert!(near(2.0 * est_flops(&ModelConfig::paper(), 128, 128), 520.0));
+    assert!(near(2.0 * est_flops(&c, 128, 128), 35.0));
+    assert!(near(NdEnc::flops_per_row(&ModelConfig::paper()) * rows, 323.0));
+    assert!(near(NdEnc::flops_per_row(&c) * rows, 35.0));
+    assert!(near(MRender::flops_per_row(&ModelConfig::paper()) * rows, 51.0));
+    assert!(near(MRender::flops_per_row(&c) * rows, 15.0));
+}
+
+/// Release-mode timing, run by hand:
+/// `cargo test --release --lib model::tests::bench -- --ignored --nocapture`
+/// (FLASHMAT_BENCH_PRESETS=tiny,compact,paper, FLASHMAT_BENCH_SIZE=256).
+#[test]
+#[ignore]
+fn bench() {
+    set_bench_threads();
+    let presets = std::env::var("FLASHMAT_BENCH_PRESETS").unwrap_or_else(|_| "tiny,compact".into());
+    let size: usize = std::env::var("FLASHMAT_BENCH_SIZE").ok().and_then(|s| s.parse().ok()).unwrap_or(256);
+    let runs: usize = std::env::var("FLASHMAT_BENCH_RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(3);
+    for p in presets.split(',') {
+        let t = bench_infer_runs(&ModelConfig::preset(p).unwrap(), size, Device::cuda_if_available(), runs).unwrap();
+        println!("{t}");
+    }
+}
+
+/// Cost of one alternating training step (no optimizer, no losses beyond
+/// an L1 stand-in), run by hand:
+/// `cargo test --release --lib model::tests::bench_train -- --ignored --nocapture`
+/// (FLASHMAT_BENCH_PRESETS, FLASHMAT_BENCH_CROP=128, FLASHMAT_BENCH_K=9).
+#[test]
+#[ignore]
+fn bench_train() {
+    set_bench_threads();
+    let presets = std::env::var("FLASHMAT_BENCH_PRESETS").unwrap_or_else(|_| "compact".into());
+    let crop: i64 = std::env::var("FLASHMAT_BENCH_CROP").ok().and_then(|s| s.parse().ok()).unwrap_or(128);
+    let k: i64 = std::env::var("FLASHMAT_BENCH_K").ok().and_then(|s| s.parse().ok()).unwrap_or(9);
+    let device = Device::cuda_if_available();
+    let opts = (Kind::Float, device);
+    for p in presets.split(',') {
+        let cfg = if p.ends_with(".toml") { ModelConfig::from_toml_file(p).unwrap() } else { ModelConfig::preset(p).unwrap() };
+        let mut m = Model::new(&cfg, device).unwrap();
+        let x = Tensor::randn([2, 4, crop, crop], opts);
+        let unit = |t: Tensor| &t / t.square().sum_dim_intlist([2i64].as_slice(), true, Kind::Float).sqrt();
+        let wi = unit(Tensor::randn([2, k, 3, crop, crop], opts) * 0.3 + 1.0);
+        let wo = unit(Tensor::randn([2, k, 3, crop, crop], opts) * 0.3 + 1.0);
+        let target = Tensor::rand([2, k, 3, crop, crop], opts);
+        let t0 = Instant::now();
+        for _ in 0..2 {
+            m.est_forward_t(&x, true).unwrap().abs().mean(Kind::Float).backward();
+        }
+        let t_alone = t0.elapsed().as_secs_f64() / 2.0;
+        // One alternating step as the paper trains, sharing ND_enc's output
+        // between the two updates.
+        let mut step = || {
+            let t0 = Instant::now();
+            let code = m.renderer.encode_maps(&wi, &wo).unwrap();
+            let t_code = t0.elapsed().as_secs_f64();
+            m.renderer_vs.freeze();
+            let map = m.est_forward_t(&x, true).unwrap();
+            let out = m.renderer.render_code(&map, &code.detach()).unwrap();
+            (out - &target).abs().mean(Kind::Float).backward();
+            m.renderer_vs.unfreeze();
+            let t_est = t0.elapsed().as_secs_f64() - t_code;
+            let out = m.renderer.render_code(&map.detach(), &code).unwrap();
+            (out - &target).abs().mean(Kind::Float).backward();
+            (t_code, t_est, t0.elapsed().as_secs_f64() - t_code - t_est)
+        };
+        let _ = step();
+        let (t_code, t_est, t_ren) = step();
+        let t_all = t_code + t_est + t_ren;
+        println!("{p}: M_est fwd+bwd alone {t_alone:.2} s");
+        println!(
+            "{p}: crop {crop}, 2 materials x {k} frames: ND_enc fwd {t_code:.2} s, M_est update {t_est:.2} s, renderer update {t_ren:.2} s, total {t_all:.2} s/step ({} threads)",
+            tch::get_num_threads()
+        );
+    }
+}
+
+/// FLASHMAT_BENCH_THREADS=n sets libtorch's intra-op threads.
+fn set_bench_threads() {
+    if let Some(n) = std::env::var("FLASHMAT_BENCH_THREADS").ok().and_then(|s| s.parse().ok()) {
+        tch::set_num_threads(n);
+    }
+}
