@@ -4,4 +4,11 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
-cargo test --all-targets 2>&1
+# Each test runs in its own process under nextest: libtorch's random
+# generator is process-global, and tests that check bit-exact determinism
+# must not share it with tests running in parallel.
+if cargo nextest --version >/dev/null 2>&1; then
+  cargo nextest run --all-targets --no-fail-fast 2>&1
+else
+  cargo test --all-targets -- --test-threads=1 2>&1
+fi

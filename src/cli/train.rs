@@ -148,7 +148,8 @@ pub fn export(a: &ExportArgs) -> Result<()> {
     let ckpt = run::checkpoint_path(&a.run);
     let trainer = crate::train::Trainer::resume(&ckpt, Device::Cpu, None)?;
     super::prepare_output(&a.output)?;
-    crate::model::export::save_model(&trainer.model, trainer.config.ldr_input, trainer.step, &a.output)?;
+    let info = crate::model::ModelInfo { ldr_input: trainer.config.ldr_input, steps: trainer.step };
+    trainer.model.save(&a.output, &info)?;
     eprintln!("wrote {} (model {}, step {})", a.output.display(), trainer.model.model_id(), trainer.step);
     Ok(())
 }

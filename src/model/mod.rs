@@ -20,8 +20,8 @@ pub use m_est::{est_flops, FoldedMEst, MEst};
 pub use m_render::MRender;
 pub use nd_enc::{encode_directions, NdEnc};
 
-use crate::geometry::{direction_maps, fov_to_distance, half_vectors, pixel_positions};
-use anyhow::{bail, ensure, Context, Result};
+use crate::archive::Archive;
+use anyhow::{ensure, Context, Result};
 use std::collections::HashMap;
 use std::path::Path;
 use std::time::Instant;
@@ -114,9 +114,6 @@ pub struct Model {
     pub renderer: NeuralRenderer,
 }
 
-/// Metadata key of the checkpoint format tag.
-const FORMAT_KEY: &str = "format";
-const FORMAT: &str = "flashmat-model-v1";
 
 impl Model {
     /// Fresh, randomly initialised networks.
@@ -183,107 +180,64 @@ impl Model {
     }
 
     /// Writes `est.*` and `renderer.*` (including BatchNorm running
-    /// statistics) as f32 safetensors, with the model id and configuration
-    /// in the metadata.
-    pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
-        let path = path.as_ref();
-        let named = self.named_variables();
-        let data: Vec<(String, Vec<usize>, Vec<u8>)> = named
-            .iter()
-            .map(|(name, t)| {
-                let t = t.detach().to_device(Device::Cpu).to_kind(Kind::Float).contiguous();
-                let shape: Vec<usize> = t.size().iter().map(|&d| d as usize).collect();
-                let v: Vec<f32> = Vec::try_from(t.flatten(0, -1))?;
-                Ok((name.clone(), shape, v.iter().flat_map(|x| x.to_le_bytes()).collect()))
-            })
-            .collect::<Result<_>>()?;
-        let views = data
-            .iter()
-            .map(|(name, shape, bytes)| Ok((name.as_str(), safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape.clone(), bytes)?)))
-            .collect::<Result<Vec<_>>>()?;
-        let meta = HashMap::from([
-            (FORMAT_KEY.to_string(), FORMAT.to_string()),
-            ("model_id".to_string(), self.model_id()),
-            ("config".to_string(), self.config.to_toml_string()?),
-        ]);
-        safetensors::serialize_to_file(views, Some(meta), path).with_context(|| format!("writing checkpoint {}", path.display()))?;
-        Ok(())
-    }
-
-    /// The configuration stored in a checkpoint written by [`Model::save`].
-    pub fn checkpoint_config(path: impl AsRef<Path>) -> Result<ModelConfig> {
-        let path = path.as_ref();
-        let bytes = std::fs::read(path).with_context(|| format!("reading checkpoint {}", path.display()))?;
-        let meta = checkpoint_metadata(&bytes).with_context(|| format!("in checkpoint {}", path.display()))?;
-        let text = meta.get("config").with_context(|| format!("checkpoint {} has no model configuration", path.display()))?;
-        ModelConfig::from_toml_str(text)
-    }
-
-    /// Builds the model a checkpoint describes and loads its weights.
-    pub fn from_checkpoint(path: impl AsRef<Path>, device: Device) -> Result<Self> {
-        let cfg = Self::checkpoint_config(&path)?;
-        let mut m = Self::new(&cfg, device)?;
-        m.load(path)?;
-        Ok(m)
-    }
-
-    /// Loads weights saved by [`Model::save`]. Refuses checkpoints of
-    /// another configuration (model id) and any missing, extra or
-    /// mis-shaped variable.
-    pub fn load(&mut self, path: impl AsRef<Path>) -> Result<()> {
-        let path = path.as_ref();
-        let bytes = std::fs::read(path).with_context(|| format!("reading checkpoint {}", path.display()))?;
-        let meta = checkpoint_metadata(&bytes).with_context(|| format!("in checkpoint {}", path.display()))?;
-        let id = meta.get("model_id").map(String::as_str).unwrap_or("<none>");
-        ensure!(
-            id == self.model_id(),
-            "checkpoint {} was written by model '{id}', this model is '{}' (another preset or configuration)",
-            path.display(),
-            self.model_id()
-        );
-        let st = safetensors::SafeTensors::deserialize(&bytes).with_context(|| format!("parsing checkpoint {}", path.display()))?;
-        let mut named = HashMap::new();
-        for (name, view) in st.tensors() {
-            ensure!(view.dtype() == safetensors::Dtype::F32, "variable '{name}' is {:?}, expected F32", view.dtype());
-            let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
-            let vals: Vec<f32> = view.data().chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-            named.insert(name, Tensor::from_slice(&vals).view(shape.as_slice()));
+    /// statistics) as a checksummed archive (see [`crate::archive`]) with the
+    /// model id, the configuration and `info` in the metadata. This is the
+    /// exported-model format that `flashmat export` writes.
+    pub fn save(&self, path: impl AsRef<Path>, info: &ModelInfo) -> Result<()> {
+        let mut a = Archive::new();
+        for (name, t) in self.named_variables() {
+            a.insert(name, &t);
         }
-        self.load_named(&named).with_context(|| format!("loading checkpoint {}", path.display()))
+        a.set_meta("model_id", self.model_id());
+        a.set_meta("config", self.config.to_toml_string()?);
+        a.set_meta("info", serde_json::to_string(info)?);
+        a.save(path.as_ref(), MODEL_FORMAT, MODEL_VERSION)
+    }
+
+    /// Builds the model a file written by [`Model::save`] describes and
+    /// loads its weights. Damaged, truncated or foreign files, and any
+    /// missing, extra or mis-shaped variable, are refused naming the file.
+    pub fn load(path: impl AsRef<Path>, device: Device) -> Result<(Self, ModelInfo)> {
+        let path = path.as_ref();
+        let a = Archive::load(path, MODEL_FORMAT, MODEL_VERSION)?;
+        let ctx = || format!("model file {}", path.display());
+        let cfg = ModelConfig::from_toml_str(a.meta("config").with_context(ctx)?).with_context(ctx)?;
+        let info: ModelInfo = serde_json::from_str(a.meta("info").with_context(ctx)?).with_context(ctx)?;
+        let mut m = Self::new(&cfg, device)?;
+        ensure!(a.meta("model_id")? == m.model_id(), "{}: model id does not match its configuration", ctx());
+        m.load_named(&a.tensors.iter().map(|(k, v)| (k.clone(), v.shallow_clone())).collect()).with_context(ctx)?;
+        Ok((m, info))
+    }
+
+    /// Loads a model file and checks that it is the expected model id.
+    pub fn load_expecting(path: impl AsRef<Path>, device: Device, model_id: &str) -> Result<(Self, ModelInfo)> {
+        let (m, info) = Self::load(&path, device)?;
+        ensure!(
+            m.model_id() == model_id,
+            "{} holds model '{}', expected '{model_id}' (another preset or configuration)",
+            path.as_ref().display(),
+            m.model_id()
+        );
+        Ok((m, info))
     }
 }
 
-fn checkpoint_metadata(bytes: &[u8]) -> Result<HashMap<String, String>> {
-    let (_, meta) = safetensors::SafeTensors::read_metadata(bytes).context("not a safetensors file")?;
-    let map = meta.metadata().clone().unwrap_or_default();
-    match map.get(FORMAT_KEY) {
-        Some(f) if f == FORMAT => Ok(map),
-        Some(f) => bail!("unsupported checkpoint format '{f}' (expected {FORMAT})"),
-        None => bail!("not a flashmat model checkpoint (no '{FORMAT_KEY}' metadata)"),
-    }
+/// Format tag and version of exported model files.
+pub const MODEL_FORMAT: &str = "flashmat-model";
+pub const MODEL_VERSION: u32 = 1;
+
+/// What a model file records besides weights.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ModelInfo {
+    /// Trained on LDR (clamped) input photos.
+    pub ldr_input: bool,
+    /// Training steps completed.
+    pub steps: u64,
 }
 
 /// Number of trainable scalars in a VarStore.
 pub fn count_trainable(vs: &nn::VarStore) -> i64 {
     vs.trainable_variables().iter().map(|t| t.numel() as i64).sum()
-}
-
-/// M_est input from a linear photo and its h_z map.
-/// photo: `[N, 3, H, W]` linear RGB; hz: `[N or 1, 1, H, W]` -> `[N, 4, H, W]`.
-pub fn est_input(photo_linear: &Tensor, hz: &Tensor) -> Tensor {
-    let n = photo_linear.size()[0];
-    let s = hz.size();
-    Tensor::cat(&[photo_linear.log1p(), hz.expand([n, 1, s[2], s[3]], false)], 1)
-}
-
-/// h_z of the co-located input configuration (light and camera at
-/// (0, 0, 1/tan(fov/2))): `[1, 1, H, W]`.
-pub fn colocated_hz(h: usize, w: usize, fov_deg: f64, opts: (Kind, Device)) -> Tensor {
-    let pos = pixel_positions(h, w, opts);
-    let d = fov_to_distance(fov_deg);
-    let point = Tensor::from_slice(&[0.0, 0.0, d]).to_kind(opts.0).to_device(opts.1).view([1, 3]);
-    let dirs = direction_maps(&pos, &point);
-    half_vectors(&dirs, &dirs).narrow(1, 2, 1)
 }
 
 /// FLOPs per row of ND_enc + M_render.
@@ -367,7 +321,8 @@ pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: us
     let folded = model.est.fold_batchnorm();
     let s = size as i64;
     let opts = (Kind::Float, device);
-    let x = Tensor::cat(&[Tensor::rand([1, 3, s, s], opts), colocated_hz(size, size, 28.0, opts)], 1);
+    let (wi, wo) = crate::data::samples::input_directions(size, size, 28.0, device);
+    let x = Tensor::cat(&[Tensor::rand([1, 3, s, s], opts), crate::svbrdf::render::half_vector_z(&wi, &wo)], 1);
     let est_s = median_time(runs, device, || folded.forward(&x).map(drop))?;
     let map = folded.forward(&x)?;
     let dirs = |z: f32| {

@@ -248,9 +248,11 @@ fn save_load_round_trip_and_refusals() {
     let path = dir.path().join("m.safetensors");
     let m = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
     randomise_batchnorms(&m.est_vs);
-    m.save(&path).unwrap();
-    assert_eq!(Model::checkpoint_config(&path).unwrap(), ModelConfig::tiny());
-    let m2 = Model::from_checkpoint(&path, Device::Cpu).unwrap();
+    let info = ModelInfo { ldr_input: true, steps: 17 };
+    m.save(&path, &info).unwrap();
+    let (m2, info2) = Model::load(&path, Device::Cpu).unwrap();
+    assert_eq!(info2, info);
+    assert_eq!(m2.config, ModelConfig::tiny());
     let x = Tensor::randn([1, 4, 16, 16], (Kind::Float, Device::Cpu));
     let a = m.est_inference(&x).unwrap();
     let b = m2.est_inference(&x).unwrap();
@@ -261,8 +263,7 @@ fn save_load_round_trip_and_refusals() {
     }
     // Another configuration is refused with a clear message.
     let other = ModelConfig { name: "tiny".into(), enc_hidden: 40, ..ModelConfig::tiny() };
-    let mut m3 = Model::new(&other, Device::Cpu).unwrap();
-    let err = m3.load(&path).unwrap_err().to_string();
+    let err = Model::load_expecting(&path, Device::Cpu, &other.model_id()).unwrap_err().to_string();
     assert!(err.contains("another preset or configuration"), "{err}");
     // By-name loading (what an archive-based exporter would use).
     let mut named: HashMap<String, Tensor> = m.named_variables().into_iter().collect();
@@ -277,21 +278,13 @@ fn save_load_round_trip_and_refusals() {
     // A safetensors file that is not ours.
     let foreign = dir.path().join("f.safetensors");
     m.est_vs.save(&foreign).unwrap();
-    let err = format!("{:#}", Model::from_checkpoint(&foreign, Device::Cpu).unwrap_err());
+    let err = format!("{:#}", Model::load(&foreign, Device::Cpu).unwrap_err());
     assert!(err.contains("not a flashmat"), "{err}");
-}
-
-#[test]
-fn colocated_hz_is_one_at_centre() {
-    let hz = colocated_hz(8, 8, 28.0, (Kind::Double, Device::Cpu));
-    assert_eq!(hz.size(), [1, 1, 8, 8]);
-    let centre = hz.double_value(&[0, 0, 3, 3]);
-    let corner = hz.double_value(&[0, 0, 0, 0]);
-    assert!(centre > 0.99 && corner < centre && corner > 0.9);
-    let photo = Tensor::ones([2, 3, 8, 8], (Kind::Double, Device::Cpu));
-    let x = est_input(&photo, &hz);
-    assert_eq!(x.size(), [2, 4, 8, 8]);
-    assert!((x.double_value(&[1, 0, 2, 2]) - 2f64.ln()).abs() < 1e-12);
+    // A truncated model file.
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+    let err = format!("{:#}", Model::load(&path, Device::Cpu).unwrap_err());
+    assert!(err.contains("m.safetensors"), "{err}");
 }
 
 #[test]

@@ -4,7 +4,7 @@
 
 use super::TrainConfig;
 use crate::data::loaders::{open_dataset, random_crop, SvbrdfSource};
-use crate::data::procedural::{self, ProceduralConfig};
+use crate::data::procedural;
 use crate::data::samples::{make_batch, SampleConfig, TrainingBatch};
 use crate::svbrdf::Svbrdf;
 use anyhow::Result;

@@ -67,10 +67,13 @@ pub fn mean_param_norm(neural: &Tensor) -> f64 {
 }
 
 /// Pixel mask for the renderer's data term: `fraction` of the pixels drawn
-/// without replacement from a multinomial.
+/// without replacement from a multinomial. Drawn as the top-k of
+/// ln(p) + Gumbel noise (equivalent to sequential sampling without
+/// replacement) with noise from `rng`, so the draw does not depend on
+/// libtorch's global generator and replays exactly on resume.
 /// neural: `[N, C, H, W]`, targets (linear): `[N, K, 3, H, W]` -> mask
 /// `[N, K or 1, 1, H, W]` of 0/1 values.
-pub fn pixel_mask(neural: &Tensor, targets: &Tensor, fraction: f64, mode: PixelSampling) -> Tensor {
+pub fn pixel_mask<R: rand::Rng>(neural: &Tensor, targets: &Tensor, fraction: f64, mode: PixelSampling, rng: &mut R) -> Tensor {
     let s = targets.size();
     let (n, k, h, w) = (s[0], s[1], s[3], s[4]);
     let probs = match mode {
@@ -85,7 +88,9 @@ pub fn pixel_mask(neural: &Tensor, targets: &Tensor, fraction: f64, mode: PixelS
     };
     let count = ((fraction * (h * w) as f64).round() as i64).clamp(1, h * w);
     let rows = probs.size()[0];
-    let picked = probs.multinomial(count, false);
+    let gumbel: Vec<f32> = (0..rows * h * w).map(|_| -(-(rng.random::<f32>().max(1e-20)).ln()).ln()).collect();
+    let keys = probs.log() + Tensor::from_slice(&gumbel).view([rows, h * w]).to_device(probs.device());
+    let (_, picked) = keys.topk(count, 1, true, false);
     let mask = Tensor::zeros([rows, h * w], (Kind::Float, targets.device())).scatter_value(1, &picked, 1.0);
     mask.view([n, rows / n, 1, h, w])
 }
@@ -100,17 +105,18 @@ pub fn masked_l1(pred: &Tensor, target: &Tensor, mask: &Tensor) -> Tensor {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::SeedableRng;
     use tch::Device;
 
     #[test]
     fn mask_has_the_requested_fraction_and_prefers_low_norm() {
-        tch::manual_seed(0);
+        let rng = &mut rand_pcg::Pcg64::seed_from_u64(0);
         let (n, h, w) = (2i64, 16i64, 16i64);
         // Left half: norm 1; right half: norm 100.
         let neural = Tensor::ones([n, 4, h, w], (Kind::Float, Device::Cpu)) * 0.5;
         let _ = neural.narrow(3, 8, 8).fill_(50.0);
         let targets = Tensor::ones([n, 3, 3, h, w], (Kind::Float, Device::Cpu));
-        let mask = pixel_mask(&neural, &targets, 0.6, PixelSampling::InverseNorm);
+        let mask = pixel_mask(&neural, &targets, 0.6, PixelSampling::InverseNorm, rng);
         assert_eq!(mask.size(), [n, 1, 1, h, w]);
         let total = mask.sum(Kind::Float).double_value(&[]);
         assert_eq!(total, (2.0 * (0.6f64 * 256.0).round()));
@@ -118,11 +124,33 @@ mod tests {
         // would be likely (weights 1 vs 0.01), so the left half is (almost) full.
         let left = mask.narrow(4, 0, 8).sum(Kind::Float).double_value(&[]);
         assert!(left >= 2.0 * 125.0, "{left}");
-        let all = pixel_mask(&neural, &targets, 0.6, PixelSampling::All);
+        let all = pixel_mask(&neural, &targets, 0.6, PixelSampling::All, rng);
         assert_eq!(all.sum(Kind::Float).double_value(&[]), (n * h * w) as f64);
-        let tn = pixel_mask(&neural, &targets, 0.5, PixelSampling::TargetNorm);
+        let tn = pixel_mask(&neural, &targets, 0.5, PixelSampling::TargetNorm, rng);
         assert_eq!(tn.size(), [n, 3, 1, h, w]);
         assert_eq!(tn.sum(Kind::Float).double_value(&[]), (n * 3 * 128) as f64);
+    }
+
+    #[test]
+    fn gumbel_top_k_follows_the_probabilities() {
+        // One row, 4 pixels with weights 8:4:2:1 (neural norms 1/8..1), pick 1:
+        // P(pixel i) = w_i / 15.
+        let rng = &mut rand_pcg::Pcg64::seed_from_u64(1);
+        let norms = Tensor::from_slice(&[0.125f32, 0.25, 0.5, 1.0]).view([1, 1, 2, 2]);
+        let targets = Tensor::ones([1, 1, 3, 2, 2], (Kind::Float, Device::Cpu));
+        let trials = 6000;
+        let mut counts = [0f64; 4];
+        for _ in 0..trials {
+            let m = pixel_mask(&norms, &targets, 0.25, PixelSampling::InverseNorm, rng);
+            let v: Vec<f32> = Vec::try_from(m.flatten(0, -1)).unwrap();
+            for i in 0..4 {
+                counts[i] += v[i] as f64;
+            }
+        }
+        for (i, w) in [8.0, 4.0, 2.0, 1.0].iter().enumerate() {
+            let p = counts[i] / trials as f64;
+            assert!((p - w / 15.0).abs() < 0.02, "pixel {i}: {p} vs {}", w / 15.0);
+        }
     }
 
     #[test]

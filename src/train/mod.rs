@@ -84,8 +84,6 @@ impl Trainer {
     /// gradient skips every update of the step (logged, never saved).
     pub fn train_step(&mut self, batch: &TrainingBatch) -> Result<StepLosses> {
         let lr = self.config.lr_at(self.step);
-        // Per-step torch RNG seed (pixel sampling) so a resumed run replays exactly.
-        tch::manual_seed((self.config.seed.wrapping_mul(1_000_003).wrapping_add(self.step)) as i64);
         let out = match self.config.scheme {
             UpdateScheme::Alternating => self.alternating_step(batch, lr)?,
             UpdateScheme::Combined => self.combined_step(batch, lr)?,
@@ -135,7 +133,8 @@ impl Trainer {
         self.opt_render.zero_grad();
         self.opt_disc.zero_grad();
         let pred_r = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
-        let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling);
+        let mut rng = batches::step_rng(cfg.seed, self.step, 3);
+        let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling, &mut rng);
         let l1_r = losses::masked_l1(&pred_r, &target_log, &mask);
         let lp_r = losses::perceptual(self.lpips.as_ref(), &pred_r, &target_log)?;
         let adv_r = losses::adversarial(&self.disc, &pred_r, &photo_log, cfg.weight_adv)?;
