@@ -19,6 +19,45 @@ use tch::Device;
 pub enum BenchCommand {
     /// Procedural generation and GGX rendering throughput at a resolution.
     Data(DataBenchArgs),
+    /// Milliseconds per training step (alternating and combined schemes) and peak memory.
+    Train(TrainBenchArgs),
+    /// M_est forward for one photo and ND_enc + M_render for one frame (inference mode).
+    Infer(InferBenchArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct TrainBenchArgs {
+    /// Model preset (paper, compact, tiny).
+    #[arg(long, default_value = "compact")]
+    pub preset: String,
+    /// Training crop size.
+    #[arg(long, default_value_t = 128)]
+    pub crop: usize,
+    /// Output renders per material.
+    #[arg(long, default_value_t = 8)]
+    pub outputs: usize,
+    /// Timed steps per scheme (after one warm-up step).
+    #[arg(long, default_value_t = 3)]
+    pub steps: usize,
+    /// cpu or cuda.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+}
+
+#[derive(Args, Debug)]
+pub struct InferBenchArgs {
+    /// Model preset (paper, compact, tiny).
+    #[arg(long, default_value = "compact")]
+    pub preset: String,
+    /// Photo / frame resolution.
+    #[arg(long, default_value_t = 256)]
+    pub size: usize,
+    /// Timed runs (median reported).
+    #[arg(long, default_value_t = 3)]
+    pub runs: usize,
+    /// cpu or cuda.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
 }
 
 #[derive(Args, Debug)]
@@ -34,7 +73,53 @@ pub struct DataBenchArgs {
 pub fn run(cmd: &BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Data(a) => bench_data(a),
+        BenchCommand::Train(a) => bench_train(a),
+        BenchCommand::Infer(a) => {
+            let device = super::train::parse_device(&a.device)?;
+            let t = crate::model::bench_infer_runs(&crate::model::ModelConfig::preset(&a.preset)?, a.size, device, a.runs)?;
+            println!("{t}");
+            println!("paper reference: the authors' PyTorch M_est takes about 20 s at 256x256 (paper preset) on a 2-core CPU");
+            Ok(())
+        }
     }
+}
+
+/// Peak resident memory of this process (VmHWM), in GiB.
+pub fn peak_memory_gib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / (1024.0 * 1024.0))
+}
+
+fn bench_train(args: &TrainBenchArgs) -> Result<()> {
+    use crate::train::{batches::batch_for_step, TrainConfig, Trainer, UpdateScheme};
+    let device = super::train::parse_device(&args.device)?;
+    let model = crate::model::ModelConfig::preset(&args.preset)?;
+    println!("flashmat bench train: {} preset, crop {}, 2 materials x (1 + {}) renders, {device:?}, {} torch threads", args.preset, args.crop, args.outputs, tch::get_num_threads());
+    let mut results = vec![];
+    for scheme in [UpdateScheme::Alternating, UpdateScheme::Combined] {
+        let cfg = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), outputs_per_material: args.outputs, scheme, ..Default::default() };
+        let mut trainer = Trainer::new(cfg.clone(), device)?;
+        let stream = crate::train::batches::MaterialStream::open(&cfg)?;
+        let batches: Vec<_> = (0..=args.steps as u64).map(|s| batch_for_step(&cfg, &stream.materials(&cfg, s)?, s, device)).collect::<Result<_>>()?;
+        trainer.train_step(&batches[0])?;
+        let t = Instant::now();
+        for b in &batches[1..] {
+            trainer.train_step(b)?;
+        }
+        if let Device::Cuda(_) = device {
+            tch::Cuda::synchronize(0);
+        }
+        let ms = t.elapsed().as_secs_f64() * 1000.0 / args.steps as f64;
+        println!("{scheme:?}: {ms:9.1} ms/step");
+        results.push(ms);
+    }
+    println!("combined / alternating: {:.2}x the time per step", results[1] / results[0]);
+    if let Some(gib) = peak_memory_gib() {
+        println!("peak resident memory: {gib:.2} GiB");
+    }
+    Ok(())
 }
 
 fn bench_data(args: &DataBenchArgs) -> Result<()> {

@@ -258,13 +258,16 @@ pub struct InferTimings {
     pub render_s: f64,
     pub est_gflop: f64,
     pub render_gflop: f64,
+    /// Seconds of one naive M_est forward (eval-mode BatchNorm, autograd
+    /// recording), the baseline the inference path is compared with.
+    pub naive_est_s: f64,
 }
 
 impl std::fmt::Display for InferTimings {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "{} @ {}x{} ({} threads, median of {}): M_est {:.3} s ({:.1} GFLOP, {:.1} GFLOP/s); ND_enc+M_render {:.3} s/frame ({:.1} GFLOP, {:.1} GFLOP/s)",
+            "{} @ {}x{} ({} threads, median of {}): M_est {:.3} s ({:.1} GFLOP, {:.1} GFLOP/s; naive eval-mode forward with autograd {:.3} s, {:.2}x slower); ND_enc+M_render {:.3} s/frame ({:.1} GFLOP, {:.1} GFLOP/s)",
             self.model_id,
             self.size,
             self.size,
@@ -273,6 +276,8 @@ impl std::fmt::Display for InferTimings {
             self.est_s,
             self.est_gflop,
             self.est_gflop / self.est_s,
+            self.naive_est_s,
+            self.naive_est_s / self.est_s,
             self.render_s,
             self.render_gflop,
             self.render_gflop / self.render_s
@@ -325,6 +330,10 @@ pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: us
     let x = Tensor::cat(&[Tensor::rand([1, 3, s, s], opts), crate::svbrdf::render::half_vector_z(&wi, &wo)], 1);
     let est_s = median_time(runs, device, || folded.forward(&x).map(drop))?;
     let map = folded.forward(&x)?;
+    let t0 = Instant::now();
+    let _ = model.est.forward_t(&x, false)?;
+    sync(device);
+    let naive_est_s = t0.elapsed().as_secs_f64();
     let dirs = |z: f32| {
         let v = Tensor::randn([1, 1, 3, s, s], opts) * 0.3 + Tensor::from_slice(&[0.0f32, 0.0, z]).to_device(device).view([1, 1, 3, 1, 1]);
         &v / v.square().sum_dim_intlist([2i64].as_slice(), true, Kind::Float).sqrt()
@@ -341,6 +350,7 @@ pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: us
         render_s,
         est_gflop: est_flops(cfg, s, s) / 1e9,
         render_gflop: renderer_flops_per_row(cfg) * px / 1e9,
+        naive_est_s,
     })
 }
 

@@ -105,10 +105,15 @@ impl Trainer {
         let clip = cfg.grad_clip;
         let mut out = StepLosses::default();
 
-        // 1. M_est update; the renderer takes part in the graph but is not stepped.
+        // The direction code does not depend on the neural map: encode once,
+        // use it detached for the M_est half (the renderer is frozen there)
+        // and with its graph for the renderer half.
         self.zero_all();
+        let code = self.model.renderer.encode_maps(&b.out_wi, &b.out_wo)?;
+
+        // 1. M_est update; the renderer takes part in the graph but is not stepped.
         let neural = self.model.est.forward_t(&b.est_input, true)?;
-        let pred = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
+        let pred = self.model.renderer.render_code(&neural, &code.detach())?;
         let l1 = (&pred - &target_log).abs().mean(tch::Kind::Float);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
         let adv = losses::adversarial(&self.disc, &pred, &photo_log, cfg.weight_adv)?;
@@ -132,7 +137,7 @@ impl Trainer {
         let neural = neural.detach();
         self.opt_render.zero_grad();
         self.opt_disc.zero_grad();
-        let pred_r = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
+        let pred_r = self.model.renderer.render_code(&neural, &code)?;
         let mut rng = batches::step_rng(cfg.seed, self.step, 3);
         let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling, &mut rng);
         let l1_r = losses::masked_l1(&pred_r, &target_log, &mask);
