@@ -1,0 +1,100 @@
+//! End-to-end checks of the `flashmat` binary: outputs and bad-input errors
+//! (one clear line, non-zero exit, no partial files).
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn flashmat(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_flashmat")).args(args).output().expect("run flashmat")
+}
+
+/// Asserts failure with exactly one stderr line containing every `needle`.
+fn assert_error(out: &Output, needles: &[&str]) {
+    assert!(!out.status.success(), "expected failure, stdout: {}", String::from_utf8_lossy(&out.stdout));
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert_eq!(lines.len(), 1, "expected one error line, got: {err}");
+    assert!(lines[0].starts_with("error: "), "{err}");
+    for n in needles {
+        assert!(lines[0].contains(n), "'{n}' not in: {err}");
+    }
+}
+
+fn no_temp_files(dir: &Path) {
+    for e in std::fs::read_dir(dir).unwrap() {
+        let name = e.unwrap().file_name().to_string_lossy().into_owned();
+        assert!(!name.contains(".tmp-"), "temporary file left behind: {name}");
+    }
+}
+
+#[test]
+fn render_writes_exr_equal_to_the_cpu_renderer_and_png() {
+    let dir = tempfile::tempdir().unwrap();
+    let exr = dir.path().join("r.exr");
+    let out = flashmat(&["render", "--svbrdf", "procedural:11", "--size", "64", "--light", "1,0.5,2", "--view", "0,0,4", "-o", exr.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let img = flashmat::io::read_image(&exr).unwrap();
+    let material = flashmat::data::procedural::generate(11, &flashmat::data::procedural::ProceduralConfig { size: 64, ..Default::default() });
+    let cfg = flashmat::geometry::LightView { light: [1.0, 0.5, 2.0], view: [0.0, 0.0, 4.0] };
+    let expect = flashmat::svbrdf::cpu::render(&material, &[cfg]);
+    let worst = img.data.iter().zip(&expect).map(|(a, b)| (a - b).abs() / b.abs().max(1e-3)).fold(0f32, f32::max);
+    assert!(worst < 1e-4, "{worst}");
+    let png = dir.path().join("sub/r.png");
+    let out = flashmat(&["render", "--svbrdf", "procedural:11", "--size", "64", "-o", png.to_str().unwrap()]);
+    assert!(out.status.success());
+    let im = flashmat::io::read_image(&png).unwrap();
+    assert_eq!((im.channels, im.height, im.width), (3, 64, 64));
+    no_temp_files(dir.path());
+}
+
+#[test]
+fn generate_then_render_and_preview_from_disk() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("data");
+    let out = flashmat(&["svbrdf", "generate", "--count", "3", "--size", "32", "--out", root.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for sub in ["diffuse", "specular", "normals", "roughness"] {
+        assert!(root.join(sub).join(format!("0000003_{sub}.png")).exists(), "{sub}");
+    }
+    let r = dir.path().join("r.png");
+    let out = flashmat(&["render", "--svbrdf", root.to_str().unwrap(), "--index", "2", "-o", r.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = flashmat(&["render", "--svbrdf", root.to_str().unwrap(), "--index", "3", "-o", r.to_str().unwrap()]);
+    assert_error(&out, &["--index 3", "3 material"]);
+    let p = dir.path().join("preview.png");
+    let out = flashmat(&["svbrdf", "preview", root.to_str().unwrap(), "--size", "32", "-o", p.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let im = flashmat::io::read_image(&p).unwrap();
+    // 3 rows and 5 columns of 32 px cells with 4 px gaps.
+    assert_eq!((im.height, im.width), (3 * 36 + 4, 5 * 36 + 4));
+    // A corrupt map names its file.
+    std::fs::write(root.join("diffuse").join("0000002_diffuse.png"), b"\x89PNG\r\n\x1a\nbroken").unwrap();
+    let out = flashmat(&["render", "--svbrdf", root.to_str().unwrap(), "--index", "1", "-o", r.to_str().unwrap()]);
+    assert_error(&out, &["0000002_diffuse.png"]);
+}
+
+#[test]
+fn bad_inputs_give_one_clear_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = dir.path().join("o.png");
+    let o = o.to_str().unwrap();
+    assert_error(&flashmat(&["render", "--svbrdf", "/nonexistent/materials", "-o", o]), &["/nonexistent/materials"]);
+    assert_error(&flashmat(&["render", "--svbrdf", "procedural:1", "--light", "0,0,-2", "-o", o]), &["light position", "z must be > 0"]);
+    assert_error(&flashmat(&["render", "--svbrdf", "procedural:1", "--view", "1,1,0", "-o", o]), &["camera position"]);
+    assert_error(&flashmat(&["render", "--svbrdf", "procedural:x", "-o", o]), &["procedural:SEED"]);
+    assert_error(&flashmat(&["render", "--svbrdf", "procedural:1:velvet", "-o", o]), &["velvet"]);
+    assert_error(&flashmat(&["render", "--svbrdf", "procedural:1", "--size", "16", "-o", dir.path().join("o.bmp").to_str().unwrap()]), &[".png or .exr"]);
+    assert_error(&flashmat(&["train", "--preset", "huge", "--out", dir.path().join("run").to_str().unwrap()]), &["huge", "compact"]);
+    assert_error(&flashmat(&["train", "--resume", dir.path().join("norun").to_str().unwrap()]), &["no checkpoint"]);
+    assert_error(&flashmat(&["train", "--device", "tpu", "--out", dir.path().join("run").to_str().unwrap()]), &["--device"]);
+    assert_error(&flashmat(&["export", "--run", dir.path().join("norun").to_str().unwrap(), "-o", o]), &["checkpoint.safetensors"]);
+    // A file where a folder is needed for the output.
+    std::fs::write(dir.path().join("file"), b"x").unwrap();
+    let blocked = dir.path().join("file").join("o.png");
+    assert_error(&flashmat(&["render", "--svbrdf", "procedural:1", "--size", "16", "-o", blocked.to_str().unwrap()]), &["file"]);
+    // Option typos are usage errors (clap), exit code 2.
+    let out = flashmat(&["render", "--lihgt", "1,1,1"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(!Path::new(o).exists());
+}
