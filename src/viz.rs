@@ -81,7 +81,13 @@ pub fn line_chart(title: &str, series: &[Series], width: usize, height: usize) -
         builder.caption(title, ("sans-serif", 20)).margin(10).x_label_area_size(30).y_label_area_size(60);
         if y0 > 0.0 {
             let mut chart = builder.build_cartesian_2d(x0..x1, (y0 * 0.9..y1 * 1.1).log_scale())?;
-            chart.configure_mesh().x_desc("step").label_style(("sans-serif", 12)).draw()?;
+            chart
+                .configure_mesh()
+                .x_desc("step")
+                .y_label_formatter(&|v| format!("{v:.3}"))
+                .x_label_formatter(&|v| format!("{v:.0}"))
+                .label_style(("sans-serif", 12))
+                .draw()?;
             for (i, s) in series.iter().enumerate() {
                 let color = colors[i % colors.len()];
                 chart
@@ -93,7 +99,13 @@ pub fn line_chart(title: &str, series: &[Series], width: usize, height: usize) -
         } else {
             let pad = (y1 - y0) * 0.05;
             let mut chart = builder.build_cartesian_2d(x0..x1, y0 - pad..y1 + pad)?;
-            chart.configure_mesh().x_desc("step").label_style(("sans-serif", 12)).draw()?;
+            chart
+                .configure_mesh()
+                .x_desc("step")
+                .y_label_formatter(&|v| format!("{v:.3}"))
+                .x_label_formatter(&|v| format!("{v:.0}"))
+                .label_style(("sans-serif", 12))
+                .draw()?;
             for (i, s) in series.iter().enumerate() {
                 let color = colors[i % colors.len()];
                 chart

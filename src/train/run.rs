@@ -80,7 +80,7 @@ pub fn write_charts(run: &Path) -> Result<()> {
         "adversarial terms",
         &[series("|D(pred)-1|", |l| l.adv), series("discriminator LS loss", |l| l.loss_disc)],
         900,
-        300,
+        360,
     )?;
     let chart = viz::grid(&[vec![top], vec![bottom]], 0)?;
     crate::io::write_png(&run.join("losses.png"), &chart, crate::io::BitDepth::Eight)
