@@ -6,6 +6,7 @@ pub mod cli;
 pub mod data;
 pub mod geometry;
 pub mod image;
+pub mod infer;
 pub mod io;
 pub mod lpips;
 pub mod model;

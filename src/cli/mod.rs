@@ -2,6 +2,7 @@
 //! subcommand's work lives in the module of its pipeline stage.
 
 pub mod bench;
+pub mod infer;
 pub mod materials;
 pub mod train;
 
@@ -26,13 +27,15 @@ pub enum Command {
     #[command(subcommand)]
     Svbrdf(SvbrdfCommand),
     /// Train M_est, ND_enc + M_render (and the discriminator) on SVBRDF renders.
-
-    /// Write a run's inference weights (M_est, ND_enc, M_render) and configuration to one file.
-
-    /// Train M_est, ND_enc + M_render (and the discriminator) on SVBRDF renders.
     Train(train::TrainArgs),
     /// Write a run's inference weights (M_est, ND_enc, M_render) and configuration to one file.
     Export(train::ExportArgs),
+    /// Estimate a neural material (.nmat) from one flash photo.
+    Estimate(infer::EstimateArgs),
+    /// Render a neural material (or a photo, estimated first) under a new light and view, or an orbit GIF.
+    Relight(infer::RelightArgs),
+    /// One picture of a neural material: photo, neural map (norm, PCA), identity render, relit views.
+    Show(infer::ShowArgs),
     /// Speed benchmarks (ratios against a baseline measured in the same run).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -163,7 +166,9 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Render(a) => materials::render(&a),
         Command::Svbrdf(SvbrdfCommand::Generate(a)) => materials::generate(&a),
         Command::Svbrdf(SvbrdfCommand::Preview(a)) => materials::preview(&a),
-
+        Command::Estimate(a) => infer::estimate(&a),
+        Command::Relight(a) => infer::relight(&a),
+        Command::Show(a) => infer::show(&a),
         Command::Train(a) => train::train(&a),
         Command::Export(a) => train::export(&a),
         Command::Bench(b) => bench::run(&b),

@@ -1,0 +1,216 @@
+//! `flashmat estimate | relight | show`: photos to neural materials and
+//! pictures of them (work done in `crate::infer`).
+
+use super::materials::{to_display, write_render};
+use super::{above_surface, prepare_output, Vec3Arg};
+use crate::infer::{self, NeuralMaterial};
+use anyhow::{bail, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use tch::Device;
+
+/// How a photo becomes a neural material (shared by estimate, relight, show).
+#[derive(Args, Debug, Clone)]
+pub struct EstimateOptions {
+    /// Model file (flashmat export). Default: models/compact-ldr.safetensors for PNG/JPEG photos,
+    /// models/compact-hdr.safetensors for EXR (folder overridden by $FLASHMAT_MODELS).
+    #[arg(long, value_name = "FILE")]
+    pub model: Option<PathBuf>,
+    /// Field of view of the photo across its shorter side, in degrees (default 45 for PNG/JPEG, a phone;
+    /// 28 for EXR, the model's own camera). The centre is cropped to the model's 28 degree view.
+    #[arg(long, value_name = "DEG")]
+    pub fov: Option<f64>,
+    /// Model resolution in pixels (a multiple of 8); the cropped photo is shrunk to it.
+    #[arg(long, default_value_t = 256)]
+    pub size: usize,
+    /// cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+}
+
+#[derive(Args, Debug)]
+pub struct EstimateArgs {
+    /// Flash photo: PNG/JPEG (8-bit, gamma-decoded, LDR) or EXR (linear HDR).
+    pub photo: PathBuf,
+    /// Output neural material (.nmat).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[command(flatten)]
+    pub estimate: EstimateOptions,
+}
+
+#[derive(Args, Debug)]
+pub struct RelightArgs {
+    /// A neural material (.nmat), or a photo (estimated first with the options below).
+    pub material: PathBuf,
+    /// Point light position X,Y,Z (the material spans [-1,1]^2 at z = 0; z must be > 0).
+    #[arg(long, value_name = "X,Y,Z", conflicts_with_all = ["orbit", "identity"])]
+    pub light: Option<Vec3Arg>,
+    /// Camera position X,Y,Z (z > 0). Default: overhead, as in the photo.
+    #[arg(long, value_name = "X,Y,Z", conflicts_with = "identity")]
+    pub view: Option<Vec3Arg>,
+    /// Animate N frames of a light circling the material (radius 2, height 3) into a GIF.
+    #[arg(long, value_name = "N", conflicts_with = "identity")]
+    pub orbit: Option<usize>,
+    /// Light and camera of the input photo (re-creates the photo).
+    #[arg(long)]
+    pub identity: bool,
+    /// Output: .png (display-encoded) or .exr (linear radiance); .gif with --orbit.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[command(flatten)]
+    pub estimate: EstimateOptions,
+}
+
+#[derive(Args, Debug)]
+pub struct ShowArgs {
+    /// A neural material (.nmat), or a photo (estimated first with the options below).
+    pub material: PathBuf,
+    /// Output PNG.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[command(flatten)]
+    pub estimate: EstimateOptions,
+}
+
+fn extension(path: &Path) -> Option<String> {
+    path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase())
+}
+
+fn require_extension(path: &Path, allowed: &[&str], what: &str) -> Result<()> {
+    match extension(path) {
+        Some(e) if allowed.contains(&e.as_str()) => Ok(()),
+        _ => bail!("{}: {what}", path.display()),
+    }
+}
+
+/// Runs M_est on a photo file. Prints the model-mismatch warning (if any)
+/// to stderr and returns the timing line, which callers print once their
+/// output is written (so a failed write stays a single error line).
+pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMaterial, String)> {
+    let device = super::train::parse_device(&opts.device)?;
+    let t0 = Instant::now();
+    let prepared = infer::load_photo(photo, opts.fov, opts.size)?;
+    let t_photo = t0.elapsed().as_secs_f64();
+    let loaded = infer::load_model(opts.model.as_deref(), prepared.ldr, device)?;
+    if let Some(w) = infer::input_mismatch_warning(&loaded.info, &loaded.path, prepared.ldr) {
+        eprintln!("{w}");
+    }
+    let t1 = Instant::now();
+    let material = infer::estimate(&loaded.model, &loaded.info, &prepared)?;
+    if let Device::Cuda(i) = device {
+        tch::Cuda::synchronize(i as i64);
+    }
+    let t_est = t1.elapsed().as_secs_f64();
+    let c = prepared.crop;
+    let summary = format!(
+        "estimated in {:.2} s (photo {:.2} s, model load {:.2} s, M_est {:.2} s; {}x{} crop at ({}, {}) of the {}x{} photo, FOV {} deg, model {})",
+        t0.elapsed().as_secs_f64(),
+        t_photo,
+        t0.elapsed().as_secs_f64() - t_photo - t_est,
+        t_est,
+        c.side,
+        c.side,
+        c.x0,
+        c.y0,
+        c.source_width,
+        c.source_height,
+        prepared.fov_deg,
+        loaded.model.model_id()
+    );
+    Ok((material, summary))
+}
+
+/// Opens a `.nmat`, or estimates a material from a photo (recognised by its
+/// PNG/JPEG/EXR signature); see [`estimate_photo`] for the returned line.
+pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMaterial, Option<String>)> {
+    if looks_like_image(path) {
+        estimate_photo(path, opts).map(|(m, line)| (m, Some(line)))
+    } else {
+        Ok((NeuralMaterial::load(path, super::train::parse_device(&opts.device)?)?, None))
+    }
+}
+
+fn looks_like_image(path: &Path) -> bool {
+    let mut head = [0u8; 8];
+    let n = std::fs::File::open(path).and_then(|mut f| std::io::Read::read(&mut f, &mut head)).unwrap_or(0);
+    let head = &head[..n];
+    head.starts_with(b"\x89PNG") || head.starts_with(&[0xFF, 0xD8, 0xFF]) || head.starts_with(&[0x76, 0x2F, 0x31, 0x01])
+        // Unreadable or empty files with an image extension go to the image reader for its message.
+        || (n == 0 && matches!(extension(path).as_deref(), Some("png" | "jpg" | "jpeg" | "exr")))
+}
+
+pub fn estimate(a: &EstimateArgs) -> Result<()> {
+    require_extension(&a.output, &["nmat"], "the output must end in .nmat")?;
+    prepare_output(&a.output)?;
+    let (material, summary) = estimate_photo(&a.photo, &a.estimate)?;
+    material.save(&a.output)?;
+    eprintln!("{summary}");
+    let (h, w) = material.size();
+    eprintln!("wrote {} ({}-channel {w}x{h} neural map)", a.output.display(), material.config.neural_channels);
+    Ok(())
+}
+
+pub fn relight(a: &RelightArgs) -> Result<()> {
+    let camera = match a.view {
+        Some(v) => above_surface("camera", v.0)?,
+        None => infer::overhead_camera(),
+    };
+    if let Some(l) = a.light {
+        above_surface("light", l.0)?;
+    }
+    if let Some(n) = a.orbit {
+        require_extension(&a.output, &["gif"], "an --orbit animation must be written to a .gif")?;
+        if !(1..=1000).contains(&n) {
+            bail!("--orbit must be between 1 and 1000 frames, got {n}");
+        }
+    } else {
+        require_extension(&a.output, &["png", "exr"], "the output must end in .png or .exr (.gif with --orbit)")?;
+        if a.light.is_none() && !a.identity {
+            bail!("relight needs a light: --light X,Y,Z, --orbit N or --identity");
+        }
+    }
+    prepare_output(&a.output)?;
+    let (material, summary) = open_material(&a.material, &a.estimate)?;
+    let t0 = Instant::now();
+    if let Some(n) = a.orbit {
+        let configs = infer::orbit_configs(n, infer::ORBIT_RADIUS, infer::ORBIT_HEIGHT, camera);
+        let bar = ProgressBar::new(n as u64).with_style(ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} ETA {eta}")?);
+        let frames = infer::render_frames(&material, &configs, |_| bar.inc(1))?;
+        bar.finish_and_clear();
+        let display: Vec<_> = frames.iter().map(to_display).collect();
+        let secs = t0.elapsed().as_secs_f64();
+        crate::viz::write_gif(&a.output, &display, 8)?;
+        summary.iter().for_each(|l| eprintln!("{l}"));
+        eprintln!("rendered {n} frames in {secs:.2} s ({:.3} s/frame)", secs / n as f64);
+    } else {
+        let config = if a.identity {
+            NeuralMaterial::identity_config()
+        } else {
+            crate::geometry::LightView { light: a.light.expect("checked above").0, view: camera }
+        };
+        let image = material.render_image(&config)?;
+        let secs = t0.elapsed().as_secs_f64();
+        write_render(&a.output, &image)?;
+        summary.iter().for_each(|l| eprintln!("{l}"));
+        eprintln!("rendered in {secs:.2} s");
+    }
+    eprintln!("wrote {}", a.output.display());
+    Ok(())
+}
+
+pub fn show(a: &ShowArgs) -> Result<()> {
+    require_extension(&a.output, &["png"], "the output must end in .png")?;
+    prepare_output(&a.output)?;
+    let (material, summary) = open_material(&a.material, &a.estimate)?;
+    let grid = infer::show::show_grid(&material)?;
+    crate::io::write_png(&a.output, &grid, crate::io::BitDepth::Eight)?;
+    summary.iter().for_each(|l| eprintln!("{l}"));
+    eprintln!(
+        "wrote {} (row 1: input photo | neural map norm | neural map PCA (3 components as RGB) | identity render; row 2: light circling at 4 azimuths)",
+        a.output.display()
+    );
+    Ok(())
+}

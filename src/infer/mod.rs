@@ -1,0 +1,233 @@
+//! Inference from photos: one flash photo -> a relightable neural material.
+//!
+//! ```text
+//! photo file ──► photo::load_photo ──► estimate (M_est) ──► NeuralMaterial ──► .nmat
+//!  (PNG/JPEG:     (linear, FOV crop,     (BatchNorm folded,   (neural map +       (nmat)
+//!   gamma ^2.2;    area resize to S)      no autograd)         ND_enc/M_render)
+//!   EXR: linear)                                                  │
+//!                                                                 ▼
+//!                                           render / orbit / show (linear radiance)
+//! ```
+//!
+//! The model's input view is fixed: light and camera co-located at
+//! (0, 0, fov_to_distance(28)) over the material square [-1,1]^2. Photos
+//! with a wider lens are cropped to that view ([`photo`]), so the identity
+//! configuration of every material is [`NeuralMaterial::identity_config`].
+
+pub mod nmat;
+pub mod photo;
+pub mod show;
+
+pub use nmat::{NeuralMaterial, NmatMeta, NMAT_FORMAT, NMAT_VERSION};
+pub use photo::{load_photo, prepare_image, Crop, PreparedPhoto};
+
+use crate::data::samples::{est_input, input_directions};
+use crate::geometry::{fov_to_distance, LightView, MODEL_FOV_DEG};
+use crate::image::Image;
+use crate::model::{Model, ModelConfig, ModelInfo};
+use crate::svbrdf::render::half_vector_z;
+use anyhow::{bail, ensure, Result};
+use std::path::{Path, PathBuf};
+use tch::Device;
+
+/// Preset of the bundled models (`models/compact-{ldr,hdr}.safetensors`).
+pub const BUNDLED_PRESET: &str = "compact";
+
+/// Environment variable that replaces the bundled-models folder.
+pub const MODELS_ENV: &str = "FLASHMAT_MODELS";
+
+/// Light circle of orbit animations: radius and height above the material
+/// (the camera stays overhead at the input configuration).
+pub const ORBIT_RADIUS: f64 = 2.0;
+pub const ORBIT_HEIGHT: f64 = 3.0;
+
+/// Folder holding the bundled models: `$FLASHMAT_MODELS` when set, else
+/// `models/` in the crate root.
+pub fn models_dir() -> PathBuf {
+    match std::env::var_os(MODELS_ENV) {
+        Some(d) if !d.is_empty() => PathBuf::from(d),
+        _ => Path::new(env!("CARGO_MANIFEST_DIR")).join("models"),
+    }
+}
+
+/// The bundled model for a photo type: LDR-input for 8-bit photos,
+/// HDR-input for EXR.
+pub fn default_model_path(ldr_photo: bool) -> PathBuf {
+    models_dir().join(format!("{BUNDLED_PRESET}-{}.safetensors", if ldr_photo { "ldr" } else { "hdr" }))
+}
+
+/// A loaded model and where it came from.
+#[derive(Debug)]
+pub struct LoadedModel {
+    pub model: Model,
+    pub info: ModelInfo,
+    pub path: PathBuf,
+}
+
+/// Loads `explicit` (any preset), or the bundled model for the photo type
+/// (which must hold the `compact` preset). A missing file names the file
+/// and says that `--model` selects another.
+pub fn load_model(explicit: Option<&Path>, ldr_photo: bool, device: Device) -> Result<LoadedModel> {
+    let kind = if ldr_photo { "8-bit (LDR) photos" } else { "EXR (HDR) photos" };
+    let (model, info, path) = match explicit {
+        Some(p) => {
+            if !p.exists() {
+                bail!("model file {} does not exist (given with --model)", p.display());
+            }
+            let (m, i) = Model::load(p, device)?;
+            (m, i, p.to_path_buf())
+        }
+        None => {
+            let p = default_model_path(ldr_photo);
+            if !p.exists() {
+                bail!("the default model for {kind}, {}, does not exist (not trained yet?); select a model file with --model FILE", p.display());
+            }
+            let (m, i) = Model::load_expecting(&p, device, &ModelConfig::preset(BUNDLED_PRESET)?.model_id())?;
+            (m, i, p)
+        }
+    };
+    Ok(LoadedModel { model, info, path })
+}
+
+/// One-line warning when a model was trained on the other photo type, or
+/// None. An LDR model given an HDR photo sees it clamped to [0, 1].
+pub fn input_mismatch_warning(info: &ModelInfo, model_path: &Path, ldr_photo: bool) -> Option<String> {
+    match (info.ldr_input, ldr_photo) {
+        (true, false) => Some(format!(
+            "warning: model {} was trained on 8-bit (LDR) photos; the EXR photo is clamped to [0,1] for it",
+            model_path.display()
+        )),
+        (false, true) => Some(format!(
+            "warning: model {} was trained on HDR (EXR) photos; an 8-bit photo lacks the highlights above 1 it expects",
+            model_path.display()
+        )),
+        _ => None,
+    }
+}
+
+/// Runs M_est (inference mode: BatchNorm folded, no autograd) on a
+/// prepared photo and packages the result with a copy of the model's
+/// renderer. The photo is clamped to [0, 1] for LDR-input models (as in
+/// their training), and below at 0 otherwise.
+pub fn estimate(model: &Model, info: &ModelInfo, photo: &PreparedPhoto) -> Result<NeuralMaterial> {
+    let (h, w) = (photo.linear.height, photo.linear.width);
+    ensure!(photo.linear.channels == 3, "the prepared photo must have 3 channels, got {}", photo.linear.channels);
+    let device = model.device();
+    let linear = photo.linear.to_tensor().unsqueeze(0).to_device(device); // [1, 3, H, W]
+    let linear = if info.ldr_input { crate::spaces::ldr_clamp(&linear) } else { linear.clamp_min(0.0) };
+    let (wi, wo) = input_directions(h, w, MODEL_FOV_DEG, device);
+    let x = est_input(&linear, &half_vector_z(&wi, &wo)); // [1, 4, H, W]
+    let map = model.est.fold_batchnorm().forward(&x)?; // [1, C, H, W]
+    let meta = NmatMeta {
+        model_id: model.model_id(),
+        fov_deg: photo.fov_deg,
+        crop: photo.crop,
+        source: photo.source.clone(),
+        ldr_input: photo.ldr,
+        model_info: info.clone(),
+    };
+    NeuralMaterial::from_parts(map.get(0), linear.get(0), &model.config, &model.renderer_vs.variables(), meta)
+}
+
+/// `frames` configurations of a light circling the material at radius
+/// `radius` and height `height` (starting on +x, counter-clockwise), seen
+/// by a camera at `camera`.
+pub fn orbit_configs(frames: usize, radius: f64, height: f64, camera: [f64; 3]) -> Vec<LightView> {
+    (0..frames)
+        .map(|i| {
+            let a = std::f64::consts::TAU * i as f64 / frames as f64;
+            LightView { light: [radius * a.cos(), radius * a.sin(), height], view: camera }
+        })
+        .collect()
+}
+
+/// The overhead camera of the input photo.
+pub fn overhead_camera() -> [f64; 3] {
+    [0.0, 0.0, fov_to_distance(MODEL_FOV_DEG)]
+}
+
+/// Renders configurations one frame at a time (bounded memory), calling
+/// `on_frame` after each; linear images `[3, H, W]`.
+pub fn render_frames(material: &NeuralMaterial, configs: &[LightView], mut on_frame: impl FnMut(usize)) -> Result<Vec<Image>> {
+    configs
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let im = material.render_image(c)?;
+            on_frame(i);
+            Ok(im)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::ModelConfig;
+
+    fn photo(size: usize, ldr: bool) -> PreparedPhoto {
+        let linear = Image::from_fn(3, size, size, |c, y, x| 0.2 + 0.1 * c as f32 + 0.01 * ((x * 7 + y * 3) % 13) as f32 + if ldr { 0.0 } else { 2.0 });
+        PreparedPhoto {
+            linear,
+            ldr,
+            fov_deg: 28.0,
+            crop: Crop { x0: 0, y0: 0, side: size, source_width: size, source_height: size },
+            source: "p.exr".into(),
+        }
+    }
+
+    #[test]
+    fn estimate_then_identity_render_has_the_photo_size() {
+        tch::manual_seed(4);
+        let model = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+        let info = ModelInfo { ldr_input: true, steps: 0 };
+        let m = estimate(&model, &info, &photo(24, false)).unwrap();
+        assert_eq!(m.size(), (24, 24));
+        assert_eq!(m.neural_map.size(), [16, 24, 24]);
+        // An LDR model sees the HDR photo clamped.
+        assert_eq!(m.input_photo.max().double_value(&[]), 1.0);
+        let im = m.render_image(&NeuralMaterial::identity_config()).unwrap();
+        assert_eq!((im.channels, im.height, im.width), (3, 24, 24));
+        assert!(im.find_non_finite().is_none());
+        // The estimate equals the unfolded eval-mode forward.
+        let x = est_input(&m.input_photo.unsqueeze(0), &{
+            let (wi, wo) = input_directions(24, 24, 28.0, Device::Cpu);
+            half_vector_z(&wi, &wo)
+        });
+        let direct = tch::no_grad(|| model.est_forward_t(&x, false)).unwrap().get(0);
+        let diff = (&direct - &m.neural_map).abs().max().double_value(&[]);
+        assert!(diff < 1e-3 * (1.0 + direct.abs().max().double_value(&[])), "{diff}");
+        // The material's renderer is a copy: same output as the model's.
+        let cfg = LightView { light: [1.0, 0.0, 2.0], view: overhead_camera() };
+        let ours = m.render(&[cfg]).unwrap();
+        let (l, v) = crate::geometry::config_tensors(&[cfg], Device::Cpu);
+        let (wi, wo) = crate::svbrdf::render::direction_maps_for(&l.view([1, 1, 3]), &v.view([1, 1, 3]), 24, 24);
+        let theirs = tch::no_grad(|| model.renderer.forward_maps(&m.neural_map.unsqueeze(0), &wi, &wo)).unwrap();
+        assert!(ours.equal(&theirs.get(0).clamp_max(nmat::MAX_LOG_RADIANCE).expm1().clamp_min(0.0)));
+    }
+
+    #[test]
+    fn orbit_circles_above_the_material() {
+        let c = orbit_configs(4, 2.0, 3.0, overhead_camera());
+        assert_eq!(c.len(), 4);
+        assert!((c[1].light[0]).abs() < 1e-12 && (c[1].light[1] - 2.0).abs() < 1e-12);
+        assert!(c.iter().all(|lv| lv.light[2] == 3.0 && lv.view == overhead_camera()));
+    }
+
+    #[test]
+    fn mismatch_warning_is_one_line() {
+        let p = Path::new("m.safetensors");
+        assert!(input_mismatch_warning(&ModelInfo { ldr_input: true, steps: 1 }, p, true).is_none());
+        let w = input_mismatch_warning(&ModelInfo { ldr_input: false, steps: 1 }, p, true).unwrap();
+        assert!(w.starts_with("warning: ") && !w.contains('\n'));
+        assert!(input_mismatch_warning(&ModelInfo { ldr_input: true, steps: 1 }, p, false).unwrap().contains("clamped"));
+    }
+
+    #[test]
+    fn missing_model_names_the_file_and_the_option() {
+        let e = load_model(Some(Path::new("/nonexistent/m.safetensors")), true, Device::Cpu).unwrap_err().to_string();
+        assert!(e.contains("/nonexistent/m.safetensors") && e.contains("--model"), "{e}");
+        assert!(default_model_path(true).ends_with("compact-ldr.safetensors"));
+        assert!(default_model_path(false).ends_with("compact-hdr.safetensors"));
+    }
+}

@@ -1,0 +1,308 @@
+//! The `.nmat` neural material file: everything needed to render a material
+//! estimated from a photo, without M_est. A checksummed, versioned
+//! safetensors archive (see `crate::archive`, format tag `flashmat-nmat`,
+//! version 1), specified in docs/NMAT.md for readers in other languages.
+//!
+//! Tensors (f32): `neural_map` `[C, H, W]`, `input_photo` `[3, H, W]` (the
+//! linear photo M_est saw) and the renderer weights under their model names
+//! (`renderer.nd_enc.*`, `renderer.m_render.*`). Metadata: `model_id`,
+//! `config` (TOML), `fov_deg`, `crop` (JSON), `source`, `ldr_input`,
+//! `model_info` (JSON), `resolution` (JSON).
+
+use super::photo::Crop;
+use crate::archive::{restore_vars, Archive};
+use crate::geometry::{LightView, MODEL_FOV_DEG};
+use crate::image::Image;
+use crate::model::{ModelConfig, ModelInfo, NeuralRenderer};
+use anyhow::{bail, ensure, Context, Result};
+use std::collections::HashMap;
+use std::path::Path;
+use tch::{nn, Device, Tensor};
+
+/// Format tag and version of `.nmat` files.
+pub const NMAT_FORMAT: &str = "flashmat-nmat";
+pub const NMAT_VERSION: u32 = 1;
+
+/// Largest ln(1 + R) turned into radiance: exp(80) = 5.5e34 stays finite in
+/// f32, so renders of untrained or diverged models can still be written
+/// (trained ones stay far below: a mirror-like GGX highlight is ln(1 + R) ~ 10).
+pub const MAX_LOG_RADIANCE: f64 = 80.0;
+
+/// Where a neural material came from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NmatMeta {
+    /// Id of the model that estimated it ([`ModelConfig::model_id`]).
+    pub model_id: String,
+    /// Field of view of the source photo across its shorter side.
+    pub fov_deg: f64,
+    /// Part of the source photo that became the model input.
+    pub crop: Crop,
+    /// File name of the source photo.
+    pub source: String,
+    /// The photo was an 8/16-bit display-encoded file (LDR), not an EXR.
+    pub ldr_input: bool,
+    /// What the estimating model's file recorded.
+    pub model_info: ModelInfo,
+}
+
+/// A relightable neural material: per-pixel parameters and the neural BRDF
+/// that renders them.
+#[derive(Debug)]
+pub struct NeuralMaterial {
+    /// Learned per-pixel parameters `[C, H, W]` (C = `config.neural_channels`).
+    pub neural_map: Tensor,
+    /// The linear input photo as M_est saw it `[3, H, W]`.
+    pub input_photo: Tensor,
+    pub config: ModelConfig,
+    /// ND_enc + M_render; its variables live in `renderer_vs` (frozen).
+    pub renderer: NeuralRenderer,
+    pub renderer_vs: nn::VarStore,
+    pub meta: NmatMeta,
+}
+
+impl NeuralMaterial {
+    /// Builds a material from its parts; the renderer weights (named
+    /// `renderer.nd_enc.*`, `renderer.m_render.*` as in
+    /// `Model::renderer_vs`) are copied into a fresh, frozen renderer on
+    /// the neural map's device.
+    /// neural_map: `[C, H, W]`; input_photo: `[3, H, W]`.
+    pub fn from_parts(
+        neural_map: Tensor,
+        input_photo: Tensor,
+        config: &ModelConfig,
+        weights: &HashMap<String, Tensor>,
+        meta: NmatMeta,
+    ) -> Result<Self> {
+        let s = neural_map.size();
+        ensure!(s.len() == 3 && s[0] == config.neural_channels, "neural map must be [{}, H, W], got {s:?}", config.neural_channels);
+        ensure!(input_photo.size() == [3, s[1], s[2]], "input photo must be [3, {}, {}], got {:?}", s[1], s[2], input_photo.size());
+        let device = neural_map.device();
+        let mut renderer_vs = nn::VarStore::new(device);
+        let renderer = NeuralRenderer::new(&(renderer_vs.root() / "renderer"), config)?;
+        restore_vars(&renderer_vs.variables(), weights, "renderer")?;
+        renderer_vs.freeze();
+        let neural_map = neural_map.detach().to_kind(tch::Kind::Float);
+        let input_photo = input_photo.detach().to_device(device).to_kind(tch::Kind::Float);
+        Ok(Self { neural_map, input_photo, config: config.clone(), renderer, renderer_vs, meta })
+    }
+
+    /// (H, W) of the neural map.
+    pub fn size(&self) -> (usize, usize) {
+        let s = self.neural_map.size();
+        (s[1] as usize, s[2] as usize)
+    }
+
+    pub fn device(&self) -> Device {
+        self.neural_map.device()
+    }
+
+    /// Light and camera of the input photo (after the FOV crop the photo is
+    /// always the model's 28 degree co-located view).
+    pub fn identity_config() -> LightView {
+        LightView::colocated(MODEL_FOV_DEG)
+    }
+
+    /// Writes the material (atomically) in the documented `.nmat` format.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let mut a = Archive::new();
+        a.insert("neural_map", &self.neural_map);
+        a.insert("input_photo", &self.input_photo);
+        for (name, t) in self.renderer_vs.variables() {
+            a.insert(name, &t);
+        }
+        let (h, w) = self.size();
+        let m = &self.meta;
+        a.set_meta("model_id", m.model_id.clone());
+        a.set_meta("config", self.config.to_toml_string()?);
+        a.set_meta("fov_deg", m.fov_deg.to_string());
+        a.set_meta("crop", serde_json::to_string(&m.crop)?);
+        a.set_meta("source", m.source.clone());
+        a.set_meta("ldr_input", m.ldr_input.to_string());
+        a.set_meta("model_info", serde_json::to_string(&m.model_info)?);
+        a.set_meta("resolution", serde_json::to_string(&[h, w])?);
+        a.save(path, NMAT_FORMAT, NMAT_VERSION)
+    }
+
+    /// Reads a `.nmat` file onto `device`. Damaged, truncated, foreign or
+    /// other-version files, and inconsistent contents, are refused with a
+    /// message naming the file.
+    pub fn load(path: &Path, device: Device) -> Result<Self> {
+        let a = Archive::load(path, NMAT_FORMAT, NMAT_VERSION).context("cannot load neural material")?;
+        Self::from_archive(&a, device).with_context(|| format!("neural material {}", path.display()))
+    }
+
+    fn from_archive(a: &Archive, device: Device) -> Result<Self> {
+        let config = ModelConfig::from_toml_str(a.meta("config")?)?;
+        let model_id = a.meta("model_id")?.to_string();
+        ensure!(model_id == config.model_id(), "model id '{model_id}' does not match the stored configuration");
+        let parse_bool = |k: &str| -> Result<bool> {
+            match a.meta(k)? {
+                "true" => Ok(true),
+                "false" => Ok(false),
+                other => bail!("metadata field '{k}' must be true or false, got '{other}'"),
+            }
+        };
+        let fov_deg: f64 = a.meta("fov_deg")?.parse().context("metadata field 'fov_deg' is not a number")?;
+        let meta = NmatMeta {
+            model_id,
+            fov_deg,
+            crop: serde_json::from_str(a.meta("crop")?).context("metadata field 'crop'")?,
+            source: a.meta("source")?.to_string(),
+            ldr_input: parse_bool("ldr_input")?,
+            model_info: serde_json::from_str(a.meta("model_info")?).context("metadata field 'model_info'")?,
+        };
+        let neural_map = a.tensor("neural_map")?.to_device(device);
+        let input_photo = a.tensor("input_photo")?.shallow_clone();
+        let resolution: [i64; 2] = serde_json::from_str(a.meta("resolution")?).context("metadata field 'resolution'")?;
+        let s = neural_map.size();
+        ensure!(s.len() == 3 && s[1..] == resolution, "neural_map has shape {s:?}, the metadata says resolution {resolution:?}");
+        let weights: HashMap<String, Tensor> =
+            a.tensors.iter().filter(|(k, _)| k.starts_with("renderer.")).map(|(k, v)| (k.clone(), v.shallow_clone())).collect();
+        let unknown: Vec<&String> =
+            a.tensors.keys().filter(|k| !k.starts_with("renderer.") && *k != "neural_map" && *k != "input_photo").collect();
+        ensure!(unknown.is_empty(), "unexpected tensors {unknown:?}");
+        Self::from_parts(neural_map, input_photo, &config, &weights, meta)
+    }
+
+    /// Linear radiance for K light/view configurations (camera-independent
+    /// rectified view: every pixel is its own BRDF sample, REFERENCE section 1).
+    /// Returns `[K, 3, H, W]`, clamped at 0 (M_render's final LeakyReLU can
+    /// dip slightly below ln(1 + 0)) and, in log space, at
+    /// [`MAX_LOG_RADIANCE`].
+    pub fn render(&self, configs: &[LightView]) -> Result<Tensor> {
+        ensure!(!configs.is_empty(), "no light/view configuration to render");
+        for c in configs {
+            crate::cli::above_surface("light", c.light)?;
+            crate::cli::above_surface("camera", c.view)?;
+        }
+        let (h, w) = self.size();
+        let k = configs.len() as i64;
+        let (lights, views) = crate::geometry::config_tensors(configs, self.device());
+        let (wi, wo) = crate::svbrdf::render::direction_maps_for(&lights.view([1, k, 3]), &views.view([1, k, 3]), h, w);
+        let log = tch::no_grad(|| self.renderer.forward_maps(&self.neural_map.unsqueeze(0), &wi, &wo))?;
+        Ok(crate::spaces::from_log(&log.get(0).clamp_max(MAX_LOG_RADIANCE)).clamp_min(0.0))
+    }
+
+    /// One linear render `[3, H, W]` as an image.
+    pub fn render_image(&self, config: &LightView) -> Result<Image> {
+        Image::from_tensor(&self.render(std::slice::from_ref(config))?.get(0))
+    }
+
+    /// The stored input photo (linear) as an image.
+    pub fn input_image(&self) -> Result<Image> {
+        Image::from_tensor(&self.input_photo)
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::model::{Model, ModelInfo};
+
+    pub(crate) fn random_material(seed: i64, size: i64) -> NeuralMaterial {
+        tch::manual_seed(seed);
+        let cfg = ModelConfig::tiny();
+        let model = Model::new(&cfg, Device::Cpu).unwrap();
+        let weights: HashMap<String, Tensor> = model.renderer_vs.variables();
+        let meta = NmatMeta {
+            model_id: cfg.model_id(),
+            fov_deg: 45.0,
+            crop: Crop { x0: 3, y0: 0, side: 20, source_width: 26, source_height: 20 },
+            source: "photo é.png".into(),
+            ldr_input: true,
+            model_info: ModelInfo { ldr_input: true, steps: 7 },
+        };
+        let map = Tensor::randn([cfg.neural_channels, size, size], (tch::Kind::Float, Device::Cpu));
+        let photo = Tensor::rand([3, size, size], (tch::Kind::Float, Device::Cpu));
+        NeuralMaterial::from_parts(map, photo, &cfg, &weights, meta).unwrap()
+    }
+
+    fn configs() -> Vec<LightView> {
+        vec![NeuralMaterial::identity_config(), LightView { light: [1.0, -0.5, 2.0], view: [0.3, 0.2, 3.0] }]
+    }
+
+    #[test]
+    fn round_trip_renders_identical_pixels() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.nmat");
+        let m = random_material(1, 16);
+        m.save(&p).unwrap();
+        let back = NeuralMaterial::load(&p, Device::Cpu).unwrap();
+        assert_eq!(back.meta, m.meta);
+        assert_eq!(back.config, m.config);
+        assert_eq!(back.size(), (16, 16));
+        assert!(back.neural_map.equal(&m.neural_map));
+        assert!(back.input_photo.equal(&m.input_photo));
+        let (a, b) = (m.render(&configs()).unwrap(), back.render(&configs()).unwrap());
+        assert_eq!(a.size(), [2, 3, 16, 16]);
+        assert!(a.equal(&b), "renders differ after a round trip");
+        assert!(a.min().double_value(&[]) >= 0.0);
+        // Only the file itself: no temporary left behind.
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn damaged_truncated_and_foreign_files_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.nmat");
+        random_material(2, 8).save(&p).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        let err = |path: &Path| format!("{:#}", NeuralMaterial::load(path, Device::Cpu).unwrap_err());
+
+        let mut flipped = bytes.clone();
+        let n = flipped.len();
+        flipped[n - 100] ^= 0x10;
+        let bad = dir.path().join("flipped.nmat");
+        std::fs::write(&bad, &flipped).unwrap();
+        let e = err(&bad);
+        assert!(e.contains("flipped.nmat") && e.contains("checksum"), "{e}");
+
+        let cut = dir.path().join("cut.nmat");
+        std::fs::write(&cut, &bytes[..n / 2]).unwrap();
+        let e = err(&cut);
+        assert!(e.contains("cut.nmat") && e.contains("truncated"), "{e}");
+
+        // An exported model file is a flashmat archive of another format.
+        let model_file = dir.path().join("model.safetensors");
+        Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(&model_file, &ModelInfo::default()).unwrap();
+        let e = err(&model_file);
+        assert!(e.contains("model.safetensors") && e.contains("'flashmat-model' file, expected a 'flashmat-nmat'"), "{e}");
+
+        // A plain safetensors file from elsewhere.
+        let foreign = dir.path().join("random.safetensors");
+        let data: Vec<u8> = (0..64u32).flat_map(|i| (i as f32).to_le_bytes()).collect();
+        let view = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![8, 8], &data).unwrap();
+        std::fs::write(&foreign, safetensors::tensor::serialize([("w", view)], None).unwrap()).unwrap();
+        let e = err(&foreign);
+        assert!(e.contains("random.safetensors") && e.contains("no format tag"), "{e}");
+
+        // Another version of the format.
+        let mut a = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+        let v2 = dir.path().join("v2.nmat");
+        a.save(&v2, NMAT_FORMAT, 2).unwrap();
+        let e = err(&v2);
+        assert!(e.contains("v2.nmat") && e.contains("version 2 is not supported"), "{e}");
+
+        // Consistent checksum but inconsistent contents.
+        a.insert("neural_map", &Tensor::zeros([3, 8, 8], (tch::Kind::Float, Device::Cpu)));
+        let wrong = dir.path().join("wrong.nmat");
+        a.save(&wrong, NMAT_FORMAT, NMAT_VERSION).unwrap();
+        let e = err(&wrong);
+        assert!(e.contains("wrong.nmat") && e.contains("neural map must be [16, H, W]"), "{e}");
+        a.insert("neural_map", &Tensor::zeros([16, 8, 8], (tch::Kind::Float, Device::Cpu)));
+        a.tensors.remove("renderer.m_render.3.weight");
+        a.save(&wrong, NMAT_FORMAT, NMAT_VERSION).unwrap();
+        assert!(err(&wrong).contains("renderer.m_render.3.weight"));
+
+        let e = err(&dir.path().join("missing.nmat"));
+        assert!(e.contains("missing.nmat") && e.contains("No such file"), "{e}");
+    }
+
+    #[test]
+    fn lights_below_the_surface_are_refused() {
+        let m = random_material(3, 8);
+        let e = m.render(&[LightView { light: [0.0, 1.0, -0.5], view: [0.0, 0.0, 4.0] }]).unwrap_err();
+        assert!(e.to_string().contains("light position 0,1,-0.5 is not above the surface"), "{e}");
+        assert!(m.render(&[LightView { light: [0.0, 1.0, 1.0], view: [0.0, 0.0, 0.0] }]).is_err());
+    }
+}

@@ -1,0 +1,281 @@
+//! End-to-end checks of `flashmat estimate | relight | show` with small
+//! randomly initialised models: outputs, and bad inputs (one clear error
+//! line, exit code 1, no partial files).
+
+use flashmat::geometry::LightView;
+use flashmat::image::Image;
+use flashmat::infer::NeuralMaterial;
+use flashmat::model::{Model, ModelConfig, ModelInfo};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use tch::Device;
+
+fn flashmat_env(args: &[&str], env: &[(&str, &str)]) -> Output {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_flashmat"));
+    cmd.args(args);
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    cmd.output().expect("run flashmat")
+}
+
+fn flashmat(args: &[&str]) -> Output {
+    flashmat_env(args, &[])
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+fn assert_ok(out: &Output) -> String {
+    assert!(out.status.success(), "flashmat failed: {}", stderr(out));
+    stderr(out)
+}
+
+/// Asserts failure with exactly one stderr line containing every `needle`.
+fn assert_error(out: &Output, needles: &[&str]) {
+    let err = stderr(out);
+    assert_eq!(out.status.code(), Some(1), "expected exit code 1, stderr: {err}");
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert_eq!(lines.len(), 1, "expected one error line, got: {err}");
+    assert!(lines[0].starts_with("error: "), "{err}");
+    for n in needles {
+        assert!(lines[0].contains(n), "'{n}' not in: {err}");
+    }
+}
+
+fn files_in(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    v.sort();
+    v
+}
+
+fn no_temp_files(dir: &Path) {
+    for name in files_in(dir) {
+        assert!(!name.contains(".tmp-"), "temporary file left behind: {name}");
+    }
+}
+
+/// A tiny randomly initialised model file.
+fn tiny_model(path: &Path, ldr_input: bool, seed: i64) -> PathBuf {
+    tch::manual_seed(seed);
+    let m = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+    m.save(path, &ModelInfo { ldr_input, steps: 3 }).unwrap();
+    path.to_path_buf()
+}
+
+/// A co-located flash render of a procedural material, `width x height`, linear.
+fn flash_render(width: usize, height: usize) -> Image {
+    let side = width.max(height);
+    let m = flashmat::data::procedural::generate(21, &flashmat::data::procedural::ProceduralConfig::with_size(side));
+    let m = m.crop((side - height) / 2, (side - width) / 2, height, width).unwrap();
+    flashmat::svbrdf::render::render_material(&m, &[LightView::colocated(28.0)]).unwrap().remove(0)
+}
+
+/// An 8-bit display-encoded PNG "phone photo".
+fn png_photo(path: &Path, width: usize, height: usize) -> PathBuf {
+    let linear = flash_render(width, height);
+    flashmat::io::write_png(path, &linear.map(flashmat::spaces::gamma_encode), flashmat::io::BitDepth::Eight).unwrap();
+    path.to_path_buf()
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn gif_frames(path: &Path) -> (u16, u16, usize) {
+    let mut opts = gif::DecodeOptions::new();
+    opts.set_color_output(gif::ColorOutput::RGBA);
+    let mut dec = opts.read_info(std::fs::File::open(path).unwrap()).unwrap();
+    let (w, h) = (dec.width(), dec.height());
+    let mut n = 0;
+    while dec.read_next_frame().unwrap().is_some() {
+        n += 1;
+    }
+    (w, h, n)
+}
+
+#[test]
+fn estimate_relight_orbit_show_from_a_phone_photo() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let model = tiny_model(&d.join("tiny-ldr.safetensors"), true, 1);
+    // 160x120 at the default 45 degrees: a 72-pixel centre crop, shrunk to 64.
+    let photo = png_photo(&d.join("photo.png"), 160, 120);
+    let nmat = d.join("out/m.nmat");
+    let err = assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--size", "64", "-o", s(&nmat)]));
+    assert!(err.contains("estimated in ") && err.contains(" s"), "{err}");
+    assert!(!err.contains("warning"), "{err}");
+    let m = NeuralMaterial::load(&nmat, Device::Cpu).unwrap();
+    assert_eq!(m.size(), (64, 64));
+    assert_eq!((m.meta.crop.x0, m.meta.crop.y0, m.meta.crop.side), (44, 24, 72));
+    assert_eq!((m.meta.crop.source_width, m.meta.crop.source_height), (160, 120));
+    assert_eq!((m.meta.fov_deg, m.meta.ldr_input, m.meta.source.as_str()), (45.0, true, "photo.png"));
+    assert_eq!(m.meta.model_id, ModelConfig::tiny().model_id());
+
+    // Identity relight: the photo's (model-resolution) size.
+    let id = d.join("id.png");
+    let err = assert_ok(&flashmat(&["relight", s(&nmat), "--identity", "-o", s(&id)]));
+    assert!(err.contains("rendered in "), "{err}");
+    let im = flashmat::io::read_image(&id).unwrap();
+    assert_eq!((im.channels, im.height, im.width), (3, 64, 64));
+    // Same picture when relight is given the photo itself (estimated on the fly).
+    let id2 = d.join("id2.png");
+    assert_ok(&flashmat(&["relight", s(&photo), "--identity", "--model", s(&model), "--size", "64", "-o", s(&id2)]));
+    assert_eq!(flashmat::io::read_image(&id2).unwrap(), im);
+
+    // A chosen light: linear EXR equal to the library's render.
+    let exr = d.join("side.exr");
+    assert_ok(&flashmat(&["relight", s(&nmat), "--light", "1.5,1,2", "--view", "0.5,0,3", "-o", s(&exr)]));
+    let got = flashmat::io::read_image(&exr).unwrap();
+    let want = m.render_image(&LightView { light: [1.5, 1.0, 2.0], view: [0.5, 0.0, 3.0] }).unwrap();
+    assert_eq!(got, want);
+
+    // Orbit: N frames at the material's resolution.
+    let gif = d.join("orbit.gif");
+    let err = assert_ok(&flashmat(&["relight", s(&nmat), "--orbit", "5", "-o", s(&gif)]));
+    assert!(err.contains("rendered 5 frames in "), "{err}");
+    assert_eq!(gif_frames(&gif), (64, 64, 5));
+
+    // Show: 2 rows x 4 columns of 64-pixel cells with 4-pixel gaps.
+    let grid = d.join("grid.png");
+    assert_ok(&flashmat(&["show", s(&nmat), "-o", s(&grid)]));
+    let g = flashmat::io::read_image(&grid).unwrap();
+    assert_eq!((g.channels, g.height, g.width), (3, 2 * 68 + 4, 4 * 68 + 4));
+    no_temp_files(d);
+    no_temp_files(&d.join("out"));
+}
+
+#[test]
+fn exr_photos_default_to_28_degrees_and_mismatched_models_warn() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let ldr_model = tiny_model(&d.join("ldr.safetensors"), true, 2);
+    let hdr_model = tiny_model(&d.join("hdr.safetensors"), false, 3);
+    let photo = d.join("render.exr");
+    flashmat::io::write_exr(&photo, &flash_render(64, 64)).unwrap();
+    let nmat = d.join("m.nmat");
+    let err = assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&hdr_model), "--size", "32", "-o", s(&nmat)]));
+    assert!(!err.contains("warning"), "{err}");
+    let m = NeuralMaterial::load(&nmat, Device::Cpu).unwrap();
+    assert_eq!((m.meta.fov_deg, m.meta.ldr_input, m.meta.crop.side, m.size()), (28.0, false, 64, (32, 32)));
+
+    let out = flashmat(&["estimate", s(&photo), "--model", s(&ldr_model), "--size", "32", "-o", s(&nmat)]);
+    let err = assert_ok(&out);
+    let warnings: Vec<&str> = err.lines().filter(|l| l.starts_with("warning: ")).collect();
+    assert_eq!(warnings.len(), 1, "{err}");
+    assert!(warnings[0].contains("ldr.safetensors") && warnings[0].contains("8-bit"), "{err}");
+    let png = png_photo(&d.join("p.png"), 64, 64);
+    let err = assert_ok(&flashmat(&["estimate", s(&png), "--model", s(&hdr_model), "--fov", "28", "--size", "32", "-o", s(&nmat)]));
+    assert!(err.lines().any(|l| l.starts_with("warning: ") && l.contains("HDR")), "{err}");
+}
+
+#[test]
+fn default_models_are_found_checked_and_explained() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let photo = png_photo(&d.join("p.png"), 64, 64);
+    let o = d.join("m.nmat");
+    let models = d.join("models");
+    std::fs::create_dir(&models).unwrap();
+    let env = [("FLASHMAT_MODELS", s(&models))];
+    let run = |extra: &[&str]| {
+        let mut args = vec!["estimate", s(&photo), "--fov", "28", "--size", "32", "-o", s(&o)];
+        args.extend_from_slice(extra);
+        flashmat_env(&args, &env)
+    };
+    // Missing default model: which file, and how to pick another.
+    assert_error(&run(&[]), &["compact-ldr.safetensors", "does not exist", "--model"]);
+    // The default file must hold the bundled (compact) preset.
+    tiny_model(&models.join("compact-ldr.safetensors"), true, 4);
+    assert_error(&run(&[]), &["compact-ldr.safetensors", "holds model 'tiny-", "expected 'compact-"]);
+    // --model accepts any preset, but not a missing file...
+    assert_error(&run(&["--model", s(&d.join("nope.safetensors"))]), &["nope.safetensors", "does not exist", "--model"]);
+    // ...nor another version of the model format...
+    let a = flashmat::archive::Archive::load(&models.join("compact-ldr.safetensors"), "flashmat-model", 1).unwrap();
+    let v2 = d.join("v2.safetensors");
+    a.save(&v2, "flashmat-model", 2).unwrap();
+    assert_error(&run(&["--model", s(&v2)]), &["v2.safetensors", "version 2 is not supported"]);
+    // ...nor a neural material.
+    assert_ok(&flashmat_env(&["estimate", s(&photo), "--fov", "28", "--size", "32", "--model", s(&models.join("compact-ldr.safetensors")), "-o", s(&o)], &env));
+    assert_error(&run(&["--model", s(&o)]), &["m.nmat", "'flashmat-nmat' file, expected a 'flashmat-model' file"]);
+    assert_ok(&run(&["--model", s(&models.join("compact-ldr.safetensors"))]));
+}
+
+#[test]
+fn bad_inputs_give_one_clear_line_and_no_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let model = tiny_model(&d.join("tiny.safetensors"), true, 5);
+    let photo = png_photo(&d.join("p.png"), 64, 64);
+    let nmat = d.join("good.nmat");
+    assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--fov", "28", "--size", "32", "-o", s(&nmat)]));
+    let out = d.join("results");
+    std::fs::create_dir(&out).unwrap();
+    let o = |name: &str| out.join(name).to_str().unwrap().to_string();
+    let est = |input: &Path, extra: &[&str], output: &str| {
+        let mut args = vec!["estimate", s(input), "--model", s(&model), "-o", output];
+        args.extend_from_slice(extra);
+        flashmat(&args)
+    };
+
+    // Missing photo and unreadable images.
+    assert_error(&est(&d.join("missing.png"), &[], &o("a.nmat")), &["missing.png", "No such file"]);
+    let garbage = d.join("garbage.png");
+    std::fs::write(&garbage, b"\x89PNG\r\n\x1a\nthis is not a png").unwrap();
+    assert_error(&est(&garbage, &[], &o("a.nmat")), &["garbage.png", "corrupt"]);
+    let text = d.join("notes.txt");
+    std::fs::write(&text, b"hello").unwrap();
+    assert_error(&est(&text, &[], &o("a.nmat")), &["notes.txt", "unsupported format"]);
+    // Too small after the FOV crop: says what is needed.
+    assert_error(&est(&photo, &[], &o("a.nmat")), &["p.png", "too small", "keeps 38x38", "--size 256", "at least 426 pixels"]);
+    assert_error(&est(&photo, &["--fov", "28", "--size", "128"], &o("a.nmat")), &["too small", "at least 128 pixels"]);
+    // NaN/Inf in an EXR.
+    let nan = d.join("nan.exr");
+    exr::prelude::write_rgb_file(&nan, 32, 32, |x, y| (0.5f32, if (x, y) == (3, 7) { f32::NAN } else { 0.2 }, 0.1f32)).unwrap();
+    assert_error(&est(&nan, &[], &o("a.nmat")), &["nan.exr", "NaN/Inf", "row 7, column 3"]);
+    // Options out of range.
+    assert_error(&est(&photo, &["--size", "60"], &o("a.nmat")), &["--size", "multiple of 8"]);
+    assert_error(&est(&photo, &["--fov", "20"], &o("a.nmat")), &["--fov", "between 28 and"]);
+    assert_error(&est(&photo, &["--device", "tpu"], &o("a.nmat")), &["--device"]);
+    assert_error(&est(&photo, &["--fov", "28", "--size", "32"], &o("a.png")), &["a.png", ".nmat"]);
+    // An output folder that cannot be written (a file stands in its way).
+    std::fs::write(d.join("blocker"), b"x").unwrap();
+    let blocked = d.join("blocker").join("m.nmat");
+    assert_error(&est(&photo, &["--fov", "28", "--size", "32"], s(&blocked)), &["blocker"]);
+
+    // Relight: lights and cameras below the surface, missing light, bad outputs.
+    let relight = |extra: &[&str]| {
+        let mut args = vec!["relight", s(&nmat)];
+        args.extend_from_slice(extra);
+        flashmat(&args)
+    };
+    assert_error(&relight(&["--light", "0,0,-1", "-o", &o("r.png")]), &["light position 0,0,-1", "z must be > 0"]);
+    assert_error(&relight(&["--light", "1,1,1", "--view", "1,0,0", "-o", &o("r.png")]), &["camera position 1,0,0", "not above the surface"]);
+    assert_error(&relight(&["--orbit", "3", "--view", "0,0,-4", "-o", &o("r.gif")]), &["camera position"]);
+    assert_error(&relight(&["-o", &o("r.png")]), &["--light", "--orbit", "--identity"]);
+    assert_error(&relight(&["--identity", "-o", &o("r.bmp")]), &["r.bmp", ".png or .exr"]);
+    assert_error(&relight(&["--orbit", "4", "-o", &o("r.png")]), &["r.png", ".gif"]);
+    assert_error(&relight(&["--orbit", "0", "-o", &o("r.gif")]), &["--orbit", "between 1 and 1000"]);
+    assert_error(&relight(&["--identity", "-o", s(&d.join("blocker").join("r.png"))]), &["blocker"]);
+    assert_error(&relight(&["--orbit", "2", "-o", s(&d.join("blocker").join("r.gif"))]), &["blocker"]);
+
+    // Damaged, truncated and foreign materials.
+    let bytes = std::fs::read(&nmat).unwrap();
+    let mut flipped = bytes.clone();
+    let n = flipped.len();
+    flipped[n - 50] ^= 0x01;
+    let bad = d.join("flipped.nmat");
+    std::fs::write(&bad, &flipped).unwrap();
+    assert_error(&flashmat(&["relight", s(&bad), "--identity", "-o", &o("r.png")]), &["flipped.nmat", "checksum"]);
+    let cut = d.join("cut.nmat");
+    std::fs::write(&cut, &bytes[..n / 3]).unwrap();
+    assert_error(&flashmat(&["show", s(&cut), "-o", &o("g.png")]), &["cut.nmat", "truncated"]);
+    assert_error(&flashmat(&["relight", s(&model), "--identity", "-o", &o("r.png")]), &["tiny.safetensors", "'flashmat-model' file"]);
+    assert_error(&flashmat(&["relight", s(&d.join("none.nmat")), "--identity", "-o", &o("r.png")]), &["none.nmat", "No such file"]);
+    assert_error(&flashmat(&["show", s(&nmat), "-o", &o("g.exr")]), &["g.exr", ".png"]);
+
+    // Nothing was written for any failure.
+    assert_eq!(files_in(&out), Vec::<String>::new());
+    no_temp_files(d);
+}
