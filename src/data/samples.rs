@@ -132,7 +132,7 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
 mod tests {
     use super::*;
     use crate::geometry::{fov_to_distance, pixel_center};
-    use crate::svbrdf::scalar::{self, PixelMaterial};
+    use crate::svbrdf::scalar;
     use rand::SeedableRng;
     use rand_pcg::Pcg64;
 
@@ -164,12 +164,7 @@ mod tests {
         let d = fov_to_distance(28.0);
         let (i, j) = (2usize, 11usize);
         let m = &mats[1];
-        let pm = PixelMaterial {
-            kd: [m.diffuse.get(0, i, j) as f64, m.diffuse.get(1, i, j) as f64, m.diffuse.get(2, i, j) as f64],
-            ks: [0.04; 3],
-            roughness: 0.3,
-            normal: [m.normal.get(0, i, j) as f64, m.normal.get(1, i, j) as f64, m.normal.get(2, i, j) as f64],
-        };
+        let pm = m.pixel_material(i, j);
         let r = scalar::radiance_at(&pm, pixel_center(i, j, 8, 16), [0.0, 0.0, d], [0.0, 0.0, d]);
         for c in 0..3 {
             let t = b.input_linear.double_value(&[1, c as i64, i as i64, j as i64]);

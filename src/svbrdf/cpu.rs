@@ -103,7 +103,7 @@ fn render_impl(material: &Svbrdf, configs: &[LightView], with_dirs: bool) -> (Pl
 mod tests {
     use super::*;
     use crate::geometry::{sample_configs, Sampling};
-    use crate::svbrdf::scalar::{self, PixelMaterial};
+    use crate::svbrdf::scalar;
     use rand::{Rng, SeedableRng};
     use rand_pcg::Pcg64;
 
@@ -134,13 +134,7 @@ mod tests {
         for (k, cfg) in configs.iter().enumerate() {
             for y in 0..h {
                 for x in 0..w {
-                    let g = |im: &crate::image::Image, c| im.get(c, y, x) as f64;
-                    let pm = PixelMaterial {
-                        kd: [g(&m.diffuse, 0), g(&m.diffuse, 1), g(&m.diffuse, 2)],
-                        ks: [g(&m.specular, 0), g(&m.specular, 1), g(&m.specular, 2)],
-                        roughness: g(&m.roughness, 0),
-                        normal: [g(&m.normal, 0), g(&m.normal, 1), g(&m.normal, 2)],
-                    };
+                    let pm = m.pixel_material(y, x);
                     let r = scalar::radiance_at(&pm, pixel_center(y, x, h, w), cfg.light, cfg.view);
                     for c in 0..3 {
                         let got = out[((k * 3 + c) * h + y) * w + x] as f64;

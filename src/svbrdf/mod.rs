@@ -89,6 +89,17 @@ impl Svbrdf {
         })
     }
 
+    /// The maps of pixel (row `y`, column `x`) as a scalar-oracle material.
+    pub fn pixel_material(&self, y: usize, x: usize) -> scalar::PixelMaterial {
+        let px = |im: &Image| [0, 1, 2].map(|c| im.get(c, y, x) as f64);
+        scalar::PixelMaterial {
+            kd: px(&self.diffuse),
+            ks: px(&self.specular),
+            roughness: self.roughness.get(0, y, x) as f64,
+            normal: px(&self.normal),
+        }
+    }
+
     /// A uniform material (handy in tests and examples).
     pub fn uniform(h: usize, w: usize, kd: [f32; 3], ks: [f32; 3], roughness: f32) -> Self {
         Self {
