@@ -132,11 +132,21 @@ mod tests {
         for c in 0..3 {
             assert!((f1[c] - f2[c]).abs() < 1e-12 * f1[c].abs().max(1.0));
         }
+        // Black maps: no diffuse term at all; with ks = 0 the paper's Fresnel
+        // still leaves its tail (1 - 0) * 2^(...), so the render is exactly
+        // the closed-form D G F_tail / (4 NoL NoV) * NoL * pi, and zero when
+        // the light is below the surface.
         let black = PixelMaterial { kd: [0.0; 3], ks: [0.0; 3], roughness: 0.5, normal: [0.0, 0.0, 1.0] };
-        // ks = 0 leaves only the (1-ks) Fresnel tail; exactly zero needs ks with F = 0,
-        // which Schlick cannot give, so check kd = 0, D*G*F tiny at rough grazing.
-        let r = radiance(&black, a, b);
-        assert!(r.iter().all(|v| *v >= 0.0 && *v < 1e-2));
+        let (wi, wo) = ([0.0, 0.0, 1.0], [0.0, 0.0, 1.0]);
+        let alpha: f64 = 0.25;
+        let tail = 2f64.powf(-5.55473 - 6.98316);
+        let closed = 1.0 / (PI * alpha * alpha) * tail / 4.0 * PI;
+        let r = radiance(&black, wi, wo);
+        assert!(r.iter().all(|v| (v - closed).abs() < 1e-15), "{r:?} vs {closed}");
+        let below = radiance(&black, [0.0, 0.6, -0.8], wo);
+        assert!(below.iter().all(|v| v.abs() < 1e-7), "{below:?}");
+        let below_kd = radiance(&PixelMaterial { kd: [0.8; 3], ..black }, [0.0, 0.6, -0.8], wo);
+        assert!(below_kd.iter().all(|v| v.abs() < 1e-7), "{below_kd:?}");
     }
 
     #[test]
