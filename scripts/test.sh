@@ -4,6 +4,11 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
+# nextest runs tests in parallel processes: give each one libtorch thread
+# and no OpenMP busy-waiting, or oversubscribed spinning threads slow the
+# training tests down tenfold on a 2-core machine.
+export OMP_WAIT_POLICY=PASSIVE
+export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # Each test runs in its own process under nextest: libtorch's random
 # generator is process-global, and tests that check bit-exact determinism
 # must not share it with tests running in parallel.

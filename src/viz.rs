@@ -79,41 +79,32 @@ pub fn line_chart(title: &str, series: &[Series], width: usize, height: usize) -
         let colors = [RGBColor(31, 119, 180), RGBColor(255, 127, 14), RGBColor(44, 160, 44), RGBColor(214, 39, 40), RGBColor(148, 103, 189), RGBColor(140, 86, 75), RGBColor(227, 119, 194)];
         let mut builder = ChartBuilder::on(&root);
         builder.caption(title, ("sans-serif", 20)).margin(10).x_label_area_size(30).y_label_area_size(60);
-        if y0 > 0.0 {
-            let mut chart = builder.build_cartesian_2d(x0..x1, (y0 * 0.9..y1 * 1.1).log_scale())?;
-            chart
-                .configure_mesh()
-                .x_desc("step")
-                .y_label_formatter(&|v| format!("{v:.3}"))
-                .x_label_formatter(&|v| format!("{v:.0}"))
-                .label_style(("sans-serif", 12))
-                .draw()?;
-            for (i, s) in series.iter().enumerate() {
-                let color = colors[i % colors.len()];
+        // The log and linear axes are different types; the drawing is the same.
+        macro_rules! draw {
+            ($chart:expr, $keep:expr) => {{
+                let mut chart = $chart;
                 chart
-                    .draw_series(LineSeries::new(s.points.iter().copied().filter(|p| p.1.is_finite() && p.1 > 0.0), color.stroke_width(2)))?
-                    .label(s.name.clone())
-                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
-            }
-            chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).label_font(("sans-serif", 12)).draw()?;
+                    .configure_mesh()
+                    .x_desc("step")
+                    .y_label_formatter(&|v| format!("{v:.3}"))
+                    .x_label_formatter(&|v| format!("{v:.0}"))
+                    .label_style(("sans-serif", 12))
+                    .draw()?;
+                for (i, s) in series.iter().enumerate() {
+                    let color = colors[i % colors.len()];
+                    chart
+                        .draw_series(LineSeries::new(s.points.iter().copied().filter($keep), color.stroke_width(2)))?
+                        .label(s.name.clone())
+                        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+                }
+                chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).label_font(("sans-serif", 12)).draw()?;
+            }};
+        }
+        if y0 > 0.0 {
+            draw!(builder.build_cartesian_2d(x0..x1, (y0 * 0.9..y1 * 1.1).log_scale())?, |p: &(f64, f64)| p.1.is_finite() && p.1 > 0.0);
         } else {
             let pad = (y1 - y0) * 0.05;
-            let mut chart = builder.build_cartesian_2d(x0..x1, y0 - pad..y1 + pad)?;
-            chart
-                .configure_mesh()
-                .x_desc("step")
-                .y_label_formatter(&|v| format!("{v:.3}"))
-                .x_label_formatter(&|v| format!("{v:.0}"))
-                .label_style(("sans-serif", 12))
-                .draw()?;
-            for (i, s) in series.iter().enumerate() {
-                let color = colors[i % colors.len()];
-                chart
-                    .draw_series(LineSeries::new(s.points.iter().copied().filter(|p| p.1.is_finite()), color.stroke_width(2)))?
-                    .label(s.name.clone())
-                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
-            }
-            chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).label_font(("sans-serif", 12)).draw()?;
+            draw!(builder.build_cartesian_2d(x0..x1, y0 - pad..y1 + pad)?, |p: &(f64, f64)| p.1.is_finite());
         }
         root.present()?;
     }

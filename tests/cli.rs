@@ -49,6 +49,43 @@ fn render_writes_exr_equal_to_the_cpu_renderer_and_png() {
 }
 
 #[test]
+fn render_with_shadows_matches_the_cpu_renderer() {
+    let dir = tempfile::tempdir().unwrap();
+    let exr = dir.path().join("s.exr");
+    let args = ["render", "--svbrdf", "procedural:5:tiles", "--size", "64", "--light", "3,0.5,0.8", "--view", "0,0,4", "--shadows", "--height-scale", "4"];
+    let out = flashmat(&[&args[..], &["-o", exr.to_str().unwrap()]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let img = flashmat::io::read_image(&exr).unwrap();
+    let family: flashmat::data::procedural::Family = "tiles".parse().unwrap();
+    let material = flashmat::data::procedural::generate_family(family, 5, 64);
+    let cfg = flashmat::geometry::LightView { light: [3.0, 0.5, 0.8], view: [0.0, 0.0, 4.0] };
+    let options = flashmat::svbrdf::shadow::ShadowOptions { height_scale: 4.0, ..Default::default() };
+    let expect = flashmat::svbrdf::cpu::render_shadowed(&material, &[cfg], &options).unwrap();
+    let plain = flashmat::svbrdf::cpu::render(&material, &[cfg]);
+    let shadowed = expect.iter().zip(&plain).filter(|(s, p)| **s == 0.0 && **p > 0.0).count();
+    assert!(shadowed > 0, "no shadow in the test scene");
+    let off = img.data.iter().zip(&expect).filter(|(a, b)| (*a - *b).abs() > 1e-4 * b.abs().max(1e-3)).count();
+    assert!(off <= 3, "{off} of {} values differ", expect.len());
+    // The CPU renderer writes the same file.
+    let cpu = dir.path().join("c.exr");
+    let out = flashmat(&[&args[..], &["--renderer", "cpu", "-o", cpu.to_str().unwrap()]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(flashmat::io::read_image(&cpu).unwrap().data, expect);
+    // Maps from disk have no height field: one is integrated.
+    let root = dir.path().join("data");
+    let out = flashmat(&["svbrdf", "generate", "--count", "1", "--size", "32", "--out", root.to_str().unwrap()]);
+    assert!(out.status.success());
+    let out = flashmat(&["render", "--svbrdf", root.to_str().unwrap(), "--shadows", "--light-radius", "0.2", "-o", dir.path().join("d.png").to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let o = dir.path().join("o.png");
+    let o = o.to_str().unwrap();
+    assert_error(&flashmat(&["render", "--svbrdf", "procedural:1", "--shadows", "--height-scale=-1", "-o", o]), &["height scale"]);
+    assert_error(&flashmat(&["render", "--svbrdf", "procedural:1", "--shadows", "--light-samples", "0", "-o", o]), &["light samples"]);
+    // Shadow options without --shadows are usage errors.
+    assert_eq!(flashmat(&["render", "--svbrdf", "procedural:1", "--height-scale", "2", "-o", o]).status.code(), Some(2));
+}
+
+#[test]
 fn generate_then_render_and_preview_from_disk() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().join("data");

@@ -6,7 +6,7 @@ use crate::data::samples::{make_batch, stack_maps, SampleConfig};
 use crate::geometry::{config_tensors, pixel_center, sample_configs, Sampling};
 use crate::svbrdf::cpu;
 use crate::svbrdf::render::render;
-use crate::svbrdf::scalar::{self, PixelMaterial};
+use crate::svbrdf::scalar;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 use rand::SeedableRng;
@@ -167,13 +167,7 @@ fn bench_data(args: &DataBenchArgs) -> Result<()> {
             .map(|i| {
                 let mut acc = 0.0;
                 for j in 0..size {
-                    let g = |im: &crate::image::Image, ch| im.get(ch, i, j) as f64;
-                    let pm = PixelMaterial {
-                        kd: [g(&m.diffuse, 0), g(&m.diffuse, 1), g(&m.diffuse, 2)],
-                        ks: [g(&m.specular, 0), g(&m.specular, 1), g(&m.specular, 2)],
-                        roughness: g(&m.roughness, 0),
-                        normal: [g(&m.normal, 0), g(&m.normal, 1), g(&m.normal, 2)],
-                    };
+                    let pm = m.pixel_material(i, j);
                     acc += scalar::radiance_at(&pm, pixel_center(i, j, size, size), c.light, c.view)[0];
                 }
                 acc

@@ -1,11 +1,14 @@
 //! `flashmat render` and `flashmat svbrdf generate|preview`.
 
-use super::{light_view, prepare_output, GenerateArgs, MaterialArgs, PreviewArgs, RenderArgs};
+use super::{light_view, prepare_output, GenerateArgs, MaterialArgs, PreviewArgs, RenderArgs, Renderer};
 use crate::data::loaders::{open_dataset, write_material_dir, write_matfusion};
 use crate::data::procedural::{self, Family, ProceduralConfig};
 use crate::geometry::LightView;
 use crate::image::Image;
-use crate::svbrdf::render::render_material;
+use crate::svbrdf::cpu;
+use crate::svbrdf::height::ensure_height_field;
+use crate::svbrdf::render::{render_material, render_material_shadowed};
+use crate::svbrdf::shadow::ShadowOptions;
 use crate::svbrdf::{encode_normal_map, Svbrdf};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -49,10 +52,27 @@ pub fn write_render(path: &std::path::Path, linear: &Image) -> Result<()> {
 
 pub fn render(args: &RenderArgs) -> Result<()> {
     let config = light_view(args.light, args.view)?;
-    let (_, material) = load_material(&args.material)?;
-    let image = render_material(&material, &[config])?.remove(0);
+    let shadows = ShadowOptions { height_scale: args.height_scale, light_radius: args.light_radius, light_samples: args.light_samples };
+    shadows.validate()?;
+    let (_, mut material) = load_material(&args.material)?;
+    let start = std::time::Instant::now();
+    if args.shadows {
+        ensure_height_field(&mut material)?;
+    }
+    let integrated = start.elapsed();
+    let start = std::time::Instant::now();
+    let image = match (args.renderer, args.shadows) {
+        (Renderer::Tensor, false) => render_material(&material, &[config])?.remove(0),
+        (Renderer::Tensor, true) => render_material_shadowed(&material, &[config], &shadows)?.remove(0),
+        (Renderer::Cpu, shadowed) => {
+            let data = if shadowed { cpu::render_shadowed(&material, &[config], &shadows)? } else { cpu::render(&material, &[config]) };
+            Image::from_data(3, material.height(), material.width(), data)?
+        }
+    };
+    let elapsed = start.elapsed();
     write_render(&args.output, &image)?;
-    eprintln!("wrote {}", args.output.display());
+    let what = if args.shadows { format!(" with shadows (height field ready in {:.1} ms)", integrated.as_secs_f64() * 1e3) } else { String::new() };
+    eprintln!("wrote {} ({:?} renderer, {:.1} ms{what})", args.output.display(), args.renderer, elapsed.as_secs_f64() * 1e3);
     Ok(())
 }
 

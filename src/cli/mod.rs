@@ -100,6 +100,28 @@ pub struct RenderArgs {
     /// Output image: .png (display-encoded, 8-bit) or .exr (linear HDR radiance).
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Cast shadows from the material's height field (maps loaded from disk get one integrated from their normals).
+    #[arg(long)]
+    pub shadows: bool,
+    /// Multiplies the height field for --shadows (plane units: the material spans [-1,1]).
+    #[arg(long, default_value_t = 1.0, requires = "shadows")]
+    pub height_scale: f64,
+    /// Radius of a disc light for soft shadows (plane units; 0: point light, hard shadows).
+    #[arg(long, default_value_t = 0.0, requires = "shadows")]
+    pub light_radius: f64,
+    /// Points sampled on the disc light (--light-radius > 0).
+    #[arg(long, default_value_t = 16, requires = "shadows")]
+    pub light_samples: usize,
+    /// Renderer: the batched tensor ops or the f32 CPU renderer of the training data.
+    #[arg(long, value_enum, default_value_t = Renderer::Tensor)]
+    pub renderer: Renderer,
+}
+
+/// Which implementation renders `flashmat render`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Renderer {
+    Tensor,
+    Cpu,
 }
 
 #[derive(Args, Debug)]

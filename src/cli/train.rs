@@ -28,6 +28,12 @@ pub struct TrainArgs {
     /// Train on LDR input photos (clamped to [0,1]); outputs stay HDR.
     #[arg(long)]
     pub ldr: bool,
+    /// Shadows from height fields in the training renders (loaded maps get a height field integrated from their normals).
+    #[arg(long)]
+    pub shadows: bool,
+    /// Multiplies the height fields for --shadows.
+    #[arg(long, default_value_t = 1.0, requires = "shadows")]
+    pub height_scale: f64,
     /// Training data: `procedural` or a dataset folder (MatFusion, per-material or INRIA strips).
     #[arg(long, default_value = "procedural")]
     pub data: String,
@@ -125,6 +131,8 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         materials_per_batch: a.batch,
         outputs_per_material: a.outputs,
         ldr_input: a.ldr,
+        shadows: a.shadows,
+        height_scale: a.height_scale,
         lr: a.lr,
         pixel_sampling: a.pixel_sampling,
         scheme: a.scheme,

@@ -5,6 +5,7 @@
 use crate::geometry::{config_tensors, sample_configs, LightView, Sampling};
 use crate::spaces;
 use crate::svbrdf::render::{direction_maps_for, half_vector_z, render_directions};
+use crate::svbrdf::shadow::ShadowOptions;
 use crate::svbrdf::{Svbrdf, MAP_CHANNELS};
 use anyhow::{bail, Result};
 use rand::Rng;
@@ -22,11 +23,29 @@ pub struct SampleConfig {
     pub ldr_input: bool,
     /// Scheme for output configurations.
     pub output_sampling: Sampling,
+    /// Hard shadows from the materials' height fields (integrated from the
+    /// normals where missing) in the input and output renders.
+    #[serde(default)]
+    pub shadows: bool,
+    /// Multiplies the height fields for shadows.
+    #[serde(default = "unit_height_scale")]
+    pub height_scale: f64,
+}
+
+fn unit_height_scale() -> f64 {
+    1.0
 }
 
 impl Default for SampleConfig {
     fn default() -> Self {
-        Self { outputs_per_material: 8, fov_deg: crate::geometry::MODEL_FOV_DEG, ldr_input: false, output_sampling: Sampling::Reflect }
+        Self {
+            outputs_per_material: 8,
+            fov_deg: crate::geometry::MODEL_FOV_DEG,
+            ldr_input: false,
+            output_sampling: Sampling::Reflect,
+            shadows: false,
+            height_scale: 1.0,
+        }
     }
 }
 
@@ -86,15 +105,25 @@ pub fn render_input(maps: &Tensor, fov_deg: f64) -> Tensor {
 }
 
 /// Renders each material's co-located input and its K outputs, with their
-/// direction maps, with the CPU renderer; returns (input `[N, 3, H, W]`,
-/// outputs, wi, wo `[N, K, 3, H, W]`) on `device`.
-fn render_on_cpu(materials: &[Svbrdf], configs: &[LightView], fov_deg: f64, k: usize, device: Device) -> (Tensor, Tensor, Tensor, Tensor) {
+/// direction maps, with the CPU renderer (shadowed when `shadows` is given);
+/// returns (input `[N, 3, H, W]`, outputs, wi, wo `[N, K, 3, H, W]`) on `device`.
+fn render_on_cpu(
+    materials: &[Svbrdf],
+    configs: &[LightView],
+    fov_deg: f64,
+    k: usize,
+    shadows: Option<&ShadowOptions>,
+    device: Device,
+) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
     let (h, w) = (materials[0].height() as i64, materials[0].width() as i64);
     let (mut inputs, mut outputs, mut wis, mut wos) = (vec![], vec![], vec![], vec![]);
     for (i, m) in materials.iter().enumerate() {
         let mut all = vec![LightView::colocated(fov_deg)];
         all.extend_from_slice(&configs[i * k..(i + 1) * k]);
-        let (r, wi, wo) = crate::svbrdf::cpu::render_with_directions(m, &all);
+        let (r, wi, wo) = match shadows {
+            Some(options) => crate::svbrdf::cpu::render_with_directions_shadowed(m, &all, options)?,
+            None => crate::svbrdf::cpu::render_with_directions(m, &all),
+        };
         let shape = [1 + k as i64, 3, h, w];
         let r = Tensor::from_slice(&r).view(shape);
         inputs.push(r.get(0));
@@ -103,7 +132,7 @@ fn render_on_cpu(materials: &[Svbrdf], configs: &[LightView], fov_deg: f64, k: u
         wos.push(Tensor::from_slice(&wo).view(shape).narrow(0, 1, k as i64));
     }
     let stack = |v: &[Tensor]| Tensor::stack(v, 0).to_device(device);
-    (stack(&inputs), stack(&outputs), stack(&wis), stack(&wos))
+    Ok((stack(&inputs), stack(&outputs), stack(&wis), stack(&wos)))
 }
 
 /// Builds one training batch: input renders plus K sampled output renders.
@@ -118,7 +147,9 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
     let configs = sample_configs(rng, cfg.output_sampling, (n * k) as usize, cfg.fov_deg);
     // Input and outputs are rendered together by the f32 CPU renderer (much
     // faster than tensor ops on a CPU), then moved to the device.
-    let (rendered_input, targets, out_wi, out_wo) = render_on_cpu(materials, &configs, cfg.fov_deg, k as usize, device);
+    let shadows = ShadowOptions { height_scale: cfg.height_scale, ..Default::default() };
+    let shadows = cfg.shadows.then_some(&shadows);
+    let (rendered_input, targets, out_wi, out_wo) = render_on_cpu(materials, &configs, cfg.fov_deg, k as usize, shadows, device)?;
     let mut input_linear = rendered_input;
     if cfg.ldr_input {
         input_linear = spaces::ldr_clamp(&input_linear);
@@ -132,7 +163,7 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
 mod tests {
     use super::*;
     use crate::geometry::{fov_to_distance, pixel_center};
-    use crate::svbrdf::scalar::{self, PixelMaterial};
+    use crate::svbrdf::scalar;
     use rand::SeedableRng;
     use rand_pcg::Pcg64;
 
@@ -164,12 +195,7 @@ mod tests {
         let d = fov_to_distance(28.0);
         let (i, j) = (2usize, 11usize);
         let m = &mats[1];
-        let pm = PixelMaterial {
-            kd: [m.diffuse.get(0, i, j) as f64, m.diffuse.get(1, i, j) as f64, m.diffuse.get(2, i, j) as f64],
-            ks: [0.04; 3],
-            roughness: 0.3,
-            normal: [m.normal.get(0, i, j) as f64, m.normal.get(1, i, j) as f64, m.normal.get(2, i, j) as f64],
-        };
+        let pm = m.pixel_material(i, j);
         let r = scalar::radiance_at(&pm, pixel_center(i, j, 8, 16), [0.0, 0.0, d], [0.0, 0.0, d]);
         for c in 0..3 {
             let t = b.input_linear.double_value(&[1, c as i64, i as i64, j as i64]);
@@ -198,6 +224,34 @@ mod tests {
         let ldr = make_batch(&mats, &cfg, &mut Pcg64::seed_from_u64(2), Device::Cpu).unwrap();
         assert!((ldr.input_linear.max().double_value(&[]) - 1.0).abs() < 1e-7);
         assert!(ldr.targets.equal(&hdr.targets));
+    }
+
+    #[test]
+    fn shadows_darken_input_and_targets_only_when_asked() {
+        // A tall block in the middle of a flat material.
+        let n = 32;
+        let mut m = Svbrdf::uniform(n, n, [0.5; 3], [0.04; 3], 0.5);
+        m.height_field = Some(crate::image::Image::from_fn(1, n, n, |_, r, c| if (12..20).contains(&r) && (12..20).contains(&c) { 0.4 } else { 0.0 }));
+        let mats = vec![m.clone(), m.clone()];
+        let base = SampleConfig { outputs_per_material: 4, output_sampling: Sampling::Hemisphere, ..Default::default() };
+        let plain = make_batch(&mats, &base, &mut Pcg64::seed_from_u64(3), Device::Cpu).unwrap();
+        let cfg = SampleConfig { shadows: true, ..base.clone() };
+        let shadowed = make_batch(&mats, &cfg, &mut Pcg64::seed_from_u64(3), Device::Cpu).unwrap();
+        assert_eq!(plain.configs, shadowed.configs);
+        assert!(plain.out_wi.equal(&shadowed.out_wi));
+        // Shadowing only removes light, and some pixels lose all of it.
+        assert!(bool::try_from(shadowed.targets.le_tensor(&plain.targets).all()).unwrap());
+        let zeroed = (shadowed.targets.eq(0.0).logical_and(&plain.targets.gt(0.0))).sum(tch::Kind::Int64).int64_value(&[]);
+        assert!(zeroed > 0);
+        // Height scale 0 flattens the relief: no shadows at all.
+        let flat = SampleConfig { height_scale: 0.0, ..cfg };
+        let none = make_batch(&mats, &flat, &mut Pcg64::seed_from_u64(3), Device::Cpu).unwrap();
+        assert!(none.targets.equal(&plain.targets) && none.input_linear.equal(&plain.input_linear));
+        // Materials without a height field get one from their normals.
+        let mut loaded = m;
+        loaded.normal = crate::svbrdf::normals_from_height(loaded.height_field.as_ref().unwrap());
+        loaded.height_field = None;
+        assert!(make_batch(&[loaded.clone(), loaded], &SampleConfig { shadows: true, ..base }, &mut Pcg64::seed_from_u64(3), Device::Cpu).is_ok());
     }
 
     #[test]

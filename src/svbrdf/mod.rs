@@ -1,10 +1,13 @@
 //! Spatially-varying GGX BRDFs: the material maps, their encodings, and the
 //! paper's renderer (REFERENCE section 2) as batched tensor ops (`render`)
-//! and as a scalar oracle (`scalar`).
+//! and as a scalar oracle (`scalar`); height fields and the shadows they
+//! cast (`height`, `shadow`).
 
 pub mod cpu;
+pub mod height;
 pub mod render;
 pub mod scalar;
+pub mod shadow;
 
 use crate::image::Image;
 use anyhow::{bail, Result};
@@ -78,15 +81,29 @@ impl Svbrdf {
         })
     }
 
-    /// Crop of every map (and the height field).
+    /// Crop of every map (and the height field). The crop spans [-1,1] again,
+    /// so its pixels are wider in plane units: heights are scaled by the width
+    /// ratio to keep the slopes the (unchanged) normals describe.
     pub fn crop(&self, top: usize, left: usize, h: usize, w: usize) -> Result<Self> {
+        let scale = self.width() as f32 / w.max(1) as f32;
         Ok(Self {
             diffuse: self.diffuse.crop(top, left, h, w)?,
             specular: self.specular.crop(top, left, h, w)?,
             roughness: self.roughness.crop(top, left, h, w)?,
             normal: self.normal.crop(top, left, h, w)?,
-            height_field: self.height_field.as_ref().map(|hf| hf.crop(top, left, h, w)).transpose()?,
+            height_field: self.height_field.as_ref().map(|hf| hf.crop(top, left, h, w).map(|c| c.map(|v| v * scale))).transpose()?,
         })
+    }
+
+    /// The maps of pixel (row `y`, column `x`) as a scalar-oracle material.
+    pub fn pixel_material(&self, y: usize, x: usize) -> scalar::PixelMaterial {
+        let px = |im: &Image| [0, 1, 2].map(|c| im.get(c, y, x) as f64);
+        scalar::PixelMaterial {
+            kd: px(&self.diffuse),
+            ks: px(&self.specular),
+            roughness: self.roughness.get(0, y, x) as f64,
+            normal: px(&self.normal),
+        }
     }
 
     /// A uniform material (handy in tests and examples).
@@ -194,6 +211,25 @@ mod tests {
         let hf = Image::from_fn(1, w, w, |_, r, _| 0.5 * (1.0 - 2.0 * (r as f32 + 0.5) / w as f32));
         let n = normals_from_height(&hf);
         assert!((n.get(1, 5, 7) + 0.5 / len).abs() < 1e-5);
+    }
+
+    #[test]
+    fn crop_keeps_heights_consistent_with_normals() {
+        let n = 32;
+        let hf = Image::from_fn(1, n, n, |_, r, c| 0.05 * ((r as f32 * 0.4).sin() + (c as f32 * 0.3).cos()));
+        let mut s = Svbrdf::uniform(n, n, [0.5; 3], [0.04; 3], 0.5);
+        s.normal = normals_from_height(&hf);
+        s.height_field = Some(hf);
+        let c = s.crop(4, 8, 16, 16).unwrap();
+        let from_heights = normals_from_height(c.height_field.as_ref().unwrap());
+        // Interior pixels (the border uses one-sided differences in both).
+        for y in 1..15 {
+            for x in 1..15 {
+                for ch in 0..3 {
+                    assert_eq!(from_heights.get(ch, y, x), c.normal.get(ch, y, x));
+                }
+            }
+        }
     }
 
     #[test]

@@ -1,9 +1,11 @@
 //! The paper's GGX renderer as batched tensor ops (CPU or CUDA): many
 //! materials times many light/view configurations in one call.
 
+use super::shadow::{full_march_steps, march_step, ShadowOptions};
 use crate::geometry::{direction_maps, half_vectors, pixel_positions};
+use anyhow::{bail, ensure, Result};
 use std::f64::consts::PI;
-use tch::Tensor;
+use tch::{Kind, Tensor};
 
 const DOT_EPS: f64 = 1e-8;
 
@@ -70,6 +72,147 @@ pub fn render(maps: &Tensor, lights: &Tensor, views: &Tensor) -> Tensor {
 /// wi, wo: `[B, 3, H, W]` -> `[B, 1, H, W]`.
 pub fn half_vector_z(wi: &Tensor, wo: &Tensor) -> Tensor {
     half_vectors(wi, wo).narrow(1, 2, 1)
+}
+
+/// Hard-shadow visibility of point lights over height fields, marched as
+/// [`super::shadow`] defines (one-pixel steps, bilinear heights through
+/// `grid_sampler_2d`, so it runs on CPU and CUDA).
+///
+/// heights: `[N, 1, H, W]` (plane units; float or double); lights: `[N, K, 3]`
+/// -> `[N, K, 1, H, W]` of the heights' kind and device, 1 lit, 0 shadowed.
+/// `steps` caps the samples per ray; [`full_march_steps`] always reaches the
+/// material's edge. The march also stops once no ray can still be blocked
+/// (past its light, the diagonal, or, rising, above the tallest height), so
+/// low relief costs few steps.
+pub fn shadow_mask(heights: &Tensor, lights: &Tensor, steps: i64) -> Result<Tensor> {
+    let hs = heights.size();
+    let ls = lights.size();
+    if hs.len() != 4 || hs[1] != 1 {
+        bail!("shadow_mask: heights must be [N, 1, H, W], got {hs:?}");
+    }
+    if ls.len() != 3 || ls[0] != hs[0] || ls[2] != 3 {
+        bail!("shadow_mask: lights must be [N, K, 3] with N = {}, got {ls:?}", hs[0]);
+    }
+    let kind = heights.kind();
+    ensure!(matches!(kind, Kind::Float | Kind::Double), "shadow_mask: heights must be float or double, got {kind:?}");
+    let (n, k, h, w) = (hs[0], ls[1], hs[2], hs[3]);
+    let device = heights.device();
+    let lit = Tensor::ones([n, k, 1, h, w], (kind, device));
+    if n == 0 || k == 0 || h == 0 || w == 0 || steps < 1 {
+        return Ok(lit);
+    }
+    let lights = lights.to_kind(kind).to_device(device);
+    ensure!(bool::try_from(heights.isfinite().all())?, "shadow_mask: heights hold NaN/Inf values");
+    ensure!(bool::try_from(lights.isfinite().all())?, "shadow_mask: lights hold NaN/Inf values");
+
+    let pos = pixel_positions(h as usize, w as usize, (kind, device));
+    let x0 = pos.get(0).view([1, 1, h, w]);
+    let y0 = pos.get(1).view([1, 1, h, w]);
+    let light = |c: i64| lights.select(2, c).view([n, k, 1, 1]);
+    // Per ray [N, K, H, W]: horizontal length, unit direction and slope.
+    let dx = light(0) - &x0;
+    let dy = light(1) - &y0;
+    let dz = light(2) - heights;
+    let len = (dx.square() + dy.square()).sqrt();
+    let inv = len.clamp_min(1e-12).reciprocal();
+    let (ux, uy, slope) = (dx * &inv, dy * &inv, dz * &inv);
+
+    // Samples past this distance cannot be blocked; bound the loop by the
+    // longest such distance over all rays (one host sync).
+    let step = march_step(h as usize, w as usize);
+    let hmax = heights.amax([1i64, 2, 3].as_slice(), true);
+    let rise = (hmax - heights) / slope.clamp_min(1e-30);
+    let reach = len.minimum(&rise.where_self(&slope.gt(0.0), &len)).clamp_max(2.0 * std::f64::consts::SQRT_2);
+    let reach = reach.max().double_value(&[]);
+    let steps = steps.min((reach / step).ceil() as i64 + 1);
+
+    let mut blocked = Tensor::zeros([n, k, h, w], (Kind::Bool, device));
+    for s in 1..=steps {
+        let t = s as f64 * step;
+        let xs = &x0 + &ux * t;
+        let ys = &y0 + &uy * t;
+        let counted = len.gt(t).logical_and(&xs.abs().le(1.0)).logical_and(&ys.abs().le(1.0));
+        let zs = heights + &slope * t;
+        // grid_sampler's (x, y) in [-1, 1] with align_corners = false is our
+        // plane point with y flipped (row 0 is at the top); K lights are
+        // stacked along the output rows. Border padding extends edge values.
+        let grid = Tensor::stack(&[&xs, &(-&ys)], -1).view([n, k * h, w, 2]);
+        let surface = heights.grid_sampler_2d(&grid, 0, 1, false).view([n, k, h, w]);
+        blocked = blocked.logical_or(&counted.logical_and(&zs.lt_tensor(&surface)));
+    }
+    Ok(blocked.logical_not().to_kind(kind).unsqueeze(2))
+}
+
+/// Shadow visibility with [`ShadowOptions`]: heights times `height_scale`,
+/// and for a disc light the mean over its sample points.
+/// heights: `[N, 1, H, W]`; lights: `[N, K, 3]` -> `[N, K, 1, H, W]` in [0, 1].
+pub fn shadow_visibility(heights: &Tensor, lights: &Tensor, options: &ShadowOptions, steps: i64) -> Result<Tensor> {
+    options.validate()?;
+    let scaled;
+    let heights = if options.height_scale == 1.0 {
+        heights
+    } else {
+        scaled = heights * options.height_scale;
+        &scaled
+    };
+    let per = options.points_per_light() as i64;
+    if per == 1 {
+        return shadow_mask(heights, lights, steps);
+    }
+    let ls = lights.size();
+    if ls.len() != 3 || ls[2] != 3 {
+        bail!("shadow_visibility: lights must be [N, K, 3], got {ls:?}");
+    }
+    let flat: Vec<f64> = Vec::try_from(lights.to_device(tch::Device::Cpu).to_kind(Kind::Double).contiguous().flatten(0, -1))?;
+    let points: Vec<f64> = flat.chunks(3).flat_map(|l| options.light_points([l[0], l[1], l[2]])).flatten().collect();
+    let (n, k) = (ls[0], ls[1]);
+    let points = Tensor::from_slice(&points).view([n, k * per, 3]).to_device(heights.device());
+    let size = heights.size();
+    let mask = shadow_mask(heights, &points, steps)?.view([n, k, per, 1, size[2], size[3]]);
+    Ok(mask.sum_dim_intlist([2i64].as_slice(), false, heights.kind()) / per as f64)
+}
+
+/// Renders with shadows from height fields (heights times
+/// `options.height_scale`); flat height fields give exactly [`render`].
+/// maps: `[N, 10, H, W]`; heights: `[N, 1, H, W]`; lights, views: `[N, K, 3]`
+/// -> `[N, K, 3, H, W]`.
+pub fn render_shadowed(maps: &Tensor, heights: &Tensor, lights: &Tensor, views: &Tensor, options: &ShadowOptions) -> Result<Tensor> {
+    let size = maps.size();
+    ensure!(size.len() == 4, "render_shadowed: maps must be [N, 10, H, W], got {size:?}");
+    ensure!(
+        heights.size() == [size[0], 1, size[2], size[3]],
+        "render_shadowed: heights {:?} do not match maps {size:?}",
+        heights.size()
+    );
+    let vis = shadow_visibility(&heights.to_kind(maps.kind()), lights, options, full_march_steps(size[2] as usize, size[3] as usize))?;
+    Ok(render(maps, lights, views) * vis)
+}
+
+/// Renders one material (CPU) under several configurations; linear images `[3, H, W]`.
+pub fn render_material(material: &crate::svbrdf::Svbrdf, configs: &[crate::geometry::LightView]) -> anyhow::Result<Vec<crate::image::Image>> {
+    material.validate()?;
+    let maps = material.stacked().to_tensor().unsqueeze(0);
+    let (lights, views) = crate::geometry::config_tensors(configs, tch::Device::Cpu);
+    let k = configs.len() as i64;
+    let out = tch::no_grad(|| render(&maps, &lights.view([1, k, 3]), &views.view([1, k, 3])));
+    (0..k).map(|i| crate::image::Image::from_tensor(&out.get(0).get(i))).collect()
+}
+
+/// [`render_material`] with shadows from the material's height field (one is
+/// integrated from its normals when it has none).
+pub fn render_material_shadowed(
+    material: &crate::svbrdf::Svbrdf,
+    configs: &[crate::geometry::LightView],
+    options: &ShadowOptions,
+) -> anyhow::Result<Vec<crate::image::Image>> {
+    material.validate()?;
+    options.validate()?;
+    let heights = crate::svbrdf::height::shadow_heights(material)?.to_tensor().unsqueeze(0);
+    let maps = material.stacked().to_tensor().unsqueeze(0);
+    let (lights, views) = crate::geometry::config_tensors(configs, tch::Device::Cpu);
+    let k = configs.len() as i64;
+    let out = tch::no_grad(|| render_shadowed(&maps, &heights, &lights.view([1, k, 3]), &views.view([1, k, 3]), options))?;
+    (0..k).map(|i| crate::image::Image::from_tensor(&out.get(0).get(i))).collect()
 }
 
 #[cfg(test)]
@@ -200,12 +343,3 @@ mod tests {
     }
 }
 
-/// Renders one material (CPU) under several configurations; linear images `[3, H, W]`.
-pub fn render_material(material: &crate::svbrdf::Svbrdf, configs: &[crate::geometry::LightView]) -> anyhow::Result<Vec<crate::image::Image>> {
-    material.validate()?;
-    let maps = material.stacked().to_tensor().unsqueeze(0);
-    let (lights, views) = crate::geometry::config_tensors(configs, tch::Device::Cpu);
-    let k = configs.len() as i64;
-    let out = tch::no_grad(|| render(&maps, &lights.view([1, k, 3]), &views.view([1, k, 3])));
-    (0..k).map(|i| crate::image::Image::from_tensor(&out.get(0).get(i))).collect()
-}

@@ -84,6 +84,62 @@ pub fn radiance_at(m: &PixelMaterial, p: Vec3, light: Vec3, view: Vec3) -> Vec3 
     radiance(m, normalize(sub(light, p)), normalize(sub(view, p)))
 }
 
+/// Height at plane point (x, y), bilinear between pixel centres, edge values
+/// extended over the half-pixel border. `height` is `[1, H, W]`, non-empty.
+pub fn height_at(height: &crate::image::Image, x: f64, y: f64) -> f64 {
+    let (h, w) = (height.height, height.width);
+    // Pixel-centre coordinates: column j at x = 2(j + 0.5)/W - 1, row i at y = 1 - 2(i + 0.5)/H.
+    let fx = ((x + 1.0) * w as f64 * 0.5 - 0.5).clamp(0.0, (w - 1) as f64);
+    let fy = ((1.0 - y) * h as f64 * 0.5 - 0.5).clamp(0.0, (h - 1) as f64);
+    let (x0, y0) = (fx.floor() as usize, fy.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    let (tx, ty) = (fx - x0 as f64, fy - y0 as f64);
+    let g = |r: usize, c: usize| height.data[r * w + c] as f64;
+    (g(y0, x0) * (1.0 - tx) + g(y0, x1) * tx) * (1.0 - ty) + (g(y1, x0) * (1.0 - tx) + g(y1, x1) * tx) * ty
+}
+
+/// Visibility (1 lit, 0 shadowed) of a point light at `light` from the
+/// surface point above plane point (x, y) over the height field `height`
+/// (`[1, H, W]`, plane units), marched as [`super::shadow`] defines: one-pixel
+/// steps from (x, y, h(x, y)) towards the light until the ray passes the
+/// light or leaves the material square; blocked if a sample is strictly
+/// below the bilinear height field. An empty field blocks nothing.
+pub fn visibility(height: &crate::image::Image, x: f64, y: f64, light: Vec3) -> f64 {
+    let (h, w) = (height.height, height.width);
+    if h == 0 || w == 0 || height.data.len() < h * w {
+        return 1.0;
+    }
+    let step = super::shadow::march_step(h, w);
+    let h0 = height_at(height, x, y);
+    let (dx, dy, dz) = (light[0] - x, light[1] - y, light[2] - h0);
+    let len = (dx * dx + dy * dy).sqrt();
+    if len.is_nan() || len <= 0.0 {
+        return 1.0; // straight up (or NaN): a height field cannot overhang
+    }
+    let (ux, uy, slope) = (dx / len, dy / len, dz / len);
+    for k in 1.. {
+        let t = k as f64 * step;
+        if t >= len {
+            break;
+        }
+        let (sx, sy) = (x + ux * t, y + uy * t);
+        if sx.abs() > 1.0 || sy.abs() > 1.0 {
+            break;
+        }
+        if h0 + slope * t < height_at(height, sx, sy) {
+            return 0.0;
+        }
+    }
+    1.0
+}
+
+/// Visible fraction of a disc light (see [`super::shadow::disc_light_points`]):
+/// the mean of [`visibility`] over its sample points.
+pub fn visibility_disc(height: &crate::image::Image, x: f64, y: f64, light: Vec3, radius: f64, samples: usize) -> f64 {
+    let pts = super::shadow::disc_light_points(light, radius, samples);
+    pts.iter().map(|&p| visibility(height, x, y, p)).sum::<f64>() / pts.len() as f64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -132,11 +188,21 @@ mod tests {
         for c in 0..3 {
             assert!((f1[c] - f2[c]).abs() < 1e-12 * f1[c].abs().max(1.0));
         }
+        // Black maps: no diffuse term at all; with ks = 0 the paper's Fresnel
+        // still leaves its tail (1 - 0) * 2^(...), so the render is exactly
+        // the closed-form D G F_tail / (4 NoL NoV) * NoL * pi, and zero when
+        // the light is below the surface.
         let black = PixelMaterial { kd: [0.0; 3], ks: [0.0; 3], roughness: 0.5, normal: [0.0, 0.0, 1.0] };
-        // ks = 0 leaves only the (1-ks) Fresnel tail; exactly zero needs ks with F = 0,
-        // which Schlick cannot give, so check kd = 0, D*G*F tiny at rough grazing.
-        let r = radiance(&black, a, b);
-        assert!(r.iter().all(|v| *v >= 0.0 && *v < 1e-2));
+        let (wi, wo) = ([0.0, 0.0, 1.0], [0.0, 0.0, 1.0]);
+        let alpha: f64 = 0.25;
+        let tail = 2f64.powf(-5.55473 - 6.98316);
+        let closed = 1.0 / (PI * alpha * alpha) * tail / 4.0 * PI;
+        let r = radiance(&black, wi, wo);
+        assert!(r.iter().all(|v| (v - closed).abs() < 1e-15), "{r:?} vs {closed}");
+        let below = radiance(&black, [0.0, 0.6, -0.8], wo);
+        assert!(below.iter().all(|v| v.abs() < 1e-7), "{below:?}");
+        let below_kd = radiance(&PixelMaterial { kd: [0.8; 3], ..black }, [0.0, 0.6, -0.8], wo);
+        assert!(below_kd.iter().all(|v| v.abs() < 1e-7), "{below_kd:?}");
     }
 
     #[test]

@@ -6,6 +6,7 @@ use super::TrainConfig;
 use crate::data::loaders::{open_dataset, random_crop, SvbrdfSource};
 use crate::data::procedural;
 use crate::data::samples::{make_batch, SampleConfig, TrainingBatch};
+use crate::svbrdf::height::ensure_height_field;
 use crate::svbrdf::Svbrdf;
 use anyhow::Result;
 use rand::{Rng, SeedableRng};
@@ -48,13 +49,26 @@ impl MaterialStream {
             }
             Self::Dataset(ds) => (0..n).map(|_| ds.load(rng.random_range(0..ds.len()))).collect::<Result<_>>()?,
         };
+        // Loaded maps have no height field: integrate the whole material
+        // before cropping (a crop's own integration would differ at its edges).
+        let full = if cfg.shadows {
+            full.into_iter().map(|mut m| ensure_height_field(&mut m).map(|_| m)).collect::<Result<Vec<_>>>()?
+        } else {
+            full
+        };
         full.iter().map(|m| random_crop(m, cfg.crop, &mut rng)).collect()
     }
 }
 
 /// Renders the batch of a step on `device`.
 pub fn batch_for_step(cfg: &TrainConfig, materials: &[Svbrdf], step: u64, device: Device) -> Result<TrainingBatch> {
-    let sample_cfg = SampleConfig { outputs_per_material: cfg.outputs_per_material, ldr_input: cfg.ldr_input, ..Default::default() };
+    let sample_cfg = SampleConfig {
+        outputs_per_material: cfg.outputs_per_material,
+        ldr_input: cfg.ldr_input,
+        shadows: cfg.shadows,
+        height_scale: cfg.height_scale,
+        ..Default::default()
+    };
     let mut rng = step_rng(cfg.seed, step, 2);
     tch::no_grad(|| make_batch(materials, &sample_cfg, &mut rng, device))
 }

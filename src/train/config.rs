@@ -37,6 +37,12 @@ pub struct TrainConfig {
     pub outputs_per_material: usize,
     /// Train on LDR (clamped) input photos.
     pub ldr_input: bool,
+    /// Hard shadows from height fields in the training renders (REFERENCE section 8).
+    #[serde(default)]
+    pub shadows: bool,
+    /// Multiplies the height fields for shadows.
+    #[serde(default = "unit_height_scale")]
+    pub height_scale: f64,
     pub lr: f64,
     /// Multiplicative learning-rate decay applied every `lr_decay_every` steps (paper: 1.5% per 20,000).
     pub lr_decay: f64,
@@ -56,6 +62,10 @@ pub struct TrainConfig {
     pub seed: u64,
 }
 
+fn unit_height_scale() -> f64 {
+    1.0
+}
+
 impl Default for TrainConfig {
     fn default() -> Self {
         Self {
@@ -66,6 +76,8 @@ impl Default for TrainConfig {
             materials_per_batch: 2,
             outputs_per_material: 8,
             ldr_input: false,
+            shadows: false,
+            height_scale: 1.0,
             lr: 1e-4,
             lr_decay: 0.985,
             lr_decay_every: 20_000,
@@ -97,6 +109,7 @@ impl TrainConfig {
         anyhow::ensure!(self.outputs_per_material >= 1, "at least one output render per material");
         anyhow::ensure!(self.pixel_fraction > 0.0 && self.pixel_fraction <= 1.0, "pixel fraction must be in (0, 1]");
         anyhow::ensure!(self.lr > 0.0 && self.lr.is_finite(), "learning rate must be positive");
+        anyhow::ensure!(self.height_scale >= 0.0 && self.height_scale.is_finite(), "height scale must be a finite number >= 0 (got {})", self.height_scale);
         Ok(())
     }
 }
@@ -119,5 +132,16 @@ mod tests {
         assert!(TrainConfig::default().validate().is_ok());
         assert!(TrainConfig { crop: 100, ..Default::default() }.validate().is_err());
         assert!(TrainConfig { materials_per_batch: 1, ..Default::default() }.validate().is_err());
+        assert!(TrainConfig { height_scale: -1.0, ..Default::default() }.validate().is_err());
+    }
+
+    #[test]
+    fn configs_without_shadow_fields_still_load() {
+        let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
+        let obj = v.as_object_mut().unwrap();
+        obj.remove("shadows");
+        obj.remove("height_scale");
+        let c: TrainConfig = serde_json::from_value(v).unwrap();
+        assert_eq!(c, TrainConfig::default());
     }
 }

@@ -84,12 +84,31 @@ impl Trainer {
     /// gradient skips every update of the step (logged, never saved).
     pub fn train_step(&mut self, batch: &TrainingBatch) -> Result<StepLosses> {
         let lr = self.config.lr_at(self.step);
+        // Forward passes in training mode update BatchNorm running statistics;
+        // a skipped (NaN/Inf) step must not leave them poisoned.
+        let buffers = self.buffers();
+        let saved: Vec<Tensor> = buffers.iter().map(|b| b.copy()).collect();
         let out = match self.config.scheme {
             UpdateScheme::Alternating => self.alternating_step(batch, lr)?,
             UpdateScheme::Combined => self.combined_step(batch, lr)?,
         };
+        if out.skipped {
+            tch::no_grad(|| {
+                for (b, s) in buffers.iter().zip(&saved) {
+                    b.shallow_clone().copy_(s);
+                }
+            });
+        }
         self.step += 1;
         Ok(StepLosses { step: self.step, lr, ..out })
+    }
+
+    /// Non-trainable state of all networks (BatchNorm running statistics).
+    fn buffers(&self) -> Vec<Tensor> {
+        [&self.model.est_vs, &self.model.renderer_vs, &self.disc_vs]
+            .iter()
+            .flat_map(|vs| vs.variables().into_values().filter(|t| !t.requires_grad()))
+            .collect()
     }
 
     fn zero_all(&mut self) {

@@ -106,3 +106,22 @@ fn damaged_or_foreign_checkpoints_are_refused() {
     // Starting a new run over an existing one is refused.
     assert!(run::start(tiny_config(), &opts).is_err());
 }
+
+#[test]
+fn nan_batch_is_skipped_and_leaves_weights_untouched() {
+    let mut trainer = Trainer::new(TrainConfig { weight_lpips: 0.0, ..tiny_config() }, tch::Device::Cpu).unwrap();
+    let m = procedural::generate_family(Family::Stone, 1, 32);
+    let sample = SampleConfig { outputs_per_material: 2, ..Default::default() };
+    let batch = make_batch(&[m.clone(), m], &sample, &mut Pcg64::seed_from_u64(2), tch::Device::Cpu).unwrap();
+    // One column of NaN radiance in the targets.
+    let _ = batch.targets.narrow(4, 0, 1).fill_(f64::NAN);
+    let poisoned = batch;
+    let before: Vec<(String, tch::Tensor)> = all_weights(&trainer).into_iter().map(|(n, t)| (n, t.copy())).collect();
+    let losses = trainer.train_step(&poisoned).unwrap();
+    assert!(losses.skipped);
+    assert_eq!(trainer.step, 1);
+    for ((name, a), (_, b)) in before.iter().zip(all_weights(&trainer)) {
+        assert!(a.equal(&b), "{name} changed by a skipped step");
+    }
+    assert_eq!(trainer.opt_est.steps, 0);
+}
