@@ -4,6 +4,7 @@
 pub mod archive;
 pub mod cli;
 pub mod data;
+pub mod eval;
 pub mod geometry;
 pub mod image;
 pub mod infer;

@@ -2,6 +2,7 @@
 //! subcommand's work lives in the module of its pipeline stage.
 
 pub mod bench;
+pub mod eval;
 pub mod infer;
 pub mod materials;
 pub mod train;
@@ -36,6 +37,8 @@ pub enum Command {
     Relight(infer::RelightArgs),
     /// One picture of a neural material: photo, neural map (norm, PCA), identity render, relit views.
     Show(infer::ShowArgs),
+    /// Score models and the print-out baseline against GGX renders (Reflect / Identity / Hemisphere).
+    Eval(eval::EvalArgs),
     /// Speed benchmarks (ratios against a baseline measured in the same run).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -193,6 +196,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Show(a) => infer::show(&a),
         Command::Train(a) => train::train(&a),
         Command::Export(a) => train::export(&a),
+        Command::Eval(a) => eval::eval(&a),
         Command::Bench(b) => bench::run(&b),
     }
 }

@@ -1,0 +1,64 @@
+//! `flashmat eval`: scores models and the print-out baseline on held-out
+//! materials (work done in `crate::eval`).
+
+use crate::eval::{self, EvalOptions, DEFAULT_CONFIGS, PROCEDURAL_TEST};
+use crate::geometry::Sampling;
+use anyhow::Result;
+use clap::Args;
+use std::path::PathBuf;
+
+#[derive(Args, Debug)]
+pub struct EvalArgs {
+    /// A model file (flashmat export), or `printout` for the print-out baseline. Repeat to compare methods.
+    #[arg(long = "model", value_name = "FILE|printout", required = true)]
+    pub models: Vec<String>,
+    /// `procedural-test` (the 50 held-out procedural materials) or a dataset folder/strip file
+    /// (materials centre-cropped to a square and resized to --size).
+    #[arg(long, default_value = PROCEDURAL_TEST)]
+    pub dataset: String,
+    /// Cases of the paper's table, comma-separated.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "reflect,identity,hemisphere")]
+    pub cases: Vec<Sampling>,
+    /// Output folder: NAME.csv per method, summary.md, best.png, worst.png, grids.txt.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Resolution in pixels (a multiple of 8, at least 32).
+    #[arg(long, default_value_t = 256)]
+    pub size: usize,
+    /// Seed of the light/view configurations (fixed per material and case).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Evaluate only the first N materials.
+    #[arg(long, value_name = "N")]
+    pub limit: Option<usize>,
+    /// Configurations per material for Reflect and Hemisphere (the paper: 128).
+    #[arg(long, value_name = "N", default_value_t = DEFAULT_CONFIGS)]
+    pub configs: usize,
+    /// Give the methods LDR photos (renders clamped to [0, 1]) instead of HDR ones.
+    #[arg(long)]
+    pub ldr_input: bool,
+    /// cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+}
+
+pub fn eval(args: &EvalArgs) -> Result<()> {
+    let opts = EvalOptions {
+        models: args.models.clone(),
+        dataset: args.dataset.clone(),
+        cases: args.cases.clone(),
+        out: args.output.clone(),
+        size: args.size,
+        seed: args.seed,
+        limit: args.limit,
+        configs: args.configs,
+        ldr_input: args.ldr_input,
+        device: super::train::parse_device(&args.device)?,
+        progress: true,
+    };
+    eval::run(&opts)?;
+    let summary = std::fs::read_to_string(args.output.join("summary.md"))?;
+    println!("{summary}");
+    println!("wrote {}", args.output.display());
+    Ok(())
+}

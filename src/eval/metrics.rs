@@ -1,0 +1,134 @@
+//! Image metrics of the evaluation (REFERENCE section 6): LPIPS-Alex on
+//! linear renders clamped to [0, 1] (the paper's protocol), RMSE of
+//! ln(1 + R), and PSNR of display images clamp(R, 0, 1)^(1/2.2).
+
+use crate::lpips::Lpips;
+use anyhow::{ensure, Result};
+use tch::{Kind, Tensor};
+
+/// PSNR reported for (numerically) identical display images, in dB.
+pub const PSNR_CAP_DB: f64 = 100.0;
+
+/// Configurations per LPIPS forward pass (bounds memory at 256^2).
+const LPIPS_CHUNK: i64 = 8;
+
+/// Scores of one render (or their mean over several).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Scores {
+    pub lpips: f64,
+    pub rmse_log: f64,
+    pub psnr: f64,
+}
+
+/// Scores each configuration of `pred` against `target`.
+/// pred, target: `[K, 3, H, W]` linear radiance (any device; moved to the
+/// LPIPS weights' device), H, W >= 31. Returns K scores.
+pub fn score_renders(lpips: &Lpips, pred: &Tensor, target: &Tensor) -> Result<Vec<Scores>> {
+    let (sp, st) = (pred.size(), target.size());
+    ensure!(sp.len() == 4 && sp[1] == 3 && sp == st, "renders to compare must both be [K, 3, H, W], got {sp:?} and {st:?}");
+    ensure!(sp[2] >= 31 && sp[3] >= 31, "LPIPS needs images of at least 31x31 pixels, got {}x{}", sp[3], sp[2]);
+    let device = lpips.device();
+    let pred = pred.to_device(device).to_kind(Kind::Float).clamp_min(0.0);
+    let target = target.to_device(device).to_kind(Kind::Float).clamp_min(0.0);
+    let k = sp[0];
+    let mut lp = Vec::with_capacity(k as usize);
+    tch::no_grad(|| {
+        let mut start = 0;
+        while start < k {
+            let n = LPIPS_CHUNK.min(k - start);
+            let d = lpips.distance_01(&pred.narrow(0, start, n).clamp_max(1.0), &target.narrow(0, start, n).clamp_max(1.0));
+            lp.extend(Vec::<f64>::try_from(d.to_kind(Kind::Double).to_device(tch::Device::Cpu)).unwrap_or_default());
+            start += n;
+        }
+    });
+    ensure!(lp.len() == k as usize, "LPIPS returned {} values for {k} renders", lp.len());
+    let dims = [1i64, 2, 3];
+    let log_mse = (pred.log1p() - target.log1p()).square().mean_dim(dims.as_slice(), false, Kind::Double);
+    let disp = |t: &Tensor| crate::spaces::linear_to_display(t);
+    let disp_mse = (disp(&pred) - disp(&target)).square().mean_dim(dims.as_slice(), false, Kind::Double);
+    let log_mse = Vec::<f64>::try_from(log_mse.to_device(tch::Device::Cpu))?;
+    let disp_mse = Vec::<f64>::try_from(disp_mse.to_device(tch::Device::Cpu))?;
+    Ok((0..k as usize)
+        .map(|i| Scores { lpips: lp[i].max(0.0), rmse_log: log_mse[i].sqrt(), psnr: psnr_db(disp_mse[i]) })
+        .collect())
+}
+
+/// PSNR of a mean squared error between images in [0, 1], capped at
+/// [`PSNR_CAP_DB`] (identical images).
+pub fn psnr_db(mse: f64) -> f64 {
+    if mse <= 10f64.powf(-PSNR_CAP_DB / 10.0) {
+        PSNR_CAP_DB
+    } else {
+        -10.0 * mse.log10()
+    }
+}
+
+/// Mean of each score over configurations (NaN for none).
+pub fn mean_scores(scores: &[Scores]) -> Scores {
+    let n = scores.len() as f64;
+    Scores {
+        lpips: scores.iter().map(|s| s.lpips).sum::<f64>() / n,
+        rmse_log: scores.iter().map(|s| s.rmse_log).sum::<f64>() / n,
+        psnr: scores.iter().map(|s| s.psnr).sum::<f64>() / n,
+    }
+}
+
+/// Mean and half-width of its 95% interval, 1.96 * std / sqrt(n) (sample
+/// std, n - 1; half-width 0 for a single value).
+pub fn mean_ci95(values: &[f64]) -> (f64, f64) {
+    let n = values.len() as f64;
+    if values.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    let mean = values.iter().sum::<f64>() / n;
+    if values.len() < 2 {
+        return (mean, 0.0);
+    }
+    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    (mean, 1.96 * var.sqrt() / n.sqrt())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::Device;
+
+    #[test]
+    fn identical_renders_score_perfectly() {
+        let lpips = Lpips::new(Device::Cpu).unwrap();
+        tch::manual_seed(1);
+        let a = Tensor::rand([2, 3, 32, 32], (Kind::Float, Device::Cpu)) * 1.5;
+        let s = score_renders(&lpips, &a, &a).unwrap();
+        assert_eq!(s.len(), 2);
+        for x in &s {
+            assert!(x.lpips.abs() < 1e-6, "{x:?}");
+            assert_eq!(x.rmse_log, 0.0);
+            assert_eq!(x.psnr, PSNR_CAP_DB);
+        }
+        // Different renders score worse.
+        let b = &a * 0.5;
+        let d = score_renders(&lpips, &a, &b).unwrap();
+        assert!(d[0].lpips > 0.01 && d[0].rmse_log > 0.01 && d[0].psnr < 40.0, "{:?}", d[0]);
+    }
+
+    #[test]
+    fn rmse_and_psnr_values() {
+        let lpips = Lpips::new(Device::Cpu).unwrap();
+        let a = Tensor::zeros([1, 3, 32, 32], (Kind::Float, Device::Cpu));
+        let b = Tensor::full([1, 3, 32, 32], std::f64::consts::E - 1.0, (Kind::Float, Device::Cpu));
+        let s = score_renders(&lpips, &a, &b).unwrap();
+        assert!((s[0].rmse_log - 1.0).abs() < 1e-5);
+        // Display values 0 vs 1: MSE 1, PSNR 0 dB.
+        assert!(s[0].psnr.abs() < 1e-9);
+        assert!((psnr_db(0.01) - 20.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn confidence_interval() {
+        let (m, h) = mean_ci95(&[1.0, 2.0, 3.0, 4.0]);
+        assert!((m - 2.5).abs() < 1e-12);
+        // std = sqrt(5/3) = 1.29099; 1.96 * 1.29099 / 2 = 1.26517
+        assert!((h - 1.265171).abs() < 1e-5);
+        assert_eq!(mean_ci95(&[3.0]), (3.0, 0.0));
+    }
+}

@@ -1,0 +1,246 @@
+//! Evaluation (REFERENCE section 6): methods re-render held-out materials
+//! from their co-located photo; renders are compared with the GGX ground
+//! truth in three cases (Reflect, Identity, Hemisphere).
+//!
+//! ```text
+//! material ─► GGX co-located photo ─► Method::prepare ─► Method::render(case configs)
+//!    │                                                        │
+//!    └──────► GGX renders of the same configs ───────────► metrics ─► CSV, summary.md, grids
+//! ```
+//!
+//! Configurations are drawn per (seed, material index, case), so every
+//! method, and every run with the same seed and dataset, sees the same ones.
+
+pub mod captures;
+pub mod methods;
+pub mod metrics;
+pub mod report;
+
+pub use methods::{open_methods, Method, ModelMethod, PrintoutMethod, PRINTOUT};
+pub use metrics::{mean_ci95, mean_scores, score_renders, Scores, PSNR_CAP_DB};
+
+use crate::data::loaders::{center_crop, open_dataset};
+use crate::data::procedural;
+use crate::geometry::{sample_hemisphere, sample_reflect, fov_to_distance, LightView, Sampling, HEMISPHERE_RADIUS, MODEL_FOV_DEG};
+use crate::lpips::Lpips;
+use crate::svbrdf::Svbrdf;
+use anyhow::{anyhow, ensure, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use rand::SeedableRng;
+use rand_pcg::Pcg64;
+use std::path::{Path, PathBuf};
+use tch::{Device, Tensor};
+
+/// Dataset name of the 50 procedural held-out materials.
+pub const PROCEDURAL_TEST: &str = "procedural-test";
+
+/// Configurations per material of the Reflect and Hemisphere cases (the
+/// paper's 128 lights x 128 views, paired).
+pub const DEFAULT_CONFIGS: usize = 128;
+
+/// Lower-case name of a case (CSV, file names).
+pub fn case_name(case: Sampling) -> &'static str {
+    match case {
+        Sampling::Reflect => "reflect",
+        Sampling::Identity => "identity",
+        Sampling::Hemisphere => "hemisphere",
+    }
+}
+
+/// Column title of a case in the summary (the paper's table).
+pub fn case_title(case: Sampling) -> &'static str {
+    match case {
+        Sampling::Reflect => "Reflect",
+        Sampling::Identity => "Identity",
+        Sampling::Hemisphere => "Hemisphere",
+    }
+}
+
+/// Seed of the configurations of one (material, case): SplitMix64 of the
+/// run seed, material index and case, so streams are unrelated.
+pub fn case_seed(seed: u64, material: usize, case: Sampling) -> u64 {
+    let tag = match case {
+        Sampling::Reflect => 1u64,
+        Sampling::Identity => 2,
+        Sampling::Hemisphere => 3,
+    };
+    let mut z = seed ^ (material as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ tag.wrapping_mul(0xd1b5_4a32_d192_ed03);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// The output configurations of a case for one material: Reflect draws
+/// `count` training-style configurations (camera on the radius-4.010781
+/// hemisphere, highlight centred at a sampled point), Hemisphere `count`
+/// lights and views independently uniform on the radius-4 hemisphere,
+/// Identity the one co-located input configuration.
+pub fn case_configs(case: Sampling, seed: u64, material: usize, count: usize) -> Vec<LightView> {
+    let mut rng = Pcg64::seed_from_u64(case_seed(seed, material, case));
+    match case {
+        Sampling::Identity => vec![LightView::colocated(MODEL_FOV_DEG)],
+        Sampling::Reflect => (0..count).map(|_| sample_reflect(&mut rng, fov_to_distance(MODEL_FOV_DEG)).0).collect(),
+        Sampling::Hemisphere => (0..count).map(|_| sample_hemisphere(&mut rng, HEMISPHERE_RADIUS)).collect(),
+    }
+}
+
+/// Everything `flashmat eval` needs.
+#[derive(Clone, Debug)]
+pub struct EvalOptions {
+    /// Model files, or `printout`.
+    pub models: Vec<String>,
+    /// `procedural-test` or a dataset folder/file `open_dataset` reads.
+    pub dataset: String,
+    pub cases: Vec<Sampling>,
+    pub out: PathBuf,
+    pub size: usize,
+    pub seed: u64,
+    pub limit: Option<usize>,
+    /// Configurations per material for Reflect and Hemisphere.
+    pub configs: usize,
+    /// Photos clamped to [0, 1] (what an 8-bit camera keeps).
+    pub ldr_input: bool,
+    pub device: Device,
+    pub progress: bool,
+}
+
+/// One line of a method's CSV.
+#[derive(Clone, Debug)]
+pub struct Row {
+    pub material: String,
+    pub case: Sampling,
+    pub scores: Scores,
+}
+
+/// Per-method results of a run.
+#[derive(Debug)]
+pub struct MethodResults {
+    pub name: String,
+    pub rows: Vec<Row>,
+}
+
+/// Loads the materials at `size x size`: the procedural test set, or a
+/// dataset's materials centre-cropped to a square and shrunk (area) or
+/// enlarged (bilinear) to `size`. At most `limit` materials.
+pub fn load_materials(dataset: &str, size: usize, limit: Option<usize>) -> Result<Vec<(String, Svbrdf)>> {
+    if dataset == PROCEDURAL_TEST {
+        let seeds = procedural::test_seeds();
+        let n = limit.unwrap_or(seeds.len()).min(seeds.len());
+        let mats = procedural::generate_many(&seeds[..n], size);
+        return Ok(mats.into_iter().enumerate().map(|(i, m)| (format!("test{i:02}"), m)).collect());
+    }
+    let ds = open_dataset(Path::new(dataset))?;
+    let n = limit.unwrap_or(ds.len()).min(ds.len());
+    ensure!(n > 0, "dataset {dataset} holds no materials");
+    (0..n)
+        .map(|i| {
+            let m = ds.load(i)?;
+            let m = fit_to_size(&m, size).map_err(|e| anyhow!("{}: {e:#}", ds.name(i)))?;
+            Ok((ds.name(i), m))
+        })
+        .collect()
+}
+
+/// Centre square crop, then resized to `size` (normals renormalised, the
+/// height field dropped when resized).
+pub fn fit_to_size(m: &Svbrdf, size: usize) -> Result<Svbrdf> {
+    let side = m.height().min(m.width());
+    let sq = center_crop(m, side)?;
+    if side == size {
+        return Ok(sq);
+    }
+    let resize = |im: &crate::image::Image| {
+        if side > size {
+            crate::infer::photo::area_resize(im, size, size)
+        } else {
+            im.resize_bilinear(size, size)
+        }
+    };
+    let mut normal = resize(&sq.normal);
+    for y in 0..size {
+        for x in 0..size {
+            let v = [normal.get(0, y, x), normal.get(1, y, x), normal.get(2, y, x)];
+            let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-12);
+            for (c, vc) in v.iter().enumerate() {
+                normal.set(c, y, x, vc / n);
+            }
+        }
+    }
+    Ok(Svbrdf { diffuse: resize(&sq.diffuse), specular: resize(&sq.specular), roughness: resize(&sq.roughness), normal, height_field: None })
+}
+
+/// GGX renders of a material (CPU renderer): `[K, 3, H, W]` linear.
+pub fn reference_renders(m: &Svbrdf, configs: &[LightView]) -> Tensor {
+    let r = crate::svbrdf::cpu::render(m, configs);
+    Tensor::from_slice(&r).view([configs.len() as i64, 3, m.height() as i64, m.width() as i64])
+}
+
+/// The input photo of a material: its co-located GGX render `[3, H, W]`,
+/// clamped to [0, 1] when `ldr`.
+pub fn input_photo(m: &Svbrdf, ldr: bool) -> Tensor {
+    let p = reference_renders(m, &[LightView::colocated(MODEL_FOV_DEG)]).get(0);
+    if ldr {
+        crate::spaces::ldr_clamp(&p)
+    } else {
+        p
+    }
+}
+
+/// Scores every method on every material and case; returns rows per method.
+pub fn evaluate(
+    methods: &mut [Box<dyn Method>],
+    materials: &[(String, Svbrdf)],
+    opts: &EvalOptions,
+    lpips: &Lpips,
+) -> Result<Vec<MethodResults>> {
+    let mut results: Vec<MethodResults> = methods.iter().map(|m| MethodResults { name: m.name(), rows: vec![] }).collect();
+    let bar = if opts.progress { ProgressBar::new((materials.len() * methods.len()) as u64) } else { ProgressBar::hidden() };
+    bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} material x method, {elapsed} (eta {eta}) {msg}").expect("valid template"));
+    for (mi, (name, m)) in materials.iter().enumerate() {
+        let photo = input_photo(m, opts.ldr_input);
+        let cases: Vec<(Sampling, Vec<LightView>, Tensor)> = opts
+            .cases
+            .iter()
+            .map(|&c| {
+                let cfg = case_configs(c, opts.seed, mi, opts.configs);
+                let reference = reference_renders(m, &cfg);
+                (c, cfg, reference)
+            })
+            .collect();
+        for (method, res) in methods.iter_mut().zip(results.iter_mut()) {
+            bar.set_message(format!("{name} / {}", res.name));
+            method.prepare(&photo).map_err(|e| anyhow!("{} on {name}: {e:#}", res.name))?;
+            for (case, cfg, reference) in &cases {
+                let pred = method.render(cfg).map_err(|e| anyhow!("{} on {name}: {e:#}", res.name))?;
+                let scores = mean_scores(&score_renders(lpips, &pred, reference)?);
+                res.rows.push(Row { material: name.clone(), case: *case, scores });
+            }
+            bar.inc(1);
+        }
+    }
+    bar.finish_and_clear();
+    Ok(results)
+}
+
+/// `flashmat eval`: loads methods and materials, scores them, writes the
+/// CSVs, `summary.md` and the best/worst grids into `opts.out`.
+pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
+    ensure!(!opts.cases.is_empty(), "give at least one case with --cases (reflect, identity, hemisphere)");
+    ensure!(opts.configs > 0, "--configs must be at least 1");
+    ensure!(opts.size >= 32, "--size must be at least 32 (LPIPS needs 31x31 pixels), got {}", opts.size);
+    crate::infer::photo::check_size(opts.size)?;
+    let mut cases = opts.cases.clone();
+    cases.dedup();
+    let opts = EvalOptions { cases, ..opts.clone() };
+    let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device)?;
+    let materials = load_materials(&opts.dataset, opts.size, opts.limit)?;
+    let lpips = Lpips::new(opts.device)?;
+    std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;
+    let results = evaluate(&mut methods, &materials, &opts, &lpips)?;
+    report::write_reports(&opts, &results)?;
+    report::write_grids(&opts, &mut methods, &materials, &results)?;
+    Ok(results)
+}
+
+#[cfg(test)]
+mod tests;
