@@ -4,6 +4,7 @@
 pub mod bench;
 pub mod infer;
 pub mod materials;
+pub mod nmat_rows;
 pub mod train;
 
 
@@ -36,6 +37,8 @@ pub enum Command {
     Relight(infer::RelightArgs),
     /// One picture of a neural material: photo, neural map (norm, PCA), identity render, relit views.
     Show(infer::ShowArgs),
+    /// Reference rows (pixel parameters, wi, wo, M_render output) of a neural material, as JSON.
+    NmatRows(nmat_rows::NmatRowsArgs),
     /// Speed benchmarks (ratios against a baseline measured in the same run).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -191,6 +194,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Estimate(a) => infer::estimate(&a),
         Command::Relight(a) => infer::relight(&a),
         Command::Show(a) => infer::show(&a),
+        Command::NmatRows(a) => nmat_rows::nmat_rows(&a),
         Command::Train(a) => train::train(&a),
         Command::Export(a) => train::export(&a),
         Command::Bench(b) => bench::run(&b),
