@@ -12,8 +12,14 @@ export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # Each test runs in its own process under nextest: libtorch's random
 # generator is process-global, and tests that check bit-exact determinism
 # must not share it with tests running in parallel.
+rust_rc=0
 if cargo nextest --version >/dev/null 2>&1; then
-  cargo nextest run --all-targets --no-fail-fast 2>&1
+  cargo nextest run --all-targets --no-fail-fast 2>&1 || rust_rc=$?
 else
-  cargo test --all-targets -- --test-threads=1 2>&1
+  cargo test --all-targets -- --test-threads=1 2>&1 || rust_rc=$?
 fi
+# The Mitsuba 3 plugin (Python, pytest): installs mitsuba and libllvm19 once.
+python_rc=0
+bash scripts/test_python.sh 2>&1 || python_rc=$?
+echo "rust tests exit $rust_rc, python tests exit $python_rc"
+[ "$rust_rc" = 0 ] && [ "$python_rc" = 0 ]

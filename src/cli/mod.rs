@@ -5,6 +5,7 @@ pub mod bench;
 pub mod eval;
 pub mod infer;
 pub mod materials;
+pub mod nmat_rows;
 pub mod train;
 
 
@@ -39,6 +40,8 @@ pub enum Command {
     Show(infer::ShowArgs),
     /// Score models and the print-out baseline against GGX renders (Reflect / Identity / Hemisphere).
     Eval(eval::EvalArgs),
+    /// Reference rows (pixel parameters, wi, wo, M_render output) of a neural material, as JSON.
+    NmatRows(nmat_rows::NmatRowsArgs),
     /// Speed benchmarks (ratios against a baseline measured in the same run).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -194,6 +197,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Estimate(a) => infer::estimate(&a),
         Command::Relight(a) => infer::relight(&a),
         Command::Show(a) => infer::show(&a),
+        Command::NmatRows(a) => nmat_rows::nmat_rows(&a),
         Command::Train(a) => train::train(&a),
         Command::Export(a) => train::export(&a),
         Command::Eval(a) => eval::eval(&a),

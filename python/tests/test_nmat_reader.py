@@ -1,0 +1,88 @@
+"""The .nmat reader refuses damaged and foreign files with a clear ValueError."""
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from conftest import TINY_NMAT, synthetic_tensors, write_nmat
+from flashmat_mitsuba.nmat import NmatError, read_nmat
+
+
+def test_reads_synthetic(synthetic_nmat):
+    nm = read_nmat(synthetic_nmat)
+    assert nm.neural_map.shape == (16, 8, 8)
+    assert nm.frequencies == 16 and len(nm.nd_enc) == 3 and len(nm.m_render) == 7
+
+
+@pytest.mark.skipif(not TINY_NMAT.exists(), reason="fixture tests/fixtures/tiny.nmat missing")
+def test_reads_flashmat_fixture():
+    nm = read_nmat(TINY_NMAT)
+    assert nm.meta["flashmat.format"] == "flashmat-nmat"
+    assert nm.neural_map.shape[0] == nm.config["neural_channels"]
+
+
+def expect_error(path, fragment):
+    with pytest.raises(ValueError) as e:
+        read_nmat(path)
+    assert isinstance(e.value, NmatError)
+    assert str(path) in str(e.value), str(e.value)
+    assert fragment in str(e.value), str(e.value)
+
+
+def test_damaged_byte(synthetic_nmat, tmp_path):
+    data = bytearray(synthetic_nmat.read_bytes())
+    data[-5] ^= 0x40
+    p = tmp_path / "damaged.nmat"
+    p.write_bytes(bytes(data))
+    expect_error(p, "checksum mismatch")
+
+
+def test_truncated(synthetic_nmat, tmp_path):
+    data = synthetic_nmat.read_bytes()
+    p = tmp_path / "truncated.nmat"
+    p.write_bytes(data[: len(data) - 100])
+    expect_error(p, "truncated")
+    p.write_bytes(data[:5])
+    expect_error(p, "too short")
+
+
+def test_foreign_files(tmp_path):
+    p = tmp_path / "photo.png"
+    p.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    expect_error(p, "not a flashmat .nmat file")
+    t, meta = synthetic_tensors()
+    p = tmp_path / "model.safetensors"
+    write_nmat(p, t, {**meta, "flashmat.format": "flashmat-model"})
+    expect_error(p, "format tag 'flashmat-model'")
+    # A safetensors file without flashmat metadata.
+    header = json.dumps({"x": {"dtype": "F32", "shape": [1], "data_offsets": [0, 4]}}).encode()
+    p = tmp_path / "plain.safetensors"
+    p.write_bytes(struct.pack("<Q", len(header)) + header + np.float32(1).tobytes())
+    expect_error(p, "no metadata")
+    expect_error(tmp_path / "missing.nmat", "cannot read")
+
+
+def test_other_version_and_shapes(tmp_path):
+    t, meta = synthetic_tensors()
+    p = tmp_path / "v2.nmat"
+    write_nmat(p, t, {**meta, "flashmat.version": "2"})
+    expect_error(p, "unsupported .nmat version '2'")
+    t2 = dict(t)
+    t2["renderer.m_render.6.weight"] = np.zeros((4, 8), np.float32)
+    p = tmp_path / "shape.nmat"
+    write_nmat(p, t2, meta)
+    expect_error(p, "renderer.m_render.6.weight")
+
+
+def test_plugin_raises_for_damaged_file(synthetic_nmat, tmp_path):
+    from conftest import set_variant
+
+    mi = set_variant("scalar_rgb")
+    data = bytearray(synthetic_nmat.read_bytes())
+    data[-1] ^= 1
+    p = tmp_path / "bad.nmat"
+    p.write_bytes(bytes(data))
+    with pytest.raises(Exception) as e:
+        mi.load_dict({"type": "neural_brdf", "filename": str(p)})
+    assert "bad.nmat" in str(e.value) and "checksum" in str(e.value)
