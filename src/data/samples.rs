@@ -4,7 +4,7 @@
 
 use crate::geometry::{config_tensors, sample_configs, LightView, Sampling};
 use crate::spaces;
-use crate::svbrdf::render::{direction_maps_for, half_vector_z, render_directions};
+use crate::svbrdf::render::{direction_maps_for, half_vector_z};
 use crate::svbrdf::shadow::ShadowOptions;
 use crate::svbrdf::{Svbrdf, MAP_CHANNELS};
 use anyhow::{bail, Result};
@@ -95,13 +95,6 @@ pub fn input_directions(h: usize, w: usize, fov_deg: f64, device: Device) -> (Te
     let (l, v) = config_tensors(&[LightView::colocated(fov_deg)], device);
     let (wi, wo) = direction_maps_for(&l.view([1, 1, 3]), &v.view([1, 1, 3]), h, w);
     (wi.squeeze_dim(1), wo.squeeze_dim(1))
-}
-
-/// Renders the co-located input photo. maps: `[N, 10, H, W]` -> `[N, 3, H, W]` linear HDR.
-pub fn render_input(maps: &Tensor, fov_deg: f64) -> Tensor {
-    let size = maps.size();
-    let (wi, wo) = input_directions(size[2] as usize, size[3] as usize, fov_deg, maps.device());
-    render_directions(maps, &wi.unsqueeze(1), &wo.unsqueeze(1)).squeeze_dim(1)
 }
 
 /// Renders each material's co-located input and its K outputs, with their
