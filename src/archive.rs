@@ -19,7 +19,15 @@ const KEY_CRC: &str = "flashmat.crc32";
 pub struct Archive {
     pub tensors: BTreeMap<String, Tensor>,
     pub metadata: BTreeMap<String, String>,
+    /// Store tensors of at least [`HALF_MIN_NUMEL`] values as IEEE f16
+    /// (halves exported models); smaller ones (biases, BatchNorm
+    /// statistics, whose variances can fall below f16's normal range) stay
+    /// f32. Reading always gives f32.
+    pub store_half: bool,
 }
+
+/// Smallest tensor stored as f16 when [`Archive::store_half`] is set.
+pub const HALF_MIN_NUMEL: usize = 1024;
 
 impl Archive {
     pub fn new() -> Self {
@@ -61,19 +69,23 @@ impl Archive {
 
     /// Writes the archive atomically with the given format tag and version.
     pub fn save(&self, path: &Path, format: &str, version: u32) -> Result<()> {
-        let buffers: Vec<(String, Vec<u8>, Vec<usize>)> = self
+        let buffers: Vec<(String, Dtype, Vec<u8>, Vec<usize>)> = self
             .tensors
             .iter()
             .map(|(name, t)| {
                 let numel = t.numel();
                 let mut values = vec![0f32; numel];
                 t.copy_data(&mut values, numel);
-                let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-                (name.clone(), bytes, t.size().iter().map(|&d| d as usize).collect())
+                let (dtype, bytes): (Dtype, Vec<u8>) = if self.store_half && numel >= HALF_MIN_NUMEL {
+                    (Dtype::F16, values.iter().flat_map(|v| half::f16::from_f32(*v).to_le_bytes()).collect())
+                } else {
+                    (Dtype::F32, values.iter().flat_map(|v| v.to_le_bytes()).collect())
+                };
+                (name.clone(), dtype, bytes, t.size().iter().map(|&d| d as usize).collect())
             })
             .collect();
         let mut crc = crc32fast::Hasher::new();
-        for (name, bytes, _) in &buffers {
+        for (name, _, bytes, _) in &buffers {
             crc.update(name.as_bytes());
             crc.update(bytes);
         }
@@ -83,7 +95,7 @@ impl Archive {
         metadata.insert(KEY_CRC.into(), format!("{:08x}", crc.finalize()));
         let views: Vec<(String, TensorView)> = buffers
             .iter()
-            .map(|(name, bytes, shape)| Ok((name.clone(), TensorView::new(Dtype::F32, shape.clone(), bytes)?)))
+            .map(|(name, dtype, bytes, shape)| Ok((name.clone(), TensorView::new(*dtype, shape.clone(), bytes)?)))
             .collect::<Result<_>>()?;
         let data = safetensors::tensor::serialize(views, Some(metadata)).context("serializing tensors")?;
         crate::io::atomic_write_bytes(path, &data)
@@ -115,12 +127,13 @@ impl Archive {
         let mut tensors = BTreeMap::new();
         for name in names {
             let view = st.tensor(&name)?;
-            if view.dtype() != Dtype::F32 {
-                bail!("tensor '{name}' has dtype {:?}, expected F32", view.dtype());
-            }
             crc.update(name.as_bytes());
             crc.update(view.data());
-            let values: Vec<f32> = view.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+            let values: Vec<f32> = match view.dtype() {
+                Dtype::F32 => view.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect(),
+                Dtype::F16 => view.data().chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
+                other => bail!("tensor '{name}' has dtype {other:?}, expected F32 or F16"),
+            };
             let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
             tensors.insert(name, Tensor::from_slice(&values).view(shape.as_slice()));
         }
@@ -129,7 +142,7 @@ impl Archive {
             bail!("checksum mismatch: the {format} file is damaged");
         }
         let metadata = meta.into_iter().filter(|(k, _)| !k.starts_with("flashmat.")).collect();
-        Ok(Self { tensors, metadata })
+        Ok(Self { tensors, metadata, store_half: false })
     }
 }
 
@@ -196,6 +209,28 @@ mod tests {
         std::fs::write(&p, b"garbage").unwrap();
         assert!(Archive::load(&p, "test", 3).is_err());
         assert!(Archive::load(&dir.path().join("missing"), "test", 3).is_err());
+    }
+
+    #[test]
+    fn half_storage_halves_large_tensors_and_keeps_small_ones_exact() {
+        let dir = tempfile::tempdir().unwrap();
+        let (full, half) = (dir.path().join("f.safetensors"), dir.path().join("h.safetensors"));
+        let mut a = Archive::new();
+        // 1/3 is not representable in f16: its nearest f16 is 0.333251953125 (2^-2 * 1365/1024).
+        a.insert("big", &Tensor::full([HALF_MIN_NUMEL as i64], 1.0 / 3.0, (Kind::Float, Device::Cpu)));
+        a.insert("small", &Tensor::from_slice(&[1.0f32 / 3.0, 1e-7]));
+        a.save(&full, "test", 1).unwrap();
+        a.store_half = true;
+        a.save(&half, "test", 1).unwrap();
+        let (nf, nh) = (std::fs::metadata(&full).unwrap().len(), std::fs::metadata(&half).unwrap().len());
+        // The big tensor's 4096 bytes become 2048; headers differ by a few bytes.
+        assert!((nf as i64 - nh as i64 - 2048).abs() < 16, "{nf} {nh}");
+        let b = Archive::load(&half, "test", 1).unwrap();
+        let big = b.tensor("big").unwrap();
+        assert_eq!(big.kind(), Kind::Float);
+        assert_eq!(big.double_value(&[7]), 0.333251953125);
+        assert_eq!(b.tensor("small").unwrap().double_value(&[0]), (1.0f32 / 3.0) as f64);
+        assert_eq!(b.tensor("small").unwrap().double_value(&[1]), 1e-7f32 as f64);
     }
 
     #[test]

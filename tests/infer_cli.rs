@@ -60,7 +60,7 @@ fn no_temp_files(dir: &Path) {
 fn tiny_model(path: &Path, ldr_input: bool, seed: i64) -> PathBuf {
     tch::manual_seed(seed);
     let m = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
-    m.save(path, &ModelInfo { ldr_input, steps: 3 }).unwrap();
+    m.save(path, &ModelInfo { ldr_input, steps: 3 }, false).unwrap();
     path.to_path_buf()
 }
 

@@ -75,7 +75,7 @@ fn eval_end_to_end_on_two_materials() {
     let t = tempfile::tempdir().unwrap();
     tch::manual_seed(3);
     let model_path = t.path().join("tiny.safetensors");
-    Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(&model_path, &ModelInfo::default()).unwrap();
+    Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(&model_path, &ModelInfo::default(), false).unwrap();
     let out = t.path().join("report");
     let opts = EvalOptions {
         models: vec![model_path.to_string_lossy().into_owned(), PRINTOUT.into()],

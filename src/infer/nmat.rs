@@ -264,7 +264,7 @@ pub(crate) mod tests {
 
         // An exported model file is a flashmat archive of another format.
         let model_file = dir.path().join("model.safetensors");
-        Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(&model_file, &ModelInfo::default()).unwrap();
+        Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(&model_file, &ModelInfo::default(), false).unwrap();
         let e = err(&model_file);
         assert!(e.contains("model.safetensors") && e.contains("'flashmat-model' file, expected a 'flashmat-nmat'"), "{e}");
 

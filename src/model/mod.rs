@@ -182,9 +182,10 @@ impl Model {
     /// Writes `est.*` and `renderer.*` (including BatchNorm running
     /// statistics) as a checksummed archive (see [`crate::archive`]) with the
     /// model id, the configuration and `info` in the metadata. This is the
-    /// exported-model format that `flashmat export` writes.
-    pub fn save(&self, path: impl AsRef<Path>, info: &ModelInfo) -> Result<()> {
-        let mut a = Archive::new();
+    /// exported-model format that `flashmat export` writes. `half` stores
+    /// the large weight tensors as f16 ([`Archive::store_half`]).
+    pub fn save(&self, path: impl AsRef<Path>, info: &ModelInfo, half: bool) -> Result<()> {
+        let mut a = Archive { store_half: half, ..Archive::new() };
         for (name, t) in self.named_variables() {
             a.insert(name, &t);
         }

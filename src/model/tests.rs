@@ -249,14 +249,23 @@ fn save_load_round_trip_and_refusals() {
     let m = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
     randomise_batchnorms(&m.est_vs);
     let info = ModelInfo { ldr_input: true, steps: 17 };
-    m.save(&path, &info).unwrap();
+    m.save(&path, &info, false).unwrap();
+    // f16 storage: a smaller file whose estimates stay within f16 rounding.
+    let half_path = dir.path().join("m16.safetensors");
+    m.save(&half_path, &info, true).unwrap();
+    let (full_len, half_len) = (std::fs::metadata(&path).unwrap().len(), std::fs::metadata(&half_path).unwrap().len());
+    assert!((half_len as f64) < 0.6 * full_len as f64, "{half_len} vs {full_len}");
+    let (m16, _) = Model::load(&half_path, Device::Cpu).unwrap();
     let (m2, info2) = Model::load(&path, Device::Cpu).unwrap();
     assert_eq!(info2, info);
     assert_eq!(m2.config, ModelConfig::tiny());
     let x = Tensor::randn([1, 4, 16, 16], (Kind::Float, Device::Cpu));
     let a = m.est_inference(&x).unwrap();
     let b = m2.est_inference(&x).unwrap();
-    assert_eq!((a - b).abs().max().double_value(&[]), 0.0);
+    assert_eq!((&a - b).abs().max().double_value(&[]), 0.0);
+    let c = m16.est_inference(&x).unwrap();
+    let rel = (&a - c).abs().max().double_value(&[]) / a.abs().max().double_value(&[]);
+    assert!(rel > 0.0 && rel < 2e-2, "f16 weights change the estimate by {rel} (relative to its max)");
     let (va, vb) = (m.renderer_vs.variables(), m2.renderer_vs.variables());
     for (k, t) in &va {
         assert!(t.equal(&vb[k]), "{k}");
