@@ -1,13 +1,36 @@
 #!/usr/bin/env bash
-# Sets everything up (Python environment with PyTorch, release build) and runs
-# flashmat's main job, writing pictures to out/.
+# flashmat's main job. Sets everything up (Python environment with PyTorch,
+# release build), then turns every bundled flash photo in examples/photos/
+# into a neural material with the bundled model and writes, for each photo,
+# to out/<photo>/:
+#   material.nmat  the neural material (flashmat relight/show, Mitsuba plugin)
+#   grid.png       input | neural map norm | neural map PCA | identity render,
+#                  and the material under four lights
+#   orbit.gif      a light circling the material
+# Usage: scripts/demo.sh [PHOTO ...] [-- extra estimate options]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
 cargo build --release --quiet
 FLASHMAT=target/release/flashmat
-mkdir -p out
-$FLASHMAT svbrdf preview procedural --count 8 -o out/procedural-preview.png
-$FLASHMAT render --svbrdf procedural:7 --light 1.5,1,3 --view 0,0,4.010781 -o out/render-side-light.png
-$FLASHMAT render --svbrdf procedural:7 -o out/render-colocated.exr
-echo "pictures in out/: procedural-preview.png, render-side-light.png, render-colocated.exr"
+FRAMES=${FLASHMAT_ORBIT_FRAMES:-24}
+
+photos=()
+while [ $# -gt 0 ] && [ "$1" != "--" ]; do photos+=("$1"); shift; done
+[ "${1:-}" = "--" ] && shift
+if [ ${#photos[@]} -eq 0 ]; then
+    photos=(examples/photos/*.png examples/photos/*.jpg)
+fi
+
+start=$SECONDS
+for photo in "${photos[@]}"; do
+    [ -e "$photo" ] || continue
+    name=$(basename "${photo%.*}")
+    dir=out/$name
+    mkdir -p "$dir"
+    echo "== $photo"
+    $FLASHMAT estimate "$photo" -o "$dir/material.nmat" "$@"
+    $FLASHMAT show "$dir/material.nmat" -o "$dir/grid.png"
+    $FLASHMAT relight "$dir/material.nmat" --orbit "$FRAMES" -o "$dir/orbit.gif"
+done
+echo "done in $((SECONDS - start)) s: out/<photo>/{material.nmat,grid.png,orbit.gif}"
