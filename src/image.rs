@@ -126,6 +126,40 @@ impl Image {
         Ok(Self { channels, height: first.height, width: first.width, data })
     }
 
+    /// Anti-aliased shrink: every output pixel is the mean of the source area
+    /// it covers (a box filter of exactly the output pixel's footprint), so
+    /// no detail aliases into a model input. Separable; `h <= height` and
+    /// `w <= width` (enlarging is refused by the callers).
+    pub fn resize_area(&self, h: usize, w: usize) -> Image {
+        let image = self;
+        assert!(h <= image.height && w <= image.width && h > 0 && w > 0, "resize_area only shrinks");
+        if (h, w) == (image.height, image.width) {
+            return image.clone();
+        }
+        let (wx, wy) = (area_weights(image.width, w), area_weights(image.height, h));
+        // Columns first: [C, H, w].
+        let mut tmp = Image::new(image.channels, image.height, w);
+        for c in 0..image.channels {
+            for y in 0..image.height {
+                let row = &image.plane(c)[y * image.width..(y + 1) * image.width];
+                for (x, (first, ws)) in wx.iter().enumerate() {
+                    let v: f32 = ws.iter().enumerate().map(|(k, wk)| wk * row[first + k]).sum();
+                    tmp.set(c, y, x, v);
+                }
+            }
+        }
+        let mut out = Image::new(image.channels, h, w);
+        for c in 0..image.channels {
+            for (y, (first, ws)) in wy.iter().enumerate() {
+                for x in 0..w {
+                    let v: f32 = ws.iter().enumerate().map(|(k, wk)| wk * tmp.get(c, first + k, x)).sum();
+                    out.set(c, y, x, v);
+                }
+            }
+        }
+        out
+    }
+
     /// Bilinear resize (pixel-centre aligned, as torch's `align_corners=false`).
     pub fn resize_bilinear(&self, h: usize, w: usize) -> Self {
         let sy = self.height as f32 / h as f32;
@@ -193,6 +227,22 @@ impl Image {
     }
 }
 
+/// Exact area-averaging weights resampling `n` samples to `m <= n`: output
+/// sample o averages the source interval [o n/m, (o+1) n/m), each source
+/// sample weighted by its overlap. Returns (first source index, weights).
+fn area_weights(n: usize, m: usize) -> Vec<(usize, Vec<f32>)> {
+    let scale = n as f64 / m as f64;
+    (0..m)
+        .map(|o| {
+            let (a, b) = (o as f64 * scale, (o + 1) as f64 * scale);
+            let first = a.floor() as usize;
+            let last = (b.ceil() as usize).min(n);
+            let w = (first..last).map(|i| ((b.min(i as f64 + 1.0) - a.max(i as f64)).max(0.0) / scale) as f32).collect();
+            (first, w)
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -240,5 +290,25 @@ mod tests {
         assert_eq!(im.find_non_finite(), None);
         im.set(2, 1, 0, f32::NAN);
         assert_eq!(im.find_non_finite(), Some((2, 1, 0)));
+    }
+
+    #[test]
+    fn resize_area_averages_footprints() {
+        let im = Image::from_fn(2, 12, 9, |c, y, x| (c * 100 + y * 9 + x) as f32);
+        // Integer factor: equals block averaging.
+        let a = im.crop(0, 0, 12, 9).unwrap().resize_area(4, 3);
+        let b = im.downsample(3);
+        assert!(a.data.iter().zip(&b.data).all(|(x, y)| (x - y).abs() < 1e-4), "{a:?} {b:?}");
+        // Non-integer factor: overlap-weighted means. 10 -> 4 columns: the
+        // first output covers source [0, 2.5): (v0 + v1 + v2 / 2) / 2.5.
+        let ramp = Image::from_fn(1, 10, 10, |_, y, x| 3.0 + x as f32 + 2.0 * y as f32);
+        let r = ramp.resize_area(7, 4);
+        let row0 = ramp.crop(0, 0, 1, 10).unwrap().resize_area(1, 4);
+        assert!((row0.get(0, 0, 0) - (3.0 + 0.8)).abs() < 1e-5, "{row0:?}");
+        // The mean is preserved for any size, and constants stay constant.
+        assert!((r.mean() - ramp.mean()).abs() < 1e-4);
+        let flat = Image::filled(3, 13, 11, 0.25).resize_area(5, 7);
+        assert!(flat.data.iter().all(|v| (v - 0.25).abs() < 1e-6));
+        assert_eq!(im.resize_area(12, 9), im);
     }
 }

@@ -151,21 +151,12 @@ pub fn fit_to_size(m: &Svbrdf, size: usize) -> Result<Svbrdf> {
     }
     let resize = |im: &crate::image::Image| {
         if side > size {
-            crate::infer::photo::area_resize(im, size, size)
+            im.resize_area(size, size)
         } else {
             im.resize_bilinear(size, size)
         }
     };
-    let mut normal = resize(&sq.normal);
-    for y in 0..size {
-        for x in 0..size {
-            let v = [normal.get(0, y, x), normal.get(1, y, x), normal.get(2, y, x)];
-            let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-12);
-            for (c, vc) in v.iter().enumerate() {
-                normal.set(c, y, x, vc / n);
-            }
-        }
-    }
+    let normal = crate::svbrdf::renormalize_normals(&resize(&sq.normal));
     Ok(Svbrdf { diffuse: resize(&sq.diffuse), specular: resize(&sq.specular), roughness: resize(&sq.roughness), normal, height_field: None })
 }
 

@@ -92,55 +92,6 @@ pub fn fov_crop(width: usize, height: usize, fov_deg: f64) -> Result<Crop> {
     Ok(Crop { x0: (width - side) / 2, y0: (height - side) / 2, side, source_width: width, source_height: height })
 }
 
-/// Exact area-averaging weights resampling `n` samples to `m <= n`: output
-/// sample o averages the source interval [o n/m, (o+1) n/m), each source
-/// sample weighted by its overlap. Returns (first source index, weights).
-fn area_weights(n: usize, m: usize) -> Vec<(usize, Vec<f32>)> {
-    let scale = n as f64 / m as f64;
-    (0..m)
-        .map(|o| {
-            let (a, b) = (o as f64 * scale, (o + 1) as f64 * scale);
-            let first = a.floor() as usize;
-            let last = (b.ceil() as usize).min(n);
-            let w = (first..last).map(|i| ((b.min(i as f64 + 1.0) - a.max(i as f64)).max(0.0) / scale) as f32).collect();
-            (first, w)
-        })
-        .collect()
-}
-
-/// Anti-aliased shrink: every output pixel is the mean of the source area
-/// it covers (a box filter of exactly the output pixel's footprint), so
-/// no detail aliases into the model input. Separable; `h <= image.height`
-/// and `w <= image.width` (enlarging is refused by the callers).
-pub fn area_resize(image: &Image, h: usize, w: usize) -> Image {
-    assert!(h <= image.height && w <= image.width && h > 0 && w > 0, "area_resize only shrinks");
-    if (h, w) == (image.height, image.width) {
-        return image.clone();
-    }
-    let (wx, wy) = (area_weights(image.width, w), area_weights(image.height, h));
-    // Columns first: [C, H, w].
-    let mut tmp = Image::new(image.channels, image.height, w);
-    for c in 0..image.channels {
-        for y in 0..image.height {
-            let row = &image.plane(c)[y * image.width..(y + 1) * image.width];
-            for (x, (first, ws)) in wx.iter().enumerate() {
-                let v: f32 = ws.iter().enumerate().map(|(k, wk)| wk * row[first + k]).sum();
-                tmp.set(c, y, x, v);
-            }
-        }
-    }
-    let mut out = Image::new(image.channels, h, w);
-    for c in 0..image.channels {
-        for (y, (first, ws)) in wy.iter().enumerate() {
-            for x in 0..w {
-                let v: f32 = ws.iter().enumerate().map(|(k, wk)| wk * tmp.get(c, first + k, x)).sum();
-                out.set(c, y, x, v);
-            }
-        }
-    }
-    out
-}
-
 /// Crops a linear `[C, H, W]` photo to the model's view and shrinks it to
 /// `size x size`. Errors when the crop has fewer than `size` pixels across,
 /// saying how large a photo is needed.
@@ -159,7 +110,7 @@ pub fn prepare_image(linear: &Image, fov_deg: f64, size: usize) -> Result<(Image
         );
     }
     let cut = linear.crop(crop.y0, crop.x0, crop.side, crop.side)?;
-    Ok((area_resize(&cut, size, size), crop))
+    Ok((cut.resize_area(size, size), crop))
 }
 
 /// Reads and prepares a photo: PNG/JPEG are LDR and gamma-decoded to
@@ -202,26 +153,6 @@ mod tests {
         assert!(fov_crop(100, 100, 20.0).unwrap_err().to_string().contains("between 28 and"));
         assert!(fov_crop(100, 100, f64::NAN).is_err());
         assert!(fov_crop(100, 100, 180.0).is_err());
-    }
-
-    #[test]
-    fn area_resize_averages_footprints() {
-        let im = Image::from_fn(2, 12, 9, |c, y, x| (c * 100 + y * 9 + x) as f32);
-        // Integer factor: equals block averaging.
-        let a = area_resize(&im.crop(0, 0, 12, 9).unwrap(), 4, 3);
-        let b = im.downsample(3);
-        assert!(a.data.iter().zip(&b.data).all(|(x, y)| (x - y).abs() < 1e-4), "{a:?} {b:?}");
-        // Non-integer factor: overlap-weighted means. 10 -> 4 columns: the
-        // first output covers source [0, 2.5): (v0 + v1 + v2 / 2) / 2.5.
-        let ramp = Image::from_fn(1, 10, 10, |_, y, x| 3.0 + x as f32 + 2.0 * y as f32);
-        let r = area_resize(&ramp, 7, 4);
-        let row0 = area_resize(&ramp.crop(0, 0, 1, 10).unwrap(), 1, 4);
-        assert!((row0.get(0, 0, 0) - (3.0 + 0.8)).abs() < 1e-5, "{row0:?}");
-        // The mean is preserved for any size, and constants stay constant.
-        assert!((r.mean() - ramp.mean()).abs() < 1e-4);
-        let flat = area_resize(&Image::filled(3, 13, 11, 0.25), 5, 7);
-        assert!(flat.data.iter().all(|v| (v - 0.25).abs() < 1e-6));
-        assert_eq!(area_resize(&im, 12, 9), im);
     }
 
     #[test]
@@ -269,12 +200,12 @@ mod tests {
 
         let centre = maps.narrow(2, 127, 384).narrow(3, 127, 384);
         let narrow = Image::from_tensor(&render_window(&centre, 1.0, [0.0, 0.0, d])).unwrap();
-        let reference = area_resize(&narrow, 64, 64);
+        let reference = narrow.resize_area(64, 64);
         let worst = prepared.data.iter().zip(&reference.data).map(|(a, b)| (a - b).abs() / b.abs().max(0.05)).fold(0f32, f32::max);
         eprintln!("FOV crop vs 28 degree render: worst relative difference {worst:.2e}");
         assert!(worst < 2e-3, "{worst}");
         // Sanity: the uncropped wide photo is far from it.
-        let uncropped = area_resize(&wide, 64, 64);
+        let uncropped = wide.resize_area(64, 64);
         let off = uncropped.data.iter().zip(&reference.data).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
         assert!(off > 0.05, "{off}");
     }

@@ -13,11 +13,7 @@ use anyhow::{bail, Result};
 use rayon::prelude::*;
 use std::f32::consts::PI;
 
-#[inline]
-fn norm3(v: [f32; 3]) -> [f32; 3] {
-    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-12);
-    [v[0] / n, v[1] / n, v[2] / n]
-}
+use super::normalize3 as norm3;
 
 #[inline]
 fn dot3(a: [f32; 3], b: [f32; 3]) -> f32 {

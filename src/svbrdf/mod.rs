@@ -118,11 +118,30 @@ impl Svbrdf {
     }
 }
 
-/// Decodes a normal-map pixel c in [0,1]^3 to a unit vector: normalize(2c - 1).
-pub fn decode_normal(c: [f32; 3]) -> [f32; 3] {
-    let v = [2.0 * c[0] - 1.0, 2.0 * c[1] - 1.0, 2.0 * c[2] - 1.0];
+/// v / |v| (a zero vector stays zero).
+#[inline]
+pub fn normalize3(v: [f32; 3]) -> [f32; 3] {
     let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-12);
     [v[0] / n, v[1] / n, v[2] / n]
+}
+
+/// Decodes a normal-map pixel c in [0,1]^3 to a unit vector: normalize(2c - 1).
+pub fn decode_normal(c: [f32; 3]) -> [f32; 3] {
+    normalize3([2.0 * c[0] - 1.0, 2.0 * c[1] - 1.0, 2.0 * c[2] - 1.0])
+}
+
+/// Rescales every pixel of a `[3, H, W]` normal field to unit length (after
+/// resampling, which shortens averaged normals).
+pub fn renormalize_normals(normals: &Image) -> Image {
+    let mut out = normals.clone();
+    let n = normals.height * normals.width;
+    for i in 0..n {
+        let u = normalize3([normals.data[i], normals.data[n + i], normals.data[2 * n + i]]);
+        for c in 0..3 {
+            out.data[c * n + i] = u[c];
+        }
+    }
+    out
 }
 
 /// Encodes a unit normal to a normal-map pixel: (n + 1) / 2.
