@@ -63,6 +63,17 @@ pub struct TrainArgs {
     /// Clip each network's global gradient norm to this value.
     #[arg(long)]
     pub grad_clip: Option<f64>,
+    /// Ramp the learning rate up linearly over the first N steps (paper: 0). Short CPU runs need it:
+    /// full-size first steps push M_render's outputs below zero, where its final LeakyReLU(0.001) nearly stops learning.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub warmup_steps: u64,
+    /// Straight-through gradient below zero for M_render's final LeakyReLU(0.001) (inference unchanged).
+    /// Without it short runs settle on black renders: L1 pulls outputs down 1000x harder than it lifts them.
+    #[arg(long)]
+    pub straight_through_output: bool,
+    /// Start the adversarial term at step N (paper: 0).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub adv_start: u64,
     /// Weight of the LPIPS term (paper 0.01).
     #[arg(long, default_value_t = 0.01)]
     pub lpips_weight: f64,
@@ -141,6 +152,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         pixel_sampling: a.pixel_sampling,
         scheme: a.scheme,
         grad_clip: a.grad_clip,
+        warmup_steps: a.warmup_steps,
+        adv_start: a.adv_start,
+        straight_through_output: a.straight_through_output,
         weight_lpips: a.lpips_weight,
         weight_adv: a.adv_weight,
         steps: a.steps.unwrap_or(TrainConfig::default().steps),

@@ -16,6 +16,7 @@
 
 use super::config::ModelConfig;
 use tch::nn::{self, Init};
+use std::sync::atomic::{AtomicBool, Ordering};
 use tch::Tensor;
 
 /// Slope of the hidden activations.
@@ -28,6 +29,12 @@ pub struct MRender {
     /// Weights `[out, in]` of the seven linear layers.
     pub layers: Vec<Tensor>,
     pub neural_channels: i64,
+    /// Training only: the final LeakyReLU(0.001) passes its gradient
+    /// unscaled below zero (straight-through; forward values unchanged).
+    /// With the paper's slope an L1 loss pulls outputs down 1000x harder
+    /// than it pushes them up from below zero, and on dark training renders
+    /// the renderer settles on "everything is black" within ~50 steps.
+    pub straight_through_output: AtomicBool,
 }
 
 /// Xavier-uniform bound sqrt(6 / (fan_in + fan_out)).
@@ -51,7 +58,7 @@ impl MRender {
                 (p / i).var("weight", &[w[i + 1], w[i]], Init::Uniform { lo: -b, up: b })
             })
             .collect();
-        Self { layers, neural_channels: cfg.neural_channels }
+        Self { layers, neural_channels: cfg.neural_channels, straight_through_output: AtomicBool::new(false) }
     }
 
     /// Width of the direction code the first layer expects.
@@ -69,9 +76,20 @@ impl MRender {
         let last = self.layers.len() - 1;
         for (i, w) in self.layers.iter().enumerate().skip(1) {
             x = x.linear(w, None::<&Tensor>);
-            x = if i == last { super::layers::leaky(&x, RENDER_FINAL_SLOPE) } else { x.leaky_relu_() };
+            x = if i == last { self.output_activation(&x) } else { x.leaky_relu_() };
         }
         x
+    }
+
+    /// The final LeakyReLU(0.001); straight-through below zero when training
+    /// asks for it ([`Self::straight_through_output`]).
+    fn output_activation(&self, x: &Tensor) -> Tensor {
+        let y = super::layers::leaky(x, RENDER_FINAL_SLOPE);
+        if self.straight_through_output.load(Ordering::Relaxed) && x.requires_grad() {
+            x + (y - x).detach()
+        } else {
+            y
+        }
     }
 
     /// Multiply-adds x 2 per row (first layer counted in full).

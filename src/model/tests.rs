@@ -209,6 +209,51 @@ fn renderer_backpropagates_to_params_and_weights() {
 }
 
 #[test]
+fn straight_through_output_keeps_values_and_lifts_the_negative_gradient() {
+    let cfg = ModelConfig::tiny();
+    let m = Model::new(&cfg, Device::Cpu).unwrap();
+    let params = Tensor::randn([64, cfg.neural_channels], (Kind::Float, Device::Cpu));
+    let d = Tensor::from_slice(&[0.3f32, 0.0, 0.9539392]).view([1, 3]).expand([64, 3], false);
+    let last = m.renderer.m_render.layers.len() - 1;
+    // d(sum of outputs)/d(last layer weights) = sum over rows of
+    // activation'(pre-activation) x hidden input; compare both settings.
+    let grad_of_last = |straight: bool| {
+        m.renderer.m_render.straight_through_output.store(straight, std::sync::atomic::Ordering::Relaxed);
+        let mut stale = m.renderer.m_render.layers[last].grad();
+        if stale.defined() {
+            let _ = stale.zero_();
+        }
+        let out = m.renderer.forward_rows(&params, &d, &d).unwrap();
+        out.sum(Kind::Float).backward();
+        (out.detach(), m.renderer.m_render.layers[last].grad().copy())
+    };
+    let (paper_out, paper_grad) = grad_of_last(false);
+    let (st_out, st_grad) = grad_of_last(true);
+    m.renderer.m_render.straight_through_output.store(false, std::sync::atomic::Ordering::Relaxed);
+    // Same forward values (to rounding of x + (y - x)).
+    assert!((&paper_out - &st_out).abs().max().double_value(&[]) < 1e-6);
+    let negatives = paper_out.lt(0.0).to_kind(Kind::Float).mean(Kind::Float).double_value(&[]);
+    assert!(negatives > 0.05 && negatives < 0.95, "want a mix of signs at init, got {negatives}");
+    // Recompute the expected gradients by hand from the last hidden layer.
+    let hidden = {
+        let c = cfg.neural_channels;
+        let w0 = &m.renderer.m_render.layers[0];
+        let code = m.renderer.nd_enc.forward(&d, &d);
+        let mut x = params.linear(&w0.narrow(1, 0, c), None::<&Tensor>) + code.linear(&w0.narrow(1, c, w0.size()[1] - c), None::<&Tensor>);
+        for w in &m.renderer.m_render.layers[1..last] {
+            x = x.linear(w, None::<&Tensor>).leaky_relu();
+        }
+        x.detach()
+    };
+    let pre = hidden.linear(&m.renderer.m_render.layers[last], None::<&Tensor>).detach(); // [64, 3]
+    let slope = pre.ge(0.0).to_kind(Kind::Float) * (1.0 - crate::model::m_render::RENDER_FINAL_SLOPE) + crate::model::m_render::RENDER_FINAL_SLOPE;
+    let expect_paper = slope.transpose(0, 1).matmul(&hidden);
+    let expect_st = Tensor::ones_like(&pre).transpose(0, 1).matmul(&hidden);
+    assert!((&paper_grad - expect_paper).abs().max().double_value(&[]) < 1e-3 * (1.0 + paper_grad.abs().max().double_value(&[])));
+    assert!((&st_grad - expect_st).abs().max().double_value(&[]) < 1e-3 * (1.0 + st_grad.abs().max().double_value(&[])));
+}
+
+#[test]
 fn renderer_gradients_match_finite_differences() {
     // The MLPs apply their activations in place; check autograd stays exact.
     let cfg = ModelConfig::tiny();

@@ -47,6 +47,20 @@ pub struct TrainConfig {
     /// Multiplicative learning-rate decay applied every `lr_decay_every` steps (paper: 1.5% per 20,000).
     pub lr_decay: f64,
     pub lr_decay_every: u64,
+    /// Linear learning-rate warm-up over the first steps (0: none, the paper).
+    /// Without it the first Adam steps push M_render's outputs below zero,
+    /// where the final LeakyReLU(0.001) passes a thousandth of the gradient.
+    #[serde(default)]
+    pub warmup_steps: u64,
+    /// The adversarial term starts at this step (0: from the start, the
+    /// paper). Until the renderer produces plausible images the
+    /// discriminator's gradient only drowns the L1 signal.
+    #[serde(default)]
+    pub adv_start: u64,
+    /// Straight-through gradient for M_render's final LeakyReLU(0.001) (see
+    /// `MRender::straight_through_output`); inference is unchanged.
+    #[serde(default)]
+    pub straight_through_output: bool,
     pub weight_l1: f64,
     pub weight_lpips: f64,
     pub weight_adv: f64,
@@ -81,6 +95,9 @@ impl Default for TrainConfig {
             lr: 1e-4,
             lr_decay: 0.985,
             lr_decay_every: 20_000,
+            warmup_steps: 0,
+            adv_start: 0,
+            straight_through_output: false,
             weight_l1: 1.0,
             weight_lpips: 0.01,
             weight_adv: 0.03,
@@ -97,9 +114,19 @@ impl Default for TrainConfig {
 }
 
 impl TrainConfig {
-    /// Learning rate at a step: step decay of the paper.
+    /// Learning rate at a step: linear warm-up, then the paper's step decay.
     pub fn lr_at(&self, step: u64) -> f64 {
-        self.lr * self.lr_decay.powi((step / self.lr_decay_every.max(1)) as i32)
+        let warmup = if step < self.warmup_steps { (step + 1) as f64 / self.warmup_steps as f64 } else { 1.0 };
+        warmup * self.lr * self.lr_decay.powi((step / self.lr_decay_every.max(1)) as i32)
+    }
+
+    /// Weight of the adversarial term at a step (0 before `adv_start`).
+    pub fn adv_weight_at(&self, step: u64) -> f64 {
+        if step < self.adv_start {
+            0.0
+        } else {
+            self.weight_adv
+        }
     }
 
     pub fn validate(&self) -> anyhow::Result<()> {
@@ -128,6 +155,18 @@ mod tests {
     }
 
     #[test]
+    fn warmup_and_adversarial_start() {
+        let c = TrainConfig { warmup_steps: 4, adv_start: 10, ..Default::default() };
+        assert_eq!(c.lr_at(0), 0.25e-4);
+        assert_eq!(c.lr_at(1), 0.5e-4);
+        assert_eq!(c.lr_at(3), 1e-4);
+        assert_eq!(c.lr_at(4), 1e-4);
+        assert_eq!(c.adv_weight_at(9), 0.0);
+        assert_eq!(c.adv_weight_at(10), 0.03);
+        assert_eq!(TrainConfig::default().adv_weight_at(0), 0.03);
+    }
+
+    #[test]
     fn validation() {
         assert!(TrainConfig::default().validate().is_ok());
         assert!(TrainConfig { crop: 100, ..Default::default() }.validate().is_err());
@@ -141,6 +180,9 @@ mod tests {
         let obj = v.as_object_mut().unwrap();
         obj.remove("shadows");
         obj.remove("height_scale");
+        obj.remove("warmup_steps");
+        obj.remove("adv_start");
+        obj.remove("straight_through_output");
         let c: TrainConfig = serde_json::from_value(v).unwrap();
         assert_eq!(c, TrainConfig::default());
     }

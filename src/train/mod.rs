@@ -68,6 +68,7 @@ impl Trainer {
         config.validate()?;
         tch::manual_seed(config.seed as i64);
         let model = Model::new(&config.model, device)?;
+        model.renderer.m_render.straight_through_output.store(config.straight_through_output, std::sync::atomic::Ordering::Relaxed);
         let (disc_vs, disc) = Discriminator::with_store(&config.model, device);
         let opt_est = Adam::new(trainable(&model.est_vs));
         let opt_render = Adam::new(trainable(&model.renderer_vs));
@@ -88,9 +89,10 @@ impl Trainer {
         // a skipped (NaN/Inf) step must not leave them poisoned.
         let buffers = self.buffers();
         let saved: Vec<Tensor> = buffers.iter().map(|b| b.copy()).collect();
+        let weight_adv = self.config.adv_weight_at(self.step);
         let out = match self.config.scheme {
-            UpdateScheme::Alternating => self.alternating_step(batch, lr)?,
-            UpdateScheme::Combined => self.combined_step(batch, lr)?,
+            UpdateScheme::Alternating => self.alternating_step(batch, lr, weight_adv)?,
+            UpdateScheme::Combined => self.combined_step(batch, lr, weight_adv)?,
         };
         if out.skipped {
             tch::no_grad(|| {
@@ -117,7 +119,7 @@ impl Trainer {
         self.opt_disc.zero_grad();
     }
 
-    fn alternating_step(&mut self, b: &TrainingBatch, lr: f64) -> Result<StepLosses> {
+    fn alternating_step(&mut self, b: &TrainingBatch, lr: f64, weight_adv: f64) -> Result<StepLosses> {
         let cfg = self.config.clone();
         let target_log = crate::spaces::to_log(&b.targets);
         let photo_log = b.est_input.narrow(1, 0, 3);
@@ -135,8 +137,8 @@ impl Trainer {
         let pred = self.model.renderer.render_code(&neural, &code.detach())?;
         let l1 = (&pred - &target_log).abs().mean(tch::Kind::Float);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
-        let adv = losses::adversarial(&self.disc, &pred, &photo_log, cfg.weight_adv)?;
-        let loss_est = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * cfg.weight_adv;
+        let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
+        let loss_est = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
         out.l1 = l1.double_value(&[]);
         out.lpips = lp.double_value(&[]);
         out.adv = adv.double_value(&[]);
@@ -161,8 +163,8 @@ impl Trainer {
         let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling, &mut rng);
         let l1_r = losses::masked_l1(&pred_r, &target_log, &mask);
         let lp_r = losses::perceptual(self.lpips.as_ref(), &pred_r, &target_log)?;
-        let adv_r = losses::adversarial(&self.disc, &pred_r, &photo_log, cfg.weight_adv)?;
-        let loss_render = &l1_r * cfg.weight_l1 + &lp_r * cfg.weight_lpips + &adv_r * cfg.weight_adv;
+        let adv_r = losses::adversarial(&self.disc, &pred_r, &photo_log, weight_adv)?;
+        let loss_render = &l1_r * cfg.weight_l1 + &lp_r * cfg.weight_lpips + &adv_r * weight_adv;
         out.l1_render = l1_r.double_value(&[]);
         out.loss_render = loss_render.double_value(&[]);
         if !out.loss_render.is_finite() {
@@ -177,10 +179,10 @@ impl Trainer {
 
         // 3. Discriminator update.
         self.opt_disc.zero_grad();
-        let loss_disc = losses::discriminator_loss(&self.disc, &pred_r.detach(), &target_log, &photo_log, cfg.weight_adv)?;
+        let loss_disc = losses::discriminator_loss(&self.disc, &pred_r.detach(), &target_log, &photo_log, weight_adv)?;
         out.loss_disc = loss_disc.double_value(&[]);
         let disc_ok = out.loss_disc.is_finite() && {
-            if cfg.weight_adv > 0.0 {
+            if weight_adv > 0.0 {
                 loss_disc.backward();
             }
             self.opt_disc.grad_norm().is_finite()
@@ -193,14 +195,14 @@ impl Trainer {
         // Every loss and gradient is finite: apply the three updates.
         self.opt_est.step(lr, clip);
         self.opt_render.step(lr, clip);
-        if cfg.weight_adv > 0.0 {
+        if weight_adv > 0.0 {
             self.opt_disc.step(lr, clip);
         }
         self.zero_all();
         Ok(out)
     }
 
-    fn combined_step(&mut self, b: &TrainingBatch, lr: f64) -> Result<StepLosses> {
+    fn combined_step(&mut self, b: &TrainingBatch, lr: f64, weight_adv: f64) -> Result<StepLosses> {
         let cfg = self.config.clone();
         let target_log = crate::spaces::to_log(&b.targets);
         let photo_log = b.est_input.narrow(1, 0, 3);
@@ -210,8 +212,8 @@ impl Trainer {
         let pred = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
         let l1 = (&pred - &target_log).abs().mean(tch::Kind::Float);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
-        let adv = losses::adversarial(&self.disc, &pred, &photo_log, cfg.weight_adv)?;
-        let loss = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * cfg.weight_adv;
+        let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
+        let loss = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
         out.l1 = l1.double_value(&[]);
         out.l1_render = out.l1;
         out.lpips = lp.double_value(&[]);
@@ -229,9 +231,9 @@ impl Trainer {
             return Ok(StepLosses { skipped: true, ..out });
         }
         self.opt_disc.zero_grad();
-        let loss_disc = losses::discriminator_loss(&self.disc, &pred.detach(), &target_log, &photo_log, cfg.weight_adv)?;
+        let loss_disc = losses::discriminator_loss(&self.disc, &pred.detach(), &target_log, &photo_log, weight_adv)?;
         out.loss_disc = loss_disc.double_value(&[]);
-        if cfg.weight_adv > 0.0 {
+        if weight_adv > 0.0 {
             loss_disc.backward();
             if !(out.loss_disc.is_finite() && self.opt_disc.grad_norm().is_finite()) {
                 self.zero_all();
@@ -240,7 +242,7 @@ impl Trainer {
         }
         self.opt_est.step(lr, cfg.grad_clip);
         self.opt_render.step(lr, cfg.grad_clip);
-        if cfg.weight_adv > 0.0 {
+        if weight_adv > 0.0 {
             self.opt_disc.step(lr, cfg.grad_clip);
         }
         self.zero_all();
