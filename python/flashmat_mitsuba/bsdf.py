@@ -296,9 +296,3 @@ def neural_brdf_class():
 def NeuralBRDF(props):
     """A neural_brdf BSDF of the current variant from Mitsuba properties."""
     return neural_brdf_class()(props)
-
-
-def register():
-    """Registers `neural_brdf` for the current Mitsuba variant (call after mi.set_variant)."""
-    cls = neural_brdf_class()
-    mi.register_bsdf("neural_brdf", lambda props: cls(props))
