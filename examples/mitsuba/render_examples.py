@@ -86,7 +86,7 @@ def run_flashmat(binary, *args):
 
 
 def pick_pixels(maps):
-    """Three pixels spanning the material: the 10th, 50th and 90th roughness
+    """Three pixels spanning the material: the 2nd, 50th and 98th roughness
     percentiles (ties broken by the diffuse albedo), away from the border."""
     rough = maps["roughness"]
     h, w = rough.shape
@@ -95,7 +95,7 @@ def pick_pixels(maps):
     ii, jj = ii.ravel(), jj.ravel()
     key = rough[ii, jj] + 1e-3 * maps["kd"][ii, jj].mean(-1)
     order = np.argsort(key, kind="stable")
-    picks = [order[int(q * (len(order) - 1))] for q in (0.1, 0.5, 0.9)]
+    picks = [order[int(q * (len(order) - 1))] for q in (0.02, 0.5, 0.98)]
     return [(int(ii[k]), int(jj[k])) for k in picks]
 
 
@@ -121,10 +121,19 @@ def write_images(mi, stem, hdr):
     mi.Bitmap(display(hdr)).write(str(stem.with_suffix(".png")))
 
 
-def render(mi, scene_dict, seed=0):
+def render(mi, scene_dict, seed=0, symbolic_calls=False):
+    """Renders a scene dict; returns (HDR image [H, W, 3], seconds).
+
+    Unless symbolic_calls, BSDF calls are evaluated ("wavefront") rather than
+    traced into the render kernel as symbolic calls: on the LLVM backend the
+    cooperative-vector network inside a symbolic call runs ~10x slower
+    (docs/MITSUBA.md)."""
+    import drjit as dr
+
     t0 = time.perf_counter()
     scene = mi.load_dict(scene_dict)
-    img = np.array(mi.render(scene, seed=seed), dtype=np.float64)[:, :, :3]
+    with dr.scoped_set_flag(dr.JitFlag.SymbolicCalls, bool(symbolic_calls)):
+        img = np.array(mi.render(scene, seed=seed), dtype=np.float64)[:, :, :3]
     dt = time.perf_counter() - t0
     # Free the scene: Mitsuba numbers live BSDF instances, and the number is
     # part of the traced kernel; reusing it lets the next scene reuse the kernel.
@@ -152,6 +161,8 @@ def parse_args(argv):
     ap.add_argument("--nmat", type=Path, help="use this neural material instead of estimating one (needs --svbrdf)")
     ap.add_argument("--network", default="auto", choices=["auto", "coopvec", "unrolled"], help="neural_brdf network")
     ap.add_argument("--skip-plane", action="store_true", help="only the sphere figure")
+    ap.add_argument("--symbolic-calls", action="store_true",
+                    help="keep Dr.Jit's symbolic BSDF calls (Mitsuba's default; ~10x slower here on LLVM)")
     args = ap.parse_args(argv)
     if args.spp < 1 or args.res < 1:
         raise ExampleError("--spp and --res must be positive")
@@ -208,7 +219,8 @@ def main(argv=None):
         if not (0 <= r < h and 0 <= c < w):
             raise ExampleError(f"--pixels: ({r},{c}) is outside the {w}x{h} material")
 
-    timings = {"variant": args.variant, "res": args.res, "spp": args.spp, "renders": []}
+    timings = {"variant": args.variant, "res": args.res, "spp": args.spp, "symbolic_calls": args.symbolic_calls,
+               "renders": []}
     neural_base = {"type": "neural_brdf", "filename": str(nmat), "network": args.network}
 
     # 4: the sphere figure.
@@ -220,7 +232,7 @@ def main(argv=None):
             neural["normal"] = mi.ScalarVector3f(*maps["normal"][r, c])
             ggx["flat"] = True
         for row, bsdf, kind in ((top, neural, "neural"), (bottom, ggx, "ggx")):
-            img, dt = render(mi, scenes.sphere_scene(mi, bsdf, args.res, args.spp))
+            img, dt = render(mi, scenes.sphere_scene(mi, bsdf, args.res, args.spp), symbolic_calls=args.symbolic_calls)
             row.append(img)
             timings["renders"].append({"scene": "sphere", "bsdf": kind, "pixel": [r, c], "seconds": dt})
             print(f"sphere {kind:6s} pixel ({r},{c}): {dt:.2f} s", flush=True)
@@ -233,7 +245,8 @@ def main(argv=None):
                            ("ggx", {"type": "flashmat_ggx", "svbrdf": str(svbrdf), "mode": "texture"})):
             row = []
             for lname, light in (("input", scenes.INPUT_LIGHT), ("side", scenes.SIDE_LIGHT)):
-                img, dt = render(mi, scenes.plane_scene(mi, bsdf, light, args.res, args.spp))
+                img, dt = render(mi, scenes.plane_scene(mi, bsdf, light, args.res, args.spp),
+                                 symbolic_calls=args.symbolic_calls)
                 row.append(img)
                 timings["renders"].append({"scene": "plane", "bsdf": kind, "light": lname, "seconds": dt})
                 print(f"plane  {kind:6s} {lname} light: {dt:.2f} s", flush=True)

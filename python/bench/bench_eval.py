@@ -36,6 +36,8 @@ def main():
     ap.add_argument("--n", type=int, default=1 << 18, help="evaluations per run")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--variant", default="llvm_ad_rgb")
+    ap.add_argument("--numpy", action="store_true",
+                    help="instead: the same network as batched float32 numpy matmuls (BLAS GEMM), for comparison")
     args = ap.parse_args()
 
     import drjit as dr
@@ -54,6 +56,8 @@ def main():
         write_nmat(nmat, t, meta)
     else:
         nmat = args.nmat or str(ROOT / "tests/fixtures/tiny.nmat")
+    if args.numpy:
+        return bench_numpy(flashmat_mitsuba.read_nmat(nmat), args.n, args.runs)
     bsdf = mi.load_dict({"type": "neural_brdf", "filename": nmat, "mode": args.mode, "network": args.network})
     print(bsdf)
     n = args.n
@@ -77,6 +81,36 @@ def main():
         dt = time.time() - t0
         note = " (includes trace + compile or kernel-cache load)" if rep == 0 else ""
         print(f"run {rep}: {n} evals in {dt:.3f} s = {n / dt / 1e6:.3f} M evals/s{note}", flush=True)
+
+
+def bench_numpy(nm, n, runs):
+    """ND_enc + M_render of n random rows as float32 GEMMs (what a batched,
+    matrix-friendly evaluation outside the path tracer's kernel would cost)."""
+    rng = np.random.default_rng(0)
+    c, h, w = nm.neural_map.shape
+    wi, wo = rng.standard_normal((2, n, 3)).astype(np.float32)
+    wi[:, 2], wo[:, 2] = np.abs(wi[:, 2]) + 0.05, np.abs(wo[:, 2]) + 0.05
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    params = nm.neural_map.reshape(c, -1).T[rng.integers(0, h * w, n)].astype(np.float32)
+    enc = [m.T.astype(np.float32).copy() for m in nm.nd_enc]
+    ren = [m.T.astype(np.float32).copy() for m in nm.m_render]
+    lk = lambda x, s: np.maximum(x, s * x)
+    for rep in range(runs):
+        t0 = time.time()
+        hv = wi + wo
+        hv /= np.linalg.norm(hv, axis=1, keepdims=True)
+        v = np.concatenate([wi, wo, hv], 1)
+        ph = np.pi * np.mod(v[:, None, :] * (2.0 ** np.arange(nm.frequencies, dtype=np.float32))[None, :, None], 2.0)
+        x = np.concatenate([v, np.sin(ph).reshape(n, -1), np.cos(ph).reshape(n, -1)], 1)
+        x = lk(x @ enc[0], 0.01)
+        x = lk(x @ enc[1], 0.01)
+        y = np.concatenate([params, x @ enc[2]], 1) @ ren[0]
+        for m in ren[1:-1]:
+            y = lk(y @ m, 0.01)
+        out = lk(y @ ren[-1], 0.001)
+        dt = time.time() - t0
+        print(f"numpy run {rep}: {n} evals in {dt:.3f} s = {n / dt / 1e6:.3f} M evals/s ({out.shape})", flush=True)
 
 
 if __name__ == "__main__":
