@@ -25,7 +25,10 @@ The networks (network.py) are evaluated with Dr.Jit cooperative vectors
 network size, shared by all materials and pixels) or, with
 ``network="unrolled"`` or a Dr.Jit without ``drjit.nn``, as unrolled fused
 multiply-adds with the weights as kernel literals (slow to compile for the
-`compact` and `paper` presets). Scalar variants use numpy.
+`compact` and `paper` presets). Scalar variants use numpy. On the LLVM
+backend the cooperative vectors run ~10x slower inside Mitsuba's default
+symbolic calls: render with ``dr.JitFlag.SymbolicCalls`` (and, for path
+tracers, ``SymbolicLoops``) off (docs/MITSUBA.md).
 
 Normal correction (``normal`` / ``normals``): the network sees R d for each
 local direction d, R = [u v n] with u = normalize(x - (x . n) n), v = n x u
