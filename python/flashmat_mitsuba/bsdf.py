@@ -8,8 +8,9 @@ Scene description (XML or ``mi.load_dict``)::
         <string name="filter" value="nearest"/>    <!-- texture mode: or "bilinear" -->
         <integer name="pixel_x" value="10"/>       <!-- pixel mode: column -->
         <integer name="pixel_y" value="20"/>       <!-- pixel mode: row (0 = top) -->
-        <vector name="normal" value="0, 0.1, 1"/>  <!-- optional, pixel mode -->
+        <vector name="normal" value="0, 0.1, 1"/>  <!-- optional, pixel mode: normal correction -->
         <string name="normals" value="n.npy"/>     <!-- optional, texture mode: [H, W, 3] or [3, H, W] -->
+        <string name="network" value="auto"/>      <!-- JIT variants: auto | coopvec | unrolled -->
     </bsdf>
 
 Math (docs/NMAT.md): with wi the direction towards the light and wo towards
@@ -19,10 +20,20 @@ includes the cosine and a factor pi, so the BRDF is f = R / (pi cos(wi)) and
 ``eval`` (f times the cosine) returns R / pi. Zero below either horizon.
 Sampling is cosine-weighted over the hemisphere.
 
-The networks are evaluated with Dr.Jit arrays as unrolled fused
-multiply-adds over the weight matrices (weights become kernel constants), so
-one traced kernel evaluates every lane; fine for the `tiny` and `compact`
-presets, heavy to trace for `paper` (about 0.6 M operations per evaluation).
+The networks (network.py) are evaluated with Dr.Jit cooperative vectors
+(``drjit.nn.matvec``, weights in one packed buffer: one small kernel per
+network size, shared by all materials and pixels) or, with
+``network="unrolled"`` or a Dr.Jit without ``drjit.nn``, as unrolled fused
+multiply-adds with the weights as kernel literals (slow to compile for the
+`compact` and `paper` presets). Scalar variants use numpy. On the LLVM
+backend the cooperative vectors run ~10x slower inside Mitsuba's default
+symbolic calls: render with ``dr.JitFlag.SymbolicCalls`` (and, for path
+tracers, ``SymbolicLoops``) off (docs/MITSUBA.md).
+
+Normal correction (``normal`` / ``normals``): the network sees R d for each
+local direction d, R = [u v n] with u = normalize(x - (x . n) n), v = n x u
+(correction_matrix). With no normal the directions are used as they are,
+which is what M_render was trained on (docs/MITSUBA.md).
 """
 import math
 
@@ -30,37 +41,42 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .network import CoopVecNetwork, UnrolledNetwork, coopvec_available
 from .nmat import read_nmat, reference_log_radiance
 
 INV_PI = 1.0 / math.pi
 MAX_LOG_RADIANCE = 80.0
+NETWORKS = ("auto", "coopvec", "unrolled")
 
 
-def _leaky(x, slope):
-    return dr.maximum(x, x * slope)
+def correction_matrix(n):
+    """R = [u v n] (columns) of the normal correction, numpy float64.
+
+    u = normalize(x - (x . n) n) (Gram-Schmidt of the x axis against n),
+    v = n x u. R maps the shading normal (0, 0, 1) to n and is the identity
+    for n = (0, 0, 1). The network sees R d for a local direction d, so a
+    pixel whose parameters encode the normal n responds as if that normal
+    were the shading normal (docs/MITSUBA.md, "Normal correction")."""
+    n = np.asarray(n, np.float64)
+    n = n / np.linalg.norm(n)
+    u = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    if np.linalg.norm(u) < 1e-6:
+        raise ValueError(f"normal correction: the normal {n.tolist()} is parallel to the x axis")
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    return np.stack([u, v, n], axis=1)
 
 
-def _matvec(w, x, slope=None, bias=None):
-    """w: numpy [out, in]; x: list of `in` Floats -> list of `out` Floats."""
-    out = []
-    rows, cols = w.shape
-    for r in range(rows):
-        row = w[r]
-        acc = x[0] * float(row[0]) if bias is None else dr.fma(x[0], float(row[0]), bias[r])
-        for j in range(1, cols):
-            acc = dr.fma(x[j], float(row[j]), acc)
-        out.append(acc if slope is None else _leaky(acc, slope))
-    return out
+def _correct(d, n):
+    """R d with R = correction_matrix(n), in Dr.Jit (n: unit Vector3f)."""
+    u = dr.normalize(mi.Vector3f(1.0 - n.x * n.x, -n.x * n.y, -n.x * n.z))
+    v = dr.cross(n, u)
+    return u * d.x + v * d.y + n * d.z
 
 
 def _resolve(path):
     fr = mi.file_resolver() if hasattr(mi, "file_resolver") else mi.Thread.thread().file_resolver()
     return str(fr.resolve(path))
-
-
-def _floor_mod2(x):
-    # (2^k v) mod 2, exact in floating point (docs/NMAT.md, encoding step 3).
-    return x - 2.0 * dr.floor(x * 0.5)
 
 
 _CLASSES = {}
@@ -94,8 +110,13 @@ def neural_brdf_class():
             c, h, w = self.nmat.neural_map.shape
             self.C, self.H, self.W = c, h, w
             self.jit = dr.is_jit_v(mi.Float)
-            m0 = self.nmat.m_render[0].astype(np.float64)
-            self.m0_params, self.m0_code = m0[:, :c], np.ascontiguousarray(m0[:, c:])
+            self.network_kind = str(props.get("network", "auto"))
+            if self.network_kind not in NETWORKS:
+                raise ValueError(
+                    f"neural_brdf ({filename}): network must be one of {', '.join(NETWORKS)}, got {self.network_kind!r}"
+                )
+            if self.network_kind == "coopvec" and not coopvec_available():
+                raise ValueError(f"neural_brdf ({filename}): network='coopvec' needs drjit.nn (Dr.Jit >= 1.1)")
 
             self.normal = None
             self.normals = None
@@ -106,11 +127,12 @@ def neural_brdf_class():
                     raise ValueError(
                         f"neural_brdf ({filename}): pixel ({self.pixel_x}, {self.pixel_y}) outside the {w}x{h} map"
                     )
-                p = self.nmat.neural_map[:, self.pixel_y, self.pixel_x].astype(np.float64)
-                # The parameters are constant: fold M0's parameter columns into a bias.
-                self.bias0 = [float(b) for b in self.m0_params @ p]
+                pixel_params = self.nmat.neural_map[:, self.pixel_y, self.pixel_x].astype(np.float64)
                 if "normal" in props:
                     n = np.array(list(props["normal"]), dtype=np.float64)
+                    if not (np.all(np.isfinite(n)) and n[2] > 0):
+                        raise ValueError(f"neural_brdf ({filename}): normal must be finite with z > 0, got {n.tolist()}")
+                    correction_matrix(n)  # refuses normals parallel to x
                     self.normal = n / np.linalg.norm(n)
             else:
                 flat = np.ascontiguousarray(self.nmat.neural_map, dtype=np.float32).reshape(-1)
@@ -122,9 +144,20 @@ def neural_brdf_class():
                         n = n.transpose(1, 2, 0)
                     if n.shape != (h, w, 3):
                         raise ValueError(f"neural_brdf ({filename}): normals must be [{h}, {w}, 3] or [3, {h}, {w}], got {n.shape}")
+                    if not (np.all(np.isfinite(n)) and np.all(n[..., 2] > 0)):
+                        raise ValueError(f"neural_brdf ({filename}): normals must be finite with z > 0")
                     n = n / np.linalg.norm(n, axis=-1, keepdims=True)
                     self.normals = n
                     self.normals_buf = mi.Float(n.reshape(-1).astype(np.float32)) if self.jit else None
+
+            self.net = None
+            if self.jit:
+                fixed = pixel_params if self.mode == "pixel" else None
+                use_coop = self.network_kind == "coopvec" or (self.network_kind == "auto" and coopvec_available())
+                if use_coop:
+                    self.net = CoopVecNetwork(self.nmat, mi.TensorXf, mi.Float, fixed)
+                else:
+                    self.net = UnrolledNetwork(self.nmat, fixed)
 
             flags = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
             self.m_components = [flags]
@@ -195,33 +228,7 @@ def neural_brdf_class():
                     self.nmat, np.asarray(p, np.float64)[None], [[wi.x, wi.y, wi.z]], [[wo.x, wo.y, wo.z]]
                 )[0]
                 return mi.Color3f(*[float(t) for t in out])
-            # The half vector, rounded like flashmat's f32 (no FMA, division): see half_vector_f32.
-            s = wi + wo
-            n2 = (s.x * s.x + s.y * s.y) + s.z * s.z
-            norm = dr.maximum(dr.sqrt(n2), 1e-12)
-            # Per component: Vector3f / Float would multiply by a rounded reciprocal.
-            h = mi.Vector3f(s.x / norm, s.y / norm, s.z / norm)
-            v = [wi.x, wi.y, wi.z, wo.x, wo.y, wo.z, h.x, h.y, h.z]
-            sins, coss = [], []
-            for k in range(self.nmat.frequencies):
-                for c in range(9):
-                    phase = math.pi * _floor_mod2(v[c] * float(2.0**k))
-                    s, co = dr.sincos(phase)
-                    sins.append(s)
-                    coss.append(co)
-            e = v + sins + coss
-            enc = self.nmat.nd_enc
-            a = _matvec(enc[0], e, 0.01)
-            b = _matvec(enc[1], a, 0.01)
-            code = _matvec(enc[2], b)
-            if params is None:
-                y = _matvec(self.m0_code, code, bias=self.bias0)
-            else:
-                y = _matvec(self.nmat.m_render[0], list(params) + code)
-            for n in range(1, 6):
-                y = _matvec(self.nmat.m_render[n], y, 0.01)
-            out = _matvec(self.nmat.m_render[6], y, 0.001)
-            return mi.Color3f(*out)
+            return mi.Color3f(*self.net(params, wi, wo, mi.Vector3f))
 
         def _value(self, si, wo, active):
             """(eval value R / pi, valid mask) for Mitsuba's si.wi (camera) and wo (light), local frame."""
@@ -229,11 +236,8 @@ def neural_brdf_class():
             active = active & (mi.Frame3f.cos_theta(cam) > 0) & (mi.Frame3f.cos_theta(light) > 0)
             n = self._normal(si, active)
             if n is not None:
-                # REFERENCE section 7: u = normalize(n x (1,0,0)), v = n x u, R = [u v n].
-                u = dr.normalize(dr.cross(n, mi.Vector3f(1.0, 0.0, 0.0)))
-                vv = dr.cross(n, u)
-                to = lambda d: mi.Vector3f(dr.dot(d, u), dr.dot(d, vv), dr.dot(d, n))
-                cam, light = to(cam), to(light)
+                # Normal correction: the network sees R d, R = [u v n] (correction_matrix).
+                cam, light = _correct(cam, n), _correct(light, n)
             params = None if self.mode == "pixel" else self._params(si, active)
             out = self.log_radiance(params, light, cam)
             r = dr.maximum(dr.exp(dr.minimum(out, MAX_LOG_RADIANCE)) - 1.0, 0.0)
@@ -281,6 +285,8 @@ def neural_brdf_class():
 
         def to_string(self):
             extra = f"pixel=({self.pixel_x}, {self.pixel_y})" if self.mode == "pixel" else f"filter={self.filter}"
+            if self.net is not None:
+                extra += f", network={type(self.net).__name__}"
             return (
                 f"NeuralBRDF[filename={self.filename!r}, model_id={self.nmat.meta.get('model_id')!r}, "
                 f"map={self.C}x{self.H}x{self.W}, mode={self.mode}, {extra}]"
@@ -293,9 +299,3 @@ def neural_brdf_class():
 def NeuralBRDF(props):
     """A neural_brdf BSDF of the current variant from Mitsuba properties."""
     return neural_brdf_class()(props)
-
-
-def register():
-    """Registers `neural_brdf` for the current Mitsuba variant (call after mi.set_variant)."""
-    cls = neural_brdf_class()
-    mi.register_bsdf("neural_brdf", lambda props: cls(props))

@@ -74,3 +74,42 @@ def set_variant(name):
 
     flashmat_mitsuba.register()
     return mi
+
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def write_material(folder, h=32, w=32, seed=0):
+    """A procedural GGX material as 8-bit PNGs in flashmat's MatFusion layout
+    (folder/diffuse/0000001_diffuse.png, ...): smooth gradients of albedo and
+    roughness, a gently varying normal. Returns the folder."""
+    import mitsuba as mi
+
+    rng = np.random.default_rng(seed)
+    yy, xx = np.meshgrid(np.linspace(0, 1, h), np.linspace(0, 1, w), indexing="ij")
+    kd = np.stack([0.2 + 0.6 * xx, 0.3 + 0.3 * yy, 0.15 + 0.1 * rng.random((h, w))], -1)
+    ks = np.stack([0.04 + 0.3 * yy] * 3, -1)
+    rough = 0.15 + 0.75 * (0.5 * xx + 0.5 * yy)
+    n = np.stack([0.25 * np.sin(6 * xx), 0.2 * np.cos(5 * yy), np.ones((h, w))], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    enc = {
+        "diffuse": kd ** (1 / 2.2), "specular": ks ** (1 / 2.2), "roughness": rough[:, :, None], "normals": (n + 1) / 2,
+    }
+    for name, img in enc.items():
+        (Path(folder) / name).mkdir(parents=True, exist_ok=True)
+        px = np.ascontiguousarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8))
+        mi.Bitmap(px).write(str(Path(folder) / name / f"0000001_{name}.png"))
+    return Path(folder)
+
+
+def find_flashmat():
+    """The flashmat binary ($FLASHMAT_BIN, then $CARGO_TARGET_DIR or target/, release then debug), or None."""
+    import os
+
+    cands = [os.environ.get("FLASHMAT_BIN")]
+    target = Path(os.environ.get("CARGO_TARGET_DIR", REPO / "target"))
+    cands += [target / "release" / "flashmat", target / "debug" / "flashmat"]
+    for c in cands:
+        if c and Path(c).is_file() and os.access(c, os.X_OK):
+            return str(c)
+    return None

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from conftest import TINY_NMAT, TINY_ROWS, set_variant
+from flashmat_mitsuba.bsdf import correction_matrix
 from flashmat_mitsuba.nmat import read_nmat, reference_log_radiance
 
 needs_fixture = pytest.mark.skipif(not (TINY_NMAT.exists() and TINY_ROWS.exists()), reason="fixture missing")
@@ -169,18 +170,17 @@ def test_scalar_bilinear_and_normal(synthetic_nmat):
     mid = 0.5 * (nm.neural_map[:, 5, 2] + nm.neural_map[:, 5, 3]).astype(np.float64)
     ref = reference_log_radiance(nm, mid[None], [list(wo)], [list(si.wi)])[0]
     np.testing.assert_allclose(np.array(bil.eval(ctx, si, wo)) * math.pi, np.maximum(np.expm1(ref), 0), rtol=1e-5)
-    # Normal correction: directions rotated into [u v n], u = normalize(n x (1,0,0)), v = n x u.
+    # Normal correction: the network sees R d, R = [u v n], u = normalize(x - (x.n) n), v = n x u.
     n = np.array([0.2, -0.1, 1.0])
     n /= np.linalg.norm(n)
     nb = mi.load_dict(
         {"type": "neural_brdf", "filename": str(synthetic_nmat), "pixel_x": 2, "pixel_y": 5,
          "normal": mi.ScalarVector3f(*n)}
     )
-    u = np.cross(n, [1.0, 0, 0])
-    u /= np.linalg.norm(u)
-    v = np.cross(n, u)
-    rot = lambda d: np.array([np.dot(d, u), np.dot(d, v), np.dot(d, n)])
-    ref = reference_log_radiance(nm, nm.neural_map[:, 5, 2][None].astype(np.float64), [rot(np.array(wo))], [rot(np.array(si.wi))])[0]
+    rot = correction_matrix(n)
+    ref = reference_log_radiance(
+        nm, nm.neural_map[:, 5, 2][None].astype(np.float64), [rot @ np.array(wo)], [rot @ np.array(si.wi)]
+    )[0]
     # Loose: the rotation is f32 in the plugin, f64 here, and the top encoding frequency
     # (2^15 pi) turns last-bit differences of the directions into ~1e-3 of output.
     got = np.array(nb.eval(ctx, si, wo)) * math.pi
