@@ -37,6 +37,17 @@ fn layout_formula_reproduces_the_published_m_est_counts() {
     for (w, n) in [(8, 1_338_176), (16, 5_294_336), (64, 84_008_960)] {
         assert_eq!(unet_params(w, 0, 64) + 18 * w, n, "W = {w}");
     }
+    // The paper-size baselines (docs/TRAINING.md): analytic = M_est with a
+    // 9-channel head; relight-unet with E = 32 and the 297-594-594-32 MLP.
+    assert_eq!(unet_params(64, 0, 9) + 18 * 64, 83_836_480);
+    assert_eq!(unet_params(64, 32, 3) + 297 * 594 + 594 * 594 + 594 * 32, 85_004_774);
+}
+
+#[test]
+fn compact_parameter_counts() {
+    for (method, n) in [(TrainMethod::Analytic, 5_251_216), (TrainMethod::RelightUnet, 5_464_720)] {
+        assert_eq!(Baseline::new(method, &ModelConfig::compact(), Device::Cpu).unwrap().param_count(), n, "{method}");
+    }
 }
 
 fn tiny_batch(k: usize) -> crate::data::samples::TrainingBatch {
@@ -81,20 +92,34 @@ fn analytic_tiny_parameter_count_and_shapes() {
 
 #[test]
 fn analytic_decoding() {
-    // Head values: zero -> kd = ks = 0.5, r = 0.02 + 0.98 / 2, flat normal;
-    // slopes (x, y) -> normalize(x, y, 1).
-    let raw = Tensor::zeros([1, 9, 1, 2], (Kind::Float, Device::Cpu));
-    let _ = raw.narrow(3, 1, 1).narrow(1, 7, 2).fill_(1.0);
-    let _ = raw.narrow(3, 1, 1).narrow(1, 0, 1).fill_(2.0);
+    use super::analytic::{KD_AT_ZERO, KS_AT_ZERO, ROUGHNESS_AT_ZERO};
+    // A zero head decodes to the plain dielectric kd 0.25, ks 0.04,
+    // roughness 0.3 and the flat normal; head values shift the sigmoids'
+    // arguments; slopes (x, y) give normalize(x, y, 1).
+    assert_eq!((KD_AT_ZERO, KS_AT_ZERO, ROUGHNESS_AT_ZERO), (0.25, 0.04, 0.3));
+    let raw = Tensor::zeros([1, 9, 1, 3], (Kind::Float, Device::Cpu));
+    let px = |x: i64| raw.narrow(3, x, 1);
+    let _ = px(1).narrow(1, 7, 2).fill_(1.0);
+    let _ = px(1).narrow(1, 0, 1).fill_(2.0);
+    let _ = px(2).narrow(1, 6, 1).fill_(-40.0);
+    let _ = px(2).narrow(1, 3, 3).fill_(40.0);
+    let _ = px(2).narrow(1, 7, 1).fill_(-1e4);
     let m = AnalyticNet::decode(&raw).unwrap();
-    assert_eq!(m.size(), [1, 10, 1, 2]);
+    assert_eq!(m.size(), [1, 10, 1, 3]);
     let v = |c: i64, x: i64| m.double_value(&[0, c, 0, x]);
-    assert!((v(0, 0) - 0.5).abs() < 1e-7 && (v(5, 0) - 0.5).abs() < 1e-7);
-    assert!((v(6, 0) - 0.51).abs() < 1e-6);
-    assert!(v(7, 0).abs() < 1e-7 && v(8, 0).abs() < 1e-7 && (v(9, 0) - 1.0).abs() < 1e-7);
-    assert!((v(0, 1) - 1.0 / (1.0 + (-2f64).exp())).abs() < 1e-6);
+    let close = |a: f64, b: f64| (a - b).abs() < 1e-6;
+    assert!(close(v(0, 0), 0.25) && close(v(2, 0), 0.25) && close(v(3, 0), 0.04) && close(v(5, 0), 0.04), "{m}");
+    assert!(close(v(6, 0), 0.3));
+    assert!(v(7, 0).abs() < 1e-7 && v(8, 0).abs() < 1e-7 && close(v(9, 0), 1.0));
+    // sigmoid(2 + logit(0.25)) = 0.25 e^2 / (0.75 + 0.25 e^2)
+    let e2 = 2f64.exp();
+    assert!(close(v(0, 1), 0.25 * e2 / (0.75 + 0.25 * e2)));
     let s = 1.0 / 3f64.sqrt();
-    assert!((v(7, 1) - s).abs() < 1e-6 && (v(8, 1) - s).abs() < 1e-6 && (v(9, 1) - s).abs() < 1e-6);
+    assert!(close(v(7, 1), s) && close(v(8, 1), s) && close(v(9, 1), s));
+    // Ranges at the extremes: roughness floor 0.02, ks up to 1, normal
+    // nearly horizontal but z > 0 and unit length.
+    assert!(close(v(6, 2), 0.02) && close(v(3, 2), 1.0));
+    assert!(close(v(7, 2), -1.0) && v(9, 2) > 0.0 && close(v(7, 2).powi(2) + v(8, 2).powi(2) + v(9, 2).powi(2), 1.0));
     assert!(AnalyticNet::decode(&Tensor::zeros([1, 10, 1, 1], (Kind::Float, Device::Cpu))).is_err());
 }
 

@@ -140,7 +140,9 @@ fn overfit_baseline(method: TrainMethod, k: usize, steps: usize) -> (f64, f64, f
     let mut trainer = BaselineTrainer::new(cfg, tch::Device::Cpu).unwrap();
     let m = procedural::generate_family(Family::Tiles, 3, 32);
     let sample = SampleConfig { outputs_per_material: k, output_sampling: Sampling::Reflect, ..Default::default() };
-    let batch = make_batch(&[m.clone(), m], &sample, &mut Pcg64::seed_from_u64(9), tch::Device::Cpu).unwrap();
+    // One material per batch (the flashmat test above repeats it because
+    // its discriminator needs two; the baselines' over-fitting runs without).
+    let batch = make_batch(&[m], &sample, &mut Pcg64::seed_from_u64(9), tch::Device::Cpu).unwrap();
     let black = crate::spaces::to_log(&batch.targets).mean(tch::Kind::Float).double_value(&[]);
     let first = trainer.train_step(&batch).unwrap().l1;
     let mut last = first;
@@ -154,14 +156,14 @@ fn overfit_baseline(method: TrainMethod, k: usize, steps: usize) -> (f64, f64, f
 
 #[test]
 fn analytic_baseline_overfits_one_material() {
-    let (first, last, black) = overfit_baseline(TrainMethod::Analytic, 4, 200);
+    let (first, last, black) = overfit_baseline(TrainMethod::Analytic, 4, 150);
     assert!(last <= first / 5.0, "L1 went from {first} to {last}");
     assert!(last <= black / 2.5, "L1 {last} vs {black} for a black prediction");
 }
 
 #[test]
 fn relight_unet_baseline_overfits_one_material() {
-    let (first, last, black) = overfit_baseline(TrainMethod::RelightUnet, 2, 120);
+    let (first, last, black) = overfit_baseline(TrainMethod::RelightUnet, 2, 100);
     assert!(last <= first / 5.0, "L1 went from {first} to {last}");
     assert!(last <= black / 2.5, "L1 {last} vs {black} for a black prediction");
 }
