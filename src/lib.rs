@@ -2,6 +2,7 @@
 //! neural material out. See docs/ARCHITECTURE.md for the pipeline.
 
 pub mod archive;
+pub mod baselines;
 pub mod cli;
 pub mod data;
 pub mod eval;

@@ -135,3 +135,61 @@ fn bad_inputs_give_one_clear_line() {
     assert_eq!(out.status.code(), Some(2));
     assert!(!Path::new(o).exists());
 }
+
+#[test]
+fn baselines_train_resume_export_and_eval() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = |p: &Path| p.to_str().unwrap().to_owned();
+    let tiny = ["--preset", "tiny", "--crop", "32", "--outputs", "2", "--lpips-weight", "0", "--threads", "1", "--checkpoint-every", "1"];
+    let mut files = vec![];
+    for method in ["analytic", "relight-unet"] {
+        let run = dir.path().join(format!("run-{method}"));
+        let run_s = s(&run);
+        let args = [&["train", "--method", method, "--steps", "1", "--preview-every", "1", "--out", &run_s][..], &tiny[..]].concat();
+        let out = flashmat(&args);
+        assert!(out.status.success(), "{method}: {}", String::from_utf8_lossy(&out.stderr));
+        let config = std::fs::read_to_string(run.join("config.json")).unwrap();
+        assert!(config.contains(&format!("\"method\": \"{method}\"")), "{config}");
+        assert!(run.join("previews/step-0000001.png").is_file());
+        // Resume to 2 steps: the method comes from the checkpoint.
+        let out = flashmat(&["train", "--resume", &s(&run), "--steps", "2"]);
+        assert!(out.status.success(), "{method}: {}", String::from_utf8_lossy(&out.stderr));
+        assert_eq!(std::fs::read_to_string(run.join("log.jsonl")).unwrap().lines().count(), 2);
+        let model = dir.path().join(format!("{method}.safetensors"));
+        let out = flashmat(&["export", "--run", &s(&run), "-o", &s(&model)]);
+        assert!(out.status.success(), "{method}: {}", String::from_utf8_lossy(&out.stderr));
+        let meta = flashmat::baselines::read_header_metadata(&model).unwrap();
+        assert_eq!(meta.get("method").map(String::as_str), Some(method));
+        files.push(model);
+    }
+    let report = dir.path().join("report");
+    let out = flashmat(&[
+        "eval", "--model", &s(&files[0]), "--model", &s(&files[1]), "--model", "printout", "--size", "32", "--limit", "1", "--configs", "2",
+        "-o", &s(&report),
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for name in ["analytic", "relight-unet"] {
+        let csv = std::fs::read_to_string(report.join(format!("{name}.csv"))).unwrap();
+        let rows: Vec<&str> = csv.lines().skip(1).collect();
+        assert_eq!(rows.len(), 3, "{csv}");
+        for r in rows {
+            assert!(r.split(',').skip(2).all(|v| v.parse::<f64>().unwrap().is_finite()), "{r}");
+        }
+    }
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(summary.contains("| analytic |") && summary.contains("| relight-unet |"), "{summary}");
+
+    // Bad input: one clear line, exit 1.
+    let run = dir.path().join("run-bad");
+    let run_s = s(&run);
+    let bad = [&["train", "--method", "relight-unet", "--scheme", "combined", "--out", &run_s][..], &tiny[..]].concat();
+    assert_error(&flashmat(&bad), &["--scheme", "--method flashmat"]);
+    assert!(!run.exists());
+    let nmat = dir.path().join("m.nmat");
+    let photo = dir.path().join("p.png");
+    let out = flashmat(&["render", "--svbrdf", "procedural:3", "--size", "64", "-o", &s(&photo)]);
+    assert!(out.status.success());
+    assert_error(&flashmat(&["estimate", &s(&photo), "--model", &s(&files[0]), "--size", "32", "-o", &s(&nmat)]), &["analytic", "not a flashmat"]);
+    // --method with --resume is a usage error (the checkpoint knows its method).
+    assert_eq!(flashmat(&["train", "--resume", &s(&dir.path().join("run-analytic")), "--method", "analytic"]).status.code(), Some(2));
+}

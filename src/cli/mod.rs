@@ -28,9 +28,9 @@ pub enum Command {
     /// Procedural and on-disk SVBRDF datasets.
     #[command(subcommand)]
     Svbrdf(SvbrdfCommand),
-    /// Train M_est, ND_enc + M_render (and the discriminator) on SVBRDF renders.
+    /// Train M_est, ND_enc + M_render (and the discriminator) on SVBRDF renders, or a baseline (--method).
     Train(train::TrainArgs),
-    /// Write a run's inference weights (M_est, ND_enc, M_render) and configuration to one file.
+    /// Write a run's inference weights (M_est, ND_enc, M_render, or the baseline's network), method and configuration to one file.
     Export(train::ExportArgs),
     /// Estimate a neural material (.nmat) from one flash photo.
     Estimate(infer::EstimateArgs),
@@ -38,7 +38,7 @@ pub enum Command {
     Relight(infer::RelightArgs),
     /// One picture of a neural material: photo, neural map (norm, PCA), identity render, relit views.
     Show(infer::ShowArgs),
-    /// Score models and the print-out baseline against GGX renders (Reflect / Identity / Hemisphere).
+    /// Score models (flashmat and baseline model files) and the print-out baseline against GGX renders (Reflect / Identity / Hemisphere).
     Eval(eval::EvalArgs),
     /// Reference rows (pixel parameters, wi, wo, M_render output) of a neural material, as JSON.
     NmatRows(nmat_rows::NmatRowsArgs),

@@ -1,8 +1,9 @@
 //! `flashmat train` and `flashmat export`.
 
+use crate::baselines::TrainMethod;
 use crate::model::ModelConfig;
 use crate::train::run::{self, RunOptions};
-use crate::train::{PixelSampling, TrainConfig, UpdateScheme};
+use crate::train::{BaselineTrainer, PixelSampling, TrainConfig, UpdateScheme};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -10,6 +11,10 @@ use tch::Device;
 
 #[derive(Args, Debug)]
 pub struct TrainArgs {
+    /// What to train: flashmat (M_est + neural renderer), or a baseline of the evaluation:
+    /// analytic (U-Net -> GGX maps, rendering loss) or relight-unet (U-Net predicting the relit image).
+    #[arg(long, value_enum, default_value_t = TrainMethod::Flashmat, conflicts_with = "resume")]
+    pub method: TrainMethod,
     /// Model size preset: paper (W=64, the paper's sizes), compact (CPU-trainable) or tiny (tests).
     #[arg(long, default_value = "compact", conflicts_with = "model_config")]
     pub preset: String,
@@ -54,12 +59,13 @@ pub struct TrainArgs {
     pub batch: usize,
     #[arg(long, default_value_t = 1e-4)]
     pub lr: f64,
-    /// Pixels used by the renderer's data term.
-    #[arg(long, value_enum, default_value_t = PixelSampling::InverseNorm)]
-    pub pixel_sampling: PixelSampling,
-    /// Update scheme: the paper's alternating optimizers or one combined update.
-    #[arg(long, value_enum, default_value_t = UpdateScheme::Alternating)]
-    pub scheme: UpdateScheme,
+    /// Pixels used by the renderer's data term (flashmat only) [default: inverse-norm].
+    #[arg(long, value_enum)]
+    pub pixel_sampling: Option<PixelSampling>,
+    /// Update scheme: the paper's alternating optimizers or one combined update (flashmat only)
+    /// [default: alternating].
+    #[arg(long, value_enum)]
+    pub scheme: Option<UpdateScheme>,
     /// Clip each network's global gradient norm to this value.
     #[arg(long)]
     pub grad_clip: Option<f64>,
@@ -130,15 +136,23 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     let device = parse_device(&a.device)?;
     if let Some(dir) = &a.resume {
         let opts = RunOptions { run_dir: dir.clone(), device, max_steps_this_run: a.max_steps_now, progress: true };
-        let t = run::resume(&opts, a.steps)?;
-        eprintln!("run {} at step {} of {}", dir.display(), t.step, t.config.steps);
+        let t = run::resume_any(&opts, a.steps)?;
+        eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
         return Ok(());
+    }
+    if !a.method.is_flashmat() {
+        for (given, flag) in [(a.pixel_sampling.is_some(), "--pixel-sampling"), (a.scheme.is_some(), "--scheme")] {
+            if given {
+                bail!("{flag} only applies to --method flashmat (the {} baseline has one network and one update per step)", a.method);
+            }
+        }
     }
     let model = match &a.model_config {
         Some(p) => ModelConfig::from_toml_file(p)?,
         None => ModelConfig::preset(&a.preset)?,
     };
     let config = TrainConfig {
+        method: a.method,
         model,
         data: a.data.clone(),
         crop: a.crop,
@@ -149,8 +163,8 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         shadows: a.shadows,
         height_scale: a.height_scale,
         lr: a.lr,
-        pixel_sampling: a.pixel_sampling,
-        scheme: a.scheme,
+        pixel_sampling: a.pixel_sampling.unwrap_or(PixelSampling::InverseNorm),
+        scheme: a.scheme.unwrap_or(UpdateScheme::Alternating),
         grad_clip: a.grad_clip,
         warmup_steps: a.warmup_steps,
         adv_start: a.adv_start,
@@ -165,13 +179,21 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     };
     let dir = a.out.clone().context("--out DIR is required for a new run")?;
     let opts = RunOptions { run_dir: dir.clone(), device, max_steps_this_run: a.max_steps_now, progress: true };
-    let t = run::start(config, &opts)?;
-    eprintln!("run {} at step {} of {}", dir.display(), t.step, t.config.steps);
+    let t = run::start_any(config, &opts)?;
+    eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
     Ok(())
 }
 
 pub fn export(a: &ExportArgs) -> Result<()> {
     let ckpt = run::checkpoint_path(&a.run);
+    if ckpt.exists() && !crate::train::Trainer::checkpoint_config(&ckpt)?.method.is_flashmat() {
+        let trainer = BaselineTrainer::resume(&ckpt, Device::Cpu)?;
+        super::prepare_output(&a.output)?;
+        let info = crate::model::ModelInfo { ldr_input: trainer.config.ldr_input, steps: trainer.step };
+        trainer.net.save(&a.output, &info, !a.f32)?;
+        eprintln!("wrote {} ({} baseline {}, step {})", a.output.display(), trainer.config.method, trainer.net.model_id(), trainer.step);
+        return Ok(());
+    }
     let trainer = crate::train::Trainer::resume(&ckpt, Device::Cpu, None)?;
     super::prepare_output(&a.output)?;
     let info = crate::model::ModelInfo { ldr_input: trainer.config.ldr_input, steps: trainer.step };

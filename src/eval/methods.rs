@@ -1,10 +1,15 @@
 //! Methods under evaluation: each turns the co-located input photo of a
-//! material into renders under new light/view configurations.
+//! material into renders under new light/view configurations. Model files
+//! are opened as the method their metadata records (flashmat, analytic,
+//! relight-unet); `printout` needs no file.
 
+use crate::baselines::{read_header_metadata, Baseline, BaselineNet, RelightEncoded, TrainMethod, METHOD_KEY};
+use crate::data::samples::{est_input, input_directions};
 use crate::geometry::{config_tensors, LightView, MODEL_FOV_DEG};
 use crate::image::Image;
 use crate::infer::{self, Crop, NeuralMaterial, PreparedPhoto};
-use crate::model::{Model, ModelInfo};
+use crate::model::{FoldedMEst, Model, ModelInfo};
+use crate::svbrdf::render::half_vector_z;
 use crate::svbrdf::render::direction_maps_for;
 use anyhow::{bail, ensure, Context, Result};
 use std::path::Path;
@@ -117,8 +122,161 @@ impl Method for PrintoutMethod {
     }
 }
 
-/// Opens `--model` values: `printout` or a model file (named by its file
-/// stem; repeated names get `-2`, `-3` ...).
+/// M_est-style input of a photo for a model trained on `info`'s photos:
+/// clamped to [0, 1] for LDR-input models, below at 0 otherwise, and the
+/// co-located h_z. photo_linear: `[3, H, W]` -> `[1, 4, H, W]` on `device`.
+fn model_input(photo_linear: &Tensor, info: &ModelInfo, device: Device) -> Result<Tensor> {
+    let s = photo_linear.size();
+    ensure!(s.len() == 3 && s[0] == 3, "the photo must be [3, H, W], got {s:?}");
+    let linear = photo_linear.to_device(device).to_kind(Kind::Float).unsqueeze(0);
+    let linear = if info.ldr_input { crate::spaces::ldr_clamp(&linear) } else { linear.clamp_min(0.0) };
+    let (wi, wo) = input_directions(s[1] as usize, s[2] as usize, MODEL_FOV_DEG, device);
+    Ok(est_input(&linear, &half_vector_z(&wi, &wo)))
+}
+
+/// Light/view configurations as `[1, K, 3]` lights and views on `device`.
+fn config_batch(configs: &[LightView], device: Device) -> (Tensor, Tensor) {
+    let k = configs.len() as i64;
+    let (l, v) = config_tensors(configs, device);
+    (l.view([1, k, 3]), v.view([1, k, 3]))
+}
+
+/// The analytic-SVBRDF baseline: its U-Net (BatchNorm folded) estimates
+/// GGX maps from the photo; renders are the GGX renderer's
+/// ([`crate::svbrdf::render::render`]) of those maps.
+pub struct AnalyticMethod {
+    name: String,
+    info: ModelInfo,
+    unet: FoldedMEst,
+    device: Device,
+    /// `[1, 10, H, W]` of the prepared photo.
+    maps: Option<Tensor>,
+}
+
+impl AnalyticMethod {
+    /// From a loaded analytic [`Baseline`].
+    pub fn new(name: String, baseline: &Baseline, info: ModelInfo) -> Result<Self> {
+        let BaselineNet::Analytic(a) = &baseline.net else { bail!("{name}: not an analytic baseline ({})", baseline.method) };
+        Ok(Self { name, info, unet: a.unet.fold_batchnorm(), device: baseline.device(), maps: None })
+    }
+
+    /// The GGX maps `[10, H, W]` (kd, ks, roughness, normal) estimated from
+    /// the prepared photo, on the CPU.
+    pub fn maps(&self) -> Option<Tensor> {
+        self.maps.as_ref().map(|m| m.get(0).to_device(Device::Cpu))
+    }
+}
+
+impl Method for AnalyticMethod {
+    fn name(&self) -> String {
+        self.name.clone()
+    }
+
+    fn prepare(&mut self, photo_linear: &Tensor) -> Result<()> {
+        let x = model_input(photo_linear, &self.info, self.device)?;
+        let raw = self.unet.forward(&x)?;
+        self.maps = Some(tch::no_grad(|| crate::baselines::analytic::AnalyticNet::decode(&raw))?);
+        Ok(())
+    }
+
+    fn render(&self, configs: &[LightView]) -> Result<Tensor> {
+        let Some(maps) = &self.maps else { bail!("{}: render before prepare", self.name) };
+        ensure!(!configs.is_empty(), "no light/view configuration to render");
+        let parts: Vec<Tensor> = configs
+            .chunks(RENDER_CHUNK)
+            .map(|c| {
+                let (l, v) = config_batch(c, self.device);
+                tch::no_grad(|| crate::svbrdf::render::render(maps, &l, &v)).get(0).to_device(Device::Cpu)
+            })
+            .collect();
+        Ok(Tensor::cat(&parts, 0))
+    }
+}
+
+/// The direct relighting U-Net baseline: the encoder runs once on the
+/// photo, the decoder once per light/view configuration. Its log output
+/// is clamped to [0, [`crate::infer::nmat::MAX_LOG_RADIANCE`]] before
+/// exp(x) - 1, as neural materials' renders are.
+pub struct RelightMethod {
+    name: String,
+    info: ModelInfo,
+    baseline: Baseline,
+    /// Encoder features of the prepared photo and its size.
+    encoded: Option<(RelightEncoded, usize, usize)>,
+}
+
+impl RelightMethod {
+    /// From a loaded relighting [`Baseline`].
+    pub fn new(name: String, baseline: Baseline, info: ModelInfo) -> Result<Self> {
+        ensure!(matches!(baseline.net, BaselineNet::Relight(_)), "{name}: not a relighting U-Net ({})", baseline.method);
+        Ok(Self { name, info, baseline, encoded: None })
+    }
+
+    fn unet(&self) -> &crate::baselines::RelightUNet {
+        match &self.baseline.net {
+            BaselineNet::Relight(r) => r,
+            BaselineNet::Analytic(_) => unreachable!("checked in RelightMethod::new"),
+        }
+    }
+}
+
+impl Method for RelightMethod {
+    fn name(&self) -> String {
+        self.name.clone()
+    }
+
+    fn prepare(&mut self, photo_linear: &Tensor) -> Result<()> {
+        let x = model_input(photo_linear, &self.info, self.baseline.device())?;
+        let s = x.size();
+        let enc = tch::no_grad(|| self.unet().encode_t(&x, false))?;
+        self.encoded = Some((enc, s[2] as usize, s[3] as usize));
+        Ok(())
+    }
+
+    fn render(&self, configs: &[LightView]) -> Result<Tensor> {
+        let Some((enc, h, w)) = &self.encoded else { bail!("{}: render before prepare", self.name) };
+        ensure!(!configs.is_empty(), "no light/view configuration to render");
+        let parts: Vec<Tensor> = configs
+            .chunks(RENDER_CHUNK)
+            .map(|c| {
+                let (l, v) = config_batch(c, self.baseline.device());
+                let (wi, wo) = direction_maps_for(&l, &v, *h, *w);
+                let log = tch::no_grad(|| self.unet().decode_t(enc, &wi, &wo, false))?;
+                Ok(crate::spaces::from_log(&log.get(0).clamp(0.0, crate::infer::nmat::MAX_LOG_RADIANCE)).to_device(Device::Cpu))
+            })
+            .collect::<Result<_>>()?;
+        Ok(Tensor::cat(&parts, 0))
+    }
+}
+
+/// Opens a model file as the method its metadata records: flashmat
+/// ([`ModelMethod`]), analytic ([`AnalyticMethod`]) or relight-unet
+/// ([`RelightMethod`]).
+pub fn open_model_file(path: &Path, name: String, ldr_photo: bool, device: Device) -> Result<Box<dyn Method>> {
+    // Files that are not readable model files go to the flashmat loader,
+    // whose errors name the problem.
+    let method = match read_header_metadata(path) {
+        Ok(meta) if meta.get("flashmat.format").map(String::as_str) == Some(crate::model::MODEL_FORMAT) => match meta.get(METHOD_KEY) {
+            Some(m) => TrainMethod::from_name(m).with_context(|| format!("model file {}", path.display()))?,
+            None => TrainMethod::Flashmat,
+        },
+        _ => TrainMethod::Flashmat,
+    };
+    Ok(match method {
+        TrainMethod::Flashmat => Box::new(ModelMethod::load(path, name, ldr_photo, device)?),
+        TrainMethod::Analytic => {
+            let (b, info) = Baseline::load(path, device)?;
+            Box::new(AnalyticMethod::new(name, &b, info)?)
+        }
+        TrainMethod::RelightUnet => {
+            let (b, info) = Baseline::load(path, device)?;
+            Box::new(RelightMethod::new(name, b, info)?)
+        }
+    })
+}
+
+/// Opens `--model` values: `printout` or a model file of any method (named
+/// by its file stem; repeated names get `-2`, `-3` ...).
 pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device) -> Result<Vec<Box<dyn Method>>> {
     ensure!(!specs.is_empty(), "give at least one --model (a model file or `printout`)");
     let mut out: Vec<Box<dyn Method>> = Vec::new();
@@ -139,7 +297,7 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device) -> Result
         if spec == PRINTOUT {
             out.push(Box::new(PrintoutMethod::default()));
         } else {
-            out.push(Box::new(ModelMethod::load(Path::new(spec), name, ldr_photo, device)?));
+            out.push(open_model_file(Path::new(spec), name, ldr_photo, device)?);
         }
     }
     Ok(out)

@@ -16,7 +16,7 @@ pub mod methods;
 pub mod metrics;
 pub mod report;
 
-pub use methods::{open_methods, Method, ModelMethod, PrintoutMethod, PRINTOUT};
+pub use methods::{open_methods, open_model_file, AnalyticMethod, Method, ModelMethod, PrintoutMethod, RelightMethod, PRINTOUT};
 pub use metrics::{mean_ci95, mean_scores, score_renders, Scores, PSNR_CAP_DB};
 
 use crate::data::loaders::{center_crop, open_dataset};

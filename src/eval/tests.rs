@@ -117,3 +117,124 @@ fn eval_end_to_end_on_two_materials() {
     assert_eq!(tiny, std::fs::read_to_string(t.path().join("again/tiny.csv")).unwrap());
     assert_eq!(again[0].rows.len(), 6);
 }
+
+// ---------------------------------------------------------------------------
+// The trained baselines as evaluation methods.
+// ---------------------------------------------------------------------------
+
+use crate::baselines::{Baseline, BaselineNet, TrainMethod};
+
+#[test]
+fn analytic_method_renders_are_the_ggx_renders_of_its_maps() {
+    tch::manual_seed(4);
+    let b = Baseline::new(TrainMethod::Analytic, &ModelConfig::tiny(), Device::Cpu).unwrap();
+    let mut method = AnalyticMethod::new("analytic".into(), &b, ModelInfo::default()).unwrap();
+    let m = generate_family(Family::Stone, 2, 32);
+    let photo = input_photo(&m, false);
+    method.prepare(&photo).unwrap();
+    let maps = method.maps().unwrap();
+    assert_eq!(maps.size(), [10, 32, 32]);
+    // The folded-BatchNorm inference maps equal the network's eval-mode maps.
+    let BaselineNet::Analytic(a) = &b.net else { panic!() };
+    let (wi, wo) = crate::data::samples::input_directions(32, 32, MODEL_FOV_DEG, Device::Cpu);
+    let x = crate::data::samples::est_input(&photo.unsqueeze(0), &crate::svbrdf::render::half_vector_z(&wi, &wo));
+    let unfolded = tch::no_grad(|| a.maps_t(&x, false).unwrap()).get(0);
+    // (An untrained network's eval-mode head outputs reach hundreds, so
+    // float rounding of the folded convolutions shows at 1e-4.)
+    let d = (&maps - &unfolded).abs().max().double_value(&[]);
+    assert!(d < 1e-3, "folded maps differ by {d}");
+    // Renders = the f32 CPU GGX renderer applied to the predicted maps.
+    let estimated = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&maps).unwrap()).unwrap();
+    let mut configs = case_configs(Sampling::Hemisphere, 0, 0, 6);
+    configs.extend(case_configs(Sampling::Reflect, 0, 0, 5));
+    configs.push(LightView::colocated(MODEL_FOV_DEG));
+    let pred = method.render(&configs).unwrap();
+    assert_eq!(pred.size(), [12, 3, 32, 32]);
+    let expect = reference_renders(&estimated, &configs);
+    let rel = ((&pred - &expect).abs() / expect.abs().clamp_min(1e-3)).max().double_value(&[]);
+    assert!(rel < 1e-3, "relative difference {rel}");
+    assert!(pred.max().double_value(&[]) > 0.0);
+}
+
+#[test]
+fn relight_method_renders_are_the_network_output() {
+    tch::manual_seed(5);
+    let b = Baseline::new(TrainMethod::RelightUnet, &ModelConfig::tiny(), Device::Cpu).unwrap();
+    let m = generate_family(Family::Leather, 1, 32);
+    let photo = input_photo(&m, false);
+    // 11 configurations: more than one render chunk.
+    let configs = case_configs(Sampling::Hemisphere, 0, 1, 11);
+    let (wi, wo) = {
+        let (l, v) = crate::geometry::config_tensors(&configs, Device::Cpu);
+        crate::svbrdf::render::direction_maps_for(&l.view([1, 11, 3]), &v.view([1, 11, 3]), 32, 32)
+    };
+    let (iwi, iwo) = crate::data::samples::input_directions(32, 32, MODEL_FOV_DEG, Device::Cpu);
+    let x = crate::data::samples::est_input(&photo.unsqueeze(0), &crate::svbrdf::render::half_vector_z(&iwi, &iwo));
+    let log = tch::no_grad(|| b.forward_t(&x, &wi, &wo, false).unwrap()).get(0);
+    let mut method = RelightMethod::new("relight-unet".into(), b, ModelInfo::default()).unwrap();
+    assert!(method.render(&configs).is_err(), "render before prepare");
+    method.prepare(&photo).unwrap();
+    let pred = method.render(&configs).unwrap();
+    assert_eq!(pred.size(), [11, 3, 32, 32]);
+    let expect = crate::spaces::from_log(&log.clamp(0.0, crate::infer::nmat::MAX_LOG_RADIANCE));
+    assert!((&pred - &expect).abs().max().double_value(&[]) < 1e-5);
+    assert!(pred.min().double_value(&[]) >= 0.0);
+}
+
+#[test]
+fn eval_scores_baseline_model_files() {
+    let t = tempfile::tempdir().unwrap();
+    tch::manual_seed(6);
+    let info = ModelInfo { ldr_input: false, steps: 1 };
+    let flashmat = t.path().join("flashmat.safetensors");
+    Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(&flashmat, &info, false).unwrap();
+    let analytic = t.path().join("analytic.safetensors");
+    Baseline::new(TrainMethod::Analytic, &ModelConfig::tiny(), Device::Cpu).unwrap().save(&analytic, &info, true).unwrap();
+    let relight = t.path().join("relight-unet.safetensors");
+    Baseline::new(TrainMethod::RelightUnet, &ModelConfig::tiny(), Device::Cpu).unwrap().save(&relight, &info, false).unwrap();
+    let out = t.path().join("report");
+    let models = [&flashmat, &analytic, &relight].map(|p| p.to_string_lossy().into_owned());
+    let opts = EvalOptions {
+        models: vec![models[0].clone(), PRINTOUT.into(), models[1].clone(), models[2].clone()],
+        dataset: PROCEDURAL_TEST.into(),
+        cases: vec![Sampling::Reflect, Sampling::Identity, Sampling::Hemisphere],
+        out: out.clone(),
+        size: 32,
+        seed: 1,
+        limit: Some(2),
+        configs: 2,
+        ldr_input: false,
+        device: Device::Cpu,
+        progress: false,
+    };
+    let results = run(&opts).unwrap();
+    let names: Vec<&str> = results.iter().map(|r| r.name.as_str()).collect();
+    assert_eq!(names, ["flashmat", "printout", "analytic", "relight-unet"]);
+    for name in ["analytic", "relight-unet"] {
+        let csv = std::fs::read_to_string(out.join(format!("{name}.csv"))).unwrap();
+        let lines: Vec<&str> = csv.lines().collect();
+        assert_eq!(lines.len(), 1 + 2 * 3, "{csv}");
+        for l in &lines[1..] {
+            let f: Vec<f64> = l.split(',').skip(2).map(|v| v.parse().unwrap()).collect();
+            assert!(f.len() == 3 && f.iter().all(|v| v.is_finite()), "{name}: {l}");
+            assert!(f[0] > 0.0, "{name}: an untrained network matches the reference exactly? {l}");
+        }
+    }
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    for row in ["| flashmat |", "| printout |", "| analytic |", "| relight-unet |"] {
+        assert!(summary.contains(row), "{row} missing from {summary}");
+    }
+    // Deterministic: the same run gives the same numbers.
+    run(&EvalOptions { out: t.path().join("again"), ..opts.clone() }).unwrap();
+    for name in ["analytic", "relight-unet"] {
+        let a = std::fs::read_to_string(out.join(format!("{name}.csv"))).unwrap();
+        assert_eq!(a, std::fs::read_to_string(t.path().join(format!("again/{name}.csv"))).unwrap());
+    }
+    // A file claiming an unknown method is refused with its name.
+    let mut bad = crate::archive::Archive::load(&relight, crate::model::MODEL_FORMAT, crate::model::MODEL_VERSION).unwrap();
+    bad.set_meta(crate::baselines::METHOD_KEY, "matfusion");
+    let bad_path = t.path().join("bad.safetensors");
+    bad.save(&bad_path, crate::model::MODEL_FORMAT, crate::model::MODEL_VERSION).unwrap();
+    let e = format!("{:#}", run(&EvalOptions { models: vec![bad_path.to_string_lossy().into_owned()], out: t.path().join("bad"), ..opts }).unwrap_err());
+    assert!(e.contains("matfusion"), "{e}");
+}

@@ -133,7 +133,7 @@ pub struct ResBlock {
 }
 
 impl ResBlock {
-    fn new(p: &nn::Path, cin: i64, cout: i64, stride: i64) -> Self {
+    pub(crate) fn new(p: &nn::Path, cin: i64, cout: i64, stride: i64) -> Self {
         let skip = (cin != cout || stride != 1).then(|| Skip {
             conv: (p / "skip" / "conv").var("weight", &[cout, cin, 1, 1], conv_init()),
             bn: Bn::new(&(p / "skip" / "bn"), cout),
@@ -149,7 +149,7 @@ impl ResBlock {
     }
 
     /// x: `[N, C, H, W]` -> `[N, P, H/s, W/s]`.
-    fn forward_t(&self, x: &Tensor, train: bool) -> Tensor {
+    pub(crate) fn forward_t(&self, x: &Tensor, train: bool) -> Tensor {
         let out = self.bn1.forward_t(&self.ha1.forward(x), train).relu();
         let out = self.bn2.forward_t(&self.ha2.forward(&out), train);
         let id = match &self.skip {
@@ -176,7 +176,7 @@ pub struct UpBlock {
 }
 
 impl UpBlock {
-    fn new(p: &nn::Path, cin: i64, cout: i64) -> Self {
+    pub(crate) fn new(p: &nn::Path, cin: i64, cout: i64) -> Self {
         // Transposed convs keep PyTorch's default init (as in the reference).
         Self {
             tconv: (p / "tconv").var("weight", &[cin, cout, 4, 4], torch_default_init()),
@@ -205,7 +205,8 @@ pub struct DecStage {
 }
 
 impl DecStage {
-    fn forward_t(&self, x: &Tensor, train: bool) -> Tensor {
+    /// x: `[N, C, H, W]` -> `[N, P, H', W']` (2x larger with an up-block).
+    pub(crate) fn forward_t(&self, x: &Tensor, train: bool) -> Tensor {
         let mut x = match &self.up {
             Some(u) => u.forward_t(x, train),
             None => x.shallow_clone(),

@@ -9,7 +9,7 @@
 
 pub mod config;
 pub mod discriminator;
-mod layers;
+pub(crate) mod layers;
 pub mod m_est;
 pub mod m_render;
 pub mod nd_enc;
@@ -181,7 +181,7 @@ impl Model {
 
     /// Writes `est.*` and `renderer.*` (including BatchNorm running
     /// statistics) as a checksummed archive (see [`crate::archive`]) with the
-    /// model id, the configuration and `info` in the metadata. This is the
+    /// model id, the configuration, the method (`flashmat`) and `info` in the metadata. This is the
     /// exported-model format that `flashmat export` writes. `half` stores
     /// the large weight tensors as f16 ([`Archive::store_half`]).
     pub fn save(&self, path: impl AsRef<Path>, info: &ModelInfo, half: bool) -> Result<()> {
@@ -189,6 +189,7 @@ impl Model {
         for (name, t) in self.named_variables() {
             a.insert(name, &t);
         }
+        a.set_meta(crate::baselines::METHOD_KEY, crate::baselines::TrainMethod::Flashmat.name());
         a.set_meta("model_id", self.model_id());
         a.set_meta("config", self.config.to_toml_string()?);
         a.set_meta("info", serde_json::to_string(info)?);
@@ -202,6 +203,9 @@ impl Model {
         let path = path.as_ref();
         let a = Archive::load(path, MODEL_FORMAT, MODEL_VERSION)?;
         let ctx = || format!("model file {}", path.display());
+        if let Some(method) = a.metadata.get(crate::baselines::METHOD_KEY).filter(|m| *m != "flashmat") {
+            anyhow::bail!("{} holds a '{method}' model, not a flashmat one (baselines are scored with `flashmat eval --model`)", ctx());
+        }
         let cfg = ModelConfig::from_toml_str(a.meta("config").with_context(ctx)?).with_context(ctx)?;
         let info: ModelInfo = serde_json::from_str(a.meta("info").with_context(ctx)?).with_context(ctx)?;
         let mut m = Self::new(&cfg, device)?;

@@ -1,6 +1,7 @@
 //! Training hyper-parameters, with the paper's values as defaults where the
 //! paper gives them (REFERENCE section 5).
 
+use crate::baselines::TrainMethod;
 use crate::model::ModelConfig;
 use serde::{Deserialize, Serialize};
 
@@ -26,6 +27,12 @@ pub enum UpdateScheme {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrainConfig {
+    /// What is trained: flashmat or one of the baselines. Absent from
+    /// flashmat configurations (files written before the baselines).
+    #[serde(default, skip_serializing_if = "TrainMethod::is_flashmat")]
+    pub method: TrainMethod,
+    /// Width preset; baselines use its U-Net width (and, for the
+    /// relighting U-Net, its direction-code sizes).
     pub model: ModelConfig,
     /// `procedural` or a dataset folder.
     pub data: String,
@@ -83,6 +90,7 @@ fn unit_height_scale() -> f64 {
 impl Default for TrainConfig {
     fn default() -> Self {
         Self {
+            method: TrainMethod::Flashmat,
             model: ModelConfig::compact(),
             data: "procedural".into(),
             material_size: 256,
@@ -172,6 +180,16 @@ mod tests {
         assert!(TrainConfig { crop: 100, ..Default::default() }.validate().is_err());
         assert!(TrainConfig { materials_per_batch: 1, ..Default::default() }.validate().is_err());
         assert!(TrainConfig { height_scale: -1.0, ..Default::default() }.validate().is_err());
+    }
+
+    #[test]
+    fn method_field_is_absent_for_flashmat_and_round_trips_for_baselines() {
+        let text = serde_json::to_string(&TrainConfig::default()).unwrap();
+        assert!(!text.contains("method"), "{text}");
+        let c = TrainConfig { method: TrainMethod::RelightUnet, ..Default::default() };
+        let text = serde_json::to_string(&c).unwrap();
+        assert!(text.contains("\"method\":\"relight-unet\""), "{text}");
+        assert_eq!(serde_json::from_str::<TrainConfig>(&text).unwrap(), c);
     }
 
     #[test]

@@ -1,15 +1,18 @@
 //! Training of M_est, ND_enc + M_render and the discriminator with the
 //! paper's losses (REFERENCE section 5): L1 on log renders, LPIPS, and a
 //! conditional least-squares discriminator; alternating optimizers;
-//! checkpoints that resume exactly.
+//! checkpoints that resume exactly. The baselines train on the same
+//! batches with the same losses in [`baseline`].
 
 pub mod adam;
+pub mod baseline;
 pub mod batches;
 pub mod checkpoint;
 pub mod config;
 pub mod losses;
 pub mod run;
 
+pub use baseline::BaselineTrainer;
 pub use config::{PixelSampling, TrainConfig, UpdateScheme};
 
 use crate::data::samples::TrainingBatch;
@@ -66,6 +69,11 @@ impl Trainer {
     /// Fresh networks initialised from the configured seed.
     pub fn new(config: TrainConfig, device: Device) -> Result<Self> {
         config.validate()?;
+        anyhow::ensure!(
+            config.method.is_flashmat(),
+            "a '{}' run is trained by train::BaselineTrainer, not the flashmat trainer",
+            config.method
+        );
         tch::manual_seed(config.seed as i64);
         let model = Model::new(&config.model, device)?;
         model.renderer.m_render.straight_through_output.store(config.straight_through_output, std::sync::atomic::Ordering::Relaxed);

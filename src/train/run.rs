@@ -2,10 +2,13 @@
 //! log, loss charts, preview grids, periodic and final checkpoints, resume.
 //!
 //! A run folder holds `config.json`, `checkpoint.safetensors`, `log.jsonl`,
-//! `losses.png` and `previews/step-NNNNNNN.png`.
+//! `losses.png` and `previews/step-NNNNNNN.png`. The same loop trains
+//! flashmat ([`Trainer`]) and the baselines ([`BaselineTrainer`]) through
+//! [`RunTrainer`]; [`start_any`] / [`resume_any`] pick the trainer from the
+//! configuration's (or the checkpoint's) method.
 
 use super::batches::{batch_for_step, MaterialStream, Prefetcher};
-use super::{StepLosses, TrainConfig, Trainer};
+use super::{BaselineTrainer, StepLosses, TrainConfig, Trainer};
 use crate::data::samples::TrainingBatch;
 use crate::image::Image;
 use crate::viz::{self, Series};
@@ -107,6 +110,96 @@ pub fn preview_grid(trainer: &Trainer, batch: &TrainingBatch, max_outputs: usize
     })
 }
 
+/// What the run loop needs from a trainer.
+pub trait RunTrainer: Sized {
+    fn config(&self) -> &TrainConfig;
+    fn config_mut(&mut self) -> &mut TrainConfig;
+    /// Steps completed.
+    fn steps_done(&self) -> u64;
+    fn train_step(&mut self, batch: &TrainingBatch) -> Result<StepLosses>;
+    fn save_checkpoint(&self, path: &Path) -> Result<()>;
+    fn preview_grid(&self, batch: &TrainingBatch, max_outputs: usize) -> Result<Image>;
+    /// Fresh networks for a configuration.
+    fn create(config: TrainConfig, device: Device) -> Result<Self>;
+    /// Rebuilds the trainer from a checkpoint.
+    fn resume_from(path: &Path, device: Device) -> Result<Self>;
+}
+
+impl RunTrainer for Trainer {
+    fn config(&self) -> &TrainConfig {
+        &self.config
+    }
+    fn config_mut(&mut self) -> &mut TrainConfig {
+        &mut self.config
+    }
+    fn steps_done(&self) -> u64 {
+        self.step
+    }
+    fn train_step(&mut self, batch: &TrainingBatch) -> Result<StepLosses> {
+        Trainer::train_step(self, batch)
+    }
+    fn save_checkpoint(&self, path: &Path) -> Result<()> {
+        Trainer::save_checkpoint(self, path)
+    }
+    fn preview_grid(&self, batch: &TrainingBatch, max_outputs: usize) -> Result<Image> {
+        preview_grid(self, batch, max_outputs)
+    }
+    fn create(config: TrainConfig, device: Device) -> Result<Self> {
+        Trainer::new(config, device)
+    }
+    fn resume_from(path: &Path, device: Device) -> Result<Self> {
+        Trainer::resume(path, device, None)
+    }
+}
+
+impl RunTrainer for BaselineTrainer {
+    fn config(&self) -> &TrainConfig {
+        &self.config
+    }
+    fn config_mut(&mut self) -> &mut TrainConfig {
+        &mut self.config
+    }
+    fn steps_done(&self) -> u64 {
+        self.step
+    }
+    fn train_step(&mut self, batch: &TrainingBatch) -> Result<StepLosses> {
+        BaselineTrainer::train_step(self, batch)
+    }
+    fn save_checkpoint(&self, path: &Path) -> Result<()> {
+        BaselineTrainer::save_checkpoint(self, path)
+    }
+    fn preview_grid(&self, batch: &TrainingBatch, max_outputs: usize) -> Result<Image> {
+        BaselineTrainer::preview_grid(self, batch, max_outputs)
+    }
+    fn create(config: TrainConfig, device: Device) -> Result<Self> {
+        BaselineTrainer::new(config, device)
+    }
+    fn resume_from(path: &Path, device: Device) -> Result<Self> {
+        BaselineTrainer::resume(path, device)
+    }
+}
+
+/// The trainer of either kind of run.
+pub enum AnyTrainer {
+    Flashmat(Trainer),
+    Baseline(BaselineTrainer),
+}
+
+impl AnyTrainer {
+    pub fn config(&self) -> &TrainConfig {
+        match self {
+            Self::Flashmat(t) => &t.config,
+            Self::Baseline(t) => &t.config,
+        }
+    }
+    pub fn steps_done(&self) -> u64 {
+        match self {
+            Self::Flashmat(t) => t.step,
+            Self::Baseline(t) => t.step,
+        }
+    }
+}
+
 /// Options of one `flashmat train` invocation.
 pub struct RunOptions {
     pub run_dir: PathBuf,
@@ -116,8 +209,26 @@ pub struct RunOptions {
     pub progress: bool,
 }
 
-/// Starts a new run (fails if the folder already holds a checkpoint).
+/// Starts a new flashmat run (fails if the folder already holds a checkpoint).
 pub fn start(config: TrainConfig, opts: &RunOptions) -> Result<Trainer> {
+    start_with::<Trainer>(config, opts)
+}
+
+/// Starts a new baseline run (`config.method` analytic or relight-unet).
+pub fn start_baseline(config: TrainConfig, opts: &RunOptions) -> Result<BaselineTrainer> {
+    start_with::<BaselineTrainer>(config, opts)
+}
+
+/// Starts a new run of the configuration's method.
+pub fn start_any(config: TrainConfig, opts: &RunOptions) -> Result<AnyTrainer> {
+    if config.method.is_flashmat() {
+        start(config, opts).map(AnyTrainer::Flashmat)
+    } else {
+        start_baseline(config, opts).map(AnyTrainer::Baseline)
+    }
+}
+
+fn start_with<T: RunTrainer>(config: TrainConfig, opts: &RunOptions) -> Result<T> {
     let ckpt = checkpoint_path(&opts.run_dir);
     if ckpt.exists() {
         anyhow::bail!("{} already holds a run; continue it with `flashmat train --resume {}`", opts.run_dir.display(), opts.run_dir.display());
@@ -125,24 +236,44 @@ pub fn start(config: TrainConfig, opts: &RunOptions) -> Result<Trainer> {
     std::fs::create_dir_all(opts.run_dir.join("previews")).with_context(|| format!("cannot create run folder {}", opts.run_dir.display()))?;
     crate::io::atomic_write_bytes(&opts.run_dir.join("config.json"), serde_json::to_string_pretty(&config)?.as_bytes())?;
     let _ = std::fs::remove_file(log_path(&opts.run_dir));
-    let trainer = Trainer::new(config, opts.device)?;
+    let trainer = T::create(config, opts.device)?;
     train_loop(trainer, opts)
 }
 
-/// Continues a run from its last checkpoint, optionally to a new step total.
+/// Continues a flashmat run from its last checkpoint, optionally to a new step total.
 pub fn resume(opts: &RunOptions, steps: Option<u64>) -> Result<Trainer> {
+    resume_with::<Trainer>(opts, steps)
+}
+
+/// Continues a baseline run from its last checkpoint.
+pub fn resume_baseline(opts: &RunOptions, steps: Option<u64>) -> Result<BaselineTrainer> {
+    resume_with::<BaselineTrainer>(opts, steps)
+}
+
+/// Continues a run of whichever method its checkpoint records.
+pub fn resume_any(opts: &RunOptions, steps: Option<u64>) -> Result<AnyTrainer> {
     let ckpt = checkpoint_path(&opts.run_dir);
     anyhow::ensure!(ckpt.exists(), "{} holds no checkpoint to resume", opts.run_dir.display());
-    let mut trainer = Trainer::resume(&ckpt, opts.device, None)?;
-    if let Some(s) = steps {
-        trainer.config.steps = s;
+    if Trainer::checkpoint_config(&ckpt)?.method.is_flashmat() {
+        resume(opts, steps).map(AnyTrainer::Flashmat)
+    } else {
+        resume_baseline(opts, steps).map(AnyTrainer::Baseline)
     }
-    truncate_log(&opts.run_dir, trainer.step)?;
+}
+
+fn resume_with<T: RunTrainer>(opts: &RunOptions, steps: Option<u64>) -> Result<T> {
+    let ckpt = checkpoint_path(&opts.run_dir);
+    anyhow::ensure!(ckpt.exists(), "{} holds no checkpoint to resume", opts.run_dir.display());
+    let mut trainer = T::resume_from(&ckpt, opts.device)?;
+    if let Some(s) = steps {
+        trainer.config_mut().steps = s;
+    }
+    truncate_log(&opts.run_dir, trainer.steps_done())?;
     train_loop(trainer, opts)
 }
 
-fn train_loop(mut trainer: Trainer, opts: &RunOptions) -> Result<Trainer> {
-    let cfg = trainer.config.clone();
+fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
+    let cfg = trainer.config().clone();
     let run = &opts.run_dir;
     let stop = Arc::new(AtomicBool::new(false));
     {
@@ -150,7 +281,7 @@ fn train_loop(mut trainer: Trainer, opts: &RunOptions) -> Result<Trainer> {
         // A second handler registration (tests, repeated runs) is harmless to ignore.
         let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
     }
-    let first = trainer.step;
+    let first = trainer.steps_done();
     let last = match opts.max_steps_this_run {
         Some(n) => cfg.steps.min(first + n),
         None => cfg.steps,
@@ -165,8 +296,8 @@ fn train_loop(mut trainer: Trainer, opts: &RunOptions) -> Result<Trainer> {
     bar.set_position(first);
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(log_path(run)).with_context(|| format!("cannot write {}", log_path(run).display()))?;
     let mut skipped = 0u64;
-    while trainer.step < last {
-        let step = trainer.step;
+    while trainer.steps_done() < last {
+        let step = trainer.steps_done();
         let t0 = Instant::now();
         let materials = prefetch.next(step)?;
         let batch = batch_for_step(&cfg, &materials, step, opts.device)?;
@@ -178,10 +309,10 @@ fn train_loop(mut trainer: Trainer, opts: &RunOptions) -> Result<Trainer> {
         }
         writeln!(log, "{}", serde_json::to_string(&losses)?)?;
         bar.set_message(format!("L1 {:.4}  LPIPS {:.3}  skipped {skipped}", losses.l1, losses.lpips));
-        bar.set_position(trainer.step);
-        let done = trainer.step;
+        bar.set_position(trainer.steps_done());
+        let done = trainer.steps_done();
         if cfg.preview_every > 0 && done % cfg.preview_every == 0 {
-            let grid = preview_grid(&trainer, &batch, 4)?;
+            let grid = trainer.preview_grid(&batch, 4)?;
             crate::io::write_png(&run.join("previews").join(format!("step-{done:07}.png")), &grid, crate::io::BitDepth::Eight)?;
         }
         if done % cfg.checkpoint_every.max(1) == 0 || done == last || stop.load(Ordering::SeqCst) {
@@ -194,6 +325,6 @@ fn train_loop(mut trainer: Trainer, opts: &RunOptions) -> Result<Trainer> {
             return Ok(trainer);
         }
     }
-    bar.finish_with_message(format!("done at step {}", trainer.step));
+    bar.finish_with_message(format!("done at step {}", trainer.steps_done()));
     Ok(trainer)
 }

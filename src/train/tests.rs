@@ -172,3 +172,104 @@ fn nan_batch_is_skipped_and_leaves_weights_untouched() {
     }
     assert_eq!(trainer.opt_est.steps, 0);
 }
+
+// ---------------------------------------------------------------------------
+// Baselines (crate::baselines) through the same run machinery.
+// ---------------------------------------------------------------------------
+
+use crate::baselines::TrainMethod;
+
+/// Over-fits a baseline to one material under `k` fixed configurations;
+/// returns the L1 of the first and last step and that of predicting black
+/// (the trivial solution a collapsed network finds).
+fn overfit_baseline(method: TrainMethod, k: usize, steps: usize) -> (f64, f64, f64) {
+    let cfg = TrainConfig { method, lr: 2e-3, weight_lpips: 0.0, weight_adv: 0.0, ..tiny_config() };
+    let mut trainer = BaselineTrainer::new(cfg, tch::Device::Cpu).unwrap();
+    let m = procedural::generate_family(Family::Tiles, 3, 32);
+    let sample = SampleConfig { outputs_per_material: k, output_sampling: Sampling::Reflect, ..Default::default() };
+    // One material per batch (the flashmat test above repeats it because
+    // its discriminator needs two; the baselines' over-fitting runs without).
+    let batch = make_batch(&[m], &sample, &mut Pcg64::seed_from_u64(9), tch::Device::Cpu).unwrap();
+    let black = crate::spaces::to_log(&batch.targets).mean(tch::Kind::Float).double_value(&[]);
+    let first = trainer.train_step(&batch).unwrap().l1;
+    let mut last = first;
+    for _ in 0..steps {
+        let l = trainer.train_step(&batch).unwrap();
+        assert!(!l.skipped);
+        last = l.l1;
+    }
+    (first, last, black)
+}
+
+#[test]
+fn analytic_baseline_overfits_one_material() {
+    let (first, last, black) = overfit_baseline(TrainMethod::Analytic, 4, 150);
+    assert!(last <= first / 5.0, "L1 went from {first} to {last}");
+    assert!(last <= black / 2.5, "L1 {last} vs {black} for a black prediction");
+}
+
+#[test]
+fn relight_unet_baseline_overfits_one_material() {
+    let (first, last, black) = overfit_baseline(TrainMethod::RelightUnet, 2, 100);
+    assert!(last <= first / 5.0, "L1 went from {first} to {last}");
+    assert!(last <= black / 2.5, "L1 {last} vs {black} for a black prediction");
+}
+
+fn baseline_weights(t: &BaselineTrainer) -> Vec<(String, tch::Tensor)> {
+    let mut v: Vec<(String, tch::Tensor)> = t.net.vs.variables().into_iter().chain(t.disc_vs.variables()).collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    v
+}
+
+#[test]
+fn baseline_runs_resume_exactly_and_refuse_other_trainers() {
+    for method in [TrainMethod::Analytic, TrainMethod::RelightUnet] {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = TrainConfig { method, steps: 4, checkpoint_every: 2, preview_every: 2, ..tiny_config() };
+        let straight = RunOptions { run_dir: dir.path().join("a"), device: tch::Device::Cpu, max_steps_this_run: None, progress: false };
+        let a = run::start_baseline(cfg.clone(), &straight).unwrap();
+        assert_eq!(a.step, 4);
+        let half = RunOptions { run_dir: dir.path().join("b"), device: tch::Device::Cpu, max_steps_this_run: Some(2), progress: false };
+        let b = match run::start_any(cfg.clone(), &half).unwrap() {
+            run::AnyTrainer::Baseline(b) => b,
+            run::AnyTrainer::Flashmat(_) => panic!("{method} started as flashmat"),
+        };
+        assert_eq!(b.step, 2);
+        drop(b);
+        let rest = RunOptions { max_steps_this_run: None, ..half };
+        let b = match run::resume_any(&rest, None).unwrap() {
+            run::AnyTrainer::Baseline(b) => b,
+            run::AnyTrainer::Flashmat(_) => panic!("{method} resumed as flashmat"),
+        };
+        assert_eq!((b.step, b.config.method), (4, method));
+        let (wa, wb) = (baseline_weights(&a), baseline_weights(&b));
+        assert_eq!(wa.len(), wb.len());
+        let mut worst = 0f64;
+        for ((na, ta), (nb, tb)) in wa.iter().zip(&wb) {
+            assert_eq!(na, nb);
+            worst = worst.max((ta - tb).abs().max().double_value(&[]));
+        }
+        assert!(worst <= 1e-6, "{method}: weights differ by {worst}");
+        assert_eq!(a.opt_net.steps, 4);
+        assert_eq!(b.opt_net.steps, 4);
+        let steps: Vec<u64> = run::read_log(&dir.path().join("b")).iter().map(|l| l.step).collect();
+        assert_eq!(steps, vec![1, 2, 3, 4]);
+        for f in ["config.json", "losses.png", "previews/step-0000002.png", "previews/step-0000004.png"] {
+            assert!(dir.path().join("b").join(f).is_file(), "{method}: {f} missing");
+        }
+        let config_text = std::fs::read_to_string(dir.path().join("b/config.json")).unwrap();
+        assert!(config_text.contains(&format!("\"method\": \"{method}\"")), "{config_text}");
+        // The flashmat trainer refuses a baseline checkpoint and vice versa.
+        let ckpt = checkpoint_path(&dir.path().join("b"));
+        assert!(Trainer::resume(&ckpt, tch::Device::Cpu, None).is_err());
+        assert!(run::resume(&RunOptions { run_dir: dir.path().join("b"), device: tch::Device::Cpu, max_steps_this_run: None, progress: false }, None).is_err());
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let opts = RunOptions { run_dir: dir.path().join("f"), device: tch::Device::Cpu, max_steps_this_run: Some(1), progress: false };
+    run::start(TrainConfig { steps: 1, weight_lpips: 0.0, ..tiny_config() }, &opts).unwrap();
+    let e = BaselineTrainer::resume(&checkpoint_path(&opts.run_dir), tch::Device::Cpu).err().unwrap();
+    assert!(format!("{e:#}").contains("flashmat checkpoint"), "{e:#}");
+    // A flashmat run's config.json has no method field (unchanged format).
+    assert!(!std::fs::read_to_string(opts.run_dir.join("config.json")).unwrap().contains("method"));
+}
+

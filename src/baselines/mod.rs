@@ -1,0 +1,215 @@
+//! The two trained baselines of the paper's comparison table (issue 5),
+//! built from M_est's highlight-aware U-Net at the same width presets and
+//! trained on the same batches with the same losses as flashmat:
+//!
+//! - [`analytic`]: the U-Net predicts the GGX SVBRDF maps (the family of
+//!   Deschaintre 2018, Zhou 2021, MatFusion), trained through the tensor
+//!   GGX renderer and relit with it at evaluation time.
+//! - [`relight`]: a U-Net that predicts the relit image itself (Bieron
+//!   2023): the photo goes through the encoder, the per-pixel light/view
+//!   directions, encoded as ND_enc does, are injected into every decoder
+//!   stage; there are no per-pixel material parameters.
+//!
+//! [`TrainMethod`] names the three trainable methods (`flashmat` and these
+//! two); a [`Baseline`] holds either network with its VarStore and reads and
+//! writes exported model files (the `flashmat-model` format, with a
+//! `method` metadata field that flashmat model files also carry).
+
+pub mod analytic;
+pub mod relight;
+
+pub use analytic::AnalyticNet;
+pub use relight::{RelightEncoded, RelightUNet};
+
+use crate::archive::Archive;
+use crate::model::{count_trainable, ModelConfig, ModelInfo, MODEL_FORMAT, MODEL_VERSION};
+use anyhow::{bail, ensure, Context, Result};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::Path;
+use tch::{nn, Device, Tensor};
+
+/// Metadata key of model files naming the method (absent in files written
+/// before the baselines existed: those are flashmat models).
+pub const METHOD_KEY: &str = "method";
+
+/// What `flashmat train --method` trains.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum TrainMethod {
+    /// M_est + ND_enc + M_render (the paper).
+    #[default]
+    Flashmat,
+    /// U-Net -> GGX SVBRDF maps, rendering loss through the GGX renderer.
+    Analytic,
+    /// U-Net with light/view injected into the decoder -> relit image.
+    RelightUnet,
+}
+
+impl TrainMethod {
+    /// The name used on the command line and in files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Flashmat => "flashmat",
+            Self::Analytic => "analytic",
+            Self::RelightUnet => "relight-unet",
+        }
+    }
+
+    /// Parses [`TrainMethod::name`].
+    pub fn from_name(s: &str) -> Result<Self> {
+        match s {
+            "flashmat" => Ok(Self::Flashmat),
+            "analytic" => Ok(Self::Analytic),
+            "relight-unet" => Ok(Self::RelightUnet),
+            other => bail!("unknown method '{other}' (known: flashmat, analytic, relight-unet)"),
+        }
+    }
+
+    pub fn is_flashmat(&self) -> bool {
+        *self == Self::Flashmat
+    }
+}
+
+impl std::fmt::Display for TrainMethod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Either baseline network.
+#[derive(Debug)]
+pub enum BaselineNet {
+    Analytic(AnalyticNet),
+    Relight(RelightUNet),
+}
+
+/// A baseline network with its variables (`net.*`) and sizes.
+#[derive(Debug)]
+pub struct Baseline {
+    pub method: TrainMethod,
+    /// The width preset the U-Net follows (`est_width`; the relighting
+    /// U-Net's direction code also uses `enc_frequencies`, `enc_hidden`
+    /// and `enc_out`).
+    pub config: ModelConfig,
+    pub vs: nn::VarStore,
+    pub net: BaselineNet,
+}
+
+impl Baseline {
+    /// Fresh, randomly initialised network (libtorch's global generator).
+    pub fn new(method: TrainMethod, config: &ModelConfig, device: Device) -> Result<Self> {
+        config.validate()?;
+        let vs = nn::VarStore::new(device);
+        let root = vs.root() / "net";
+        let net = match method {
+            TrainMethod::Flashmat => bail!("flashmat is not a baseline (use model::Model)"),
+            TrainMethod::Analytic => BaselineNet::Analytic(AnalyticNet::new(&root, config)?),
+            TrainMethod::RelightUnet => BaselineNet::Relight(RelightUNet::new(&root, config)?),
+        };
+        Ok(Self { method, config: config.clone(), vs, net })
+    }
+
+    /// `METHOD/MODEL_ID` of the width configuration; checkpoints and model
+    /// files record it so weights of another method or size are refused.
+    pub fn model_id(&self) -> String {
+        format!("{}/{}", self.method, self.config.model_id())
+    }
+
+    pub fn device(&self) -> Device {
+        self.vs.device()
+    }
+
+    /// Trainable parameters.
+    pub fn param_count(&self) -> i64 {
+        count_trainable(&self.vs)
+    }
+
+    /// Renders the output configurations of a batch in log space.
+    /// est_input: `[N, 4, H, W]` (ln(1 + photo), h_z); wi, wo:
+    /// `[N, K, 3, H, W]` unit vectors -> ln(1 + R) `[N, K, 3, H, W]`.
+    /// `train` selects BatchNorm batch statistics.
+    pub fn forward_t(&self, est_input: &Tensor, wi: &Tensor, wo: &Tensor, train: bool) -> Result<Tensor> {
+        match &self.net {
+            BaselineNet::Analytic(a) => a.render_log_t(est_input, wi, wo, train),
+            BaselineNet::Relight(r) => r.forward_t(est_input, wi, wo, train),
+        }
+    }
+
+    /// Every variable (BatchNorm statistics included), sorted by name.
+    pub fn named_variables(&self) -> Vec<(String, Tensor)> {
+        let mut v: Vec<(String, Tensor)> = self.vs.variables().into_iter().collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v
+    }
+
+    /// Writes an exported baseline model: `net.*` weights, and in the
+    /// metadata the method, model id, width configuration and `info`.
+    /// `half` stores large weight tensors as f16 (as flashmat exports do).
+    pub fn save(&self, path: impl AsRef<Path>, info: &ModelInfo, half: bool) -> Result<()> {
+        let mut a = Archive { store_half: half, ..Archive::new() };
+        for (name, t) in self.named_variables() {
+            a.insert(name, &t);
+        }
+        a.set_meta(METHOD_KEY, self.method.name());
+        a.set_meta("model_id", self.model_id());
+        a.set_meta("config", self.config.to_toml_string()?);
+        a.set_meta("info", serde_json::to_string(info)?);
+        a.save(path.as_ref(), MODEL_FORMAT, MODEL_VERSION)
+    }
+
+    /// Reads a file written by [`Baseline::save`]. Flashmat model files,
+    /// damaged files and missing, extra or mis-shaped weights are refused
+    /// naming the file.
+    pub fn load(path: impl AsRef<Path>, device: Device) -> Result<(Self, ModelInfo)> {
+        let path = path.as_ref();
+        let ctx = || format!("model file {}", path.display());
+        let a = Archive::load(path, MODEL_FORMAT, MODEL_VERSION)?;
+        let method = match a.metadata.get(METHOD_KEY) {
+            Some(m) => TrainMethod::from_name(m).with_context(ctx)?,
+            None => TrainMethod::Flashmat,
+        };
+        ensure!(!method.is_flashmat(), "{} holds a flashmat model, not a baseline", ctx());
+        let cfg = ModelConfig::from_toml_str(a.meta("config").with_context(ctx)?).with_context(ctx)?;
+        let info: ModelInfo = serde_json::from_str(a.meta("info").with_context(ctx)?).with_context(ctx)?;
+        let b = Self::new(method, &cfg, device)?;
+        ensure!(a.meta("model_id").with_context(ctx)? == b.model_id(), "{}: model id does not match its configuration", ctx());
+        crate::archive::restore_vars(&b.vs.variables(), &a.with_prefix(""), &ctx())?;
+        Ok((b, info))
+    }
+}
+
+/// The method recorded in a model file's metadata, read from the
+/// safetensors header only (no weights). Files without the field are
+/// flashmat models. Files that are not readable model files give an error
+/// (callers may then let the full loader report it).
+pub fn file_method(path: &Path) -> Result<TrainMethod> {
+    let meta = read_header_metadata(path)?;
+    match meta.get("flashmat.format") {
+        Some(f) if f == MODEL_FORMAT => {}
+        _ => bail!("{} is not a flashmat model file", path.display()),
+    }
+    match meta.get(METHOD_KEY) {
+        Some(m) => TrainMethod::from_name(m).with_context(|| format!("model file {}", path.display())),
+        None => Ok(TrainMethod::Flashmat),
+    }
+}
+
+/// The `__metadata__` of a safetensors file's JSON header (8-byte
+/// little-endian length, then the header).
+pub fn read_header_metadata(path: &Path) -> Result<BTreeMap<String, String>> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut len = [0u8; 8];
+    f.read_exact(&mut len).with_context(|| format!("{}: too short for a model file", path.display()))?;
+    let len = u64::from_le_bytes(len);
+    ensure!(len <= 100_000_000, "{}: not a safetensors file", path.display());
+    let mut header = vec![0u8; len as usize];
+    f.read_exact(&mut header).with_context(|| format!("{}: truncated header", path.display()))?;
+    let v: serde_json::Value = serde_json::from_slice(&header).with_context(|| format!("{}: unreadable header", path.display()))?;
+    let meta = v.get("__metadata__").and_then(|m| m.as_object()).cloned().unwrap_or_default();
+    Ok(meta.into_iter().filter_map(|(k, v)| v.as_str().map(|s| (k, s.to_string()))).collect())
+}
+
+#[cfg(test)]
+mod tests;
