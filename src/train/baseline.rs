@@ -85,6 +85,7 @@ impl BaselineTrainer {
 
     fn update(&mut self, b: &TrainingBatch, lr: f64) -> Result<StepLosses> {
         let cfg = self.config.clone();
+        let weight_adv = cfg.adv_weight_at(self.step);
         let target_log = crate::spaces::to_log(&b.targets);
         let photo_log = b.est_input.narrow(1, 0, 3);
         let mut out = StepLosses::default();
@@ -92,8 +93,8 @@ impl BaselineTrainer {
         let pred = self.net.forward_t(&b.est_input, &b.out_wi, &b.out_wo, true)?;
         let l1 = (&pred - &target_log).abs().mean(Kind::Float);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
-        let adv = losses::adversarial(&self.disc, &pred, &photo_log, cfg.weight_adv)?;
-        let loss = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * cfg.weight_adv;
+        let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
+        let loss = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
         out.l1 = l1.double_value(&[]);
         out.l1_render = out.l1;
         out.lpips = lp.double_value(&[]);
@@ -110,9 +111,9 @@ impl BaselineTrainer {
             return Ok(StepLosses { skipped: true, ..out });
         }
         self.opt_disc.zero_grad();
-        let loss_disc = losses::discriminator_loss(&self.disc, &pred.detach(), &target_log, &photo_log, cfg.weight_adv)?;
+        let loss_disc = losses::discriminator_loss(&self.disc, &pred.detach(), &target_log, &photo_log, weight_adv)?;
         out.loss_disc = loss_disc.double_value(&[]);
-        if cfg.weight_adv > 0.0 {
+        if weight_adv > 0.0 {
             loss_disc.backward();
             if !(out.loss_disc.is_finite() && self.opt_disc.grad_norm().is_finite()) {
                 self.zero_all();
@@ -120,7 +121,7 @@ impl BaselineTrainer {
             }
         }
         self.opt_net.step(lr, cfg.grad_clip);
-        if cfg.weight_adv > 0.0 {
+        if weight_adv > 0.0 {
             self.opt_disc.step(lr, cfg.grad_clip);
         }
         self.zero_all();
