@@ -22,6 +22,11 @@ if [ ${#photos[@]} -eq 0 ]; then
     photos=(examples/photos/*.png examples/photos/*.jpg)
 fi
 
+# The bundled photos are already cropped to the material: no FOV crop,
+# unless the options say otherwise.
+fov=(--fov 28)
+for arg in "$@"; do [[ "$arg" == --fov* ]] && fov=(); done
+
 start=$SECONDS
 for photo in "${photos[@]}"; do
     [ -e "$photo" ] || continue
@@ -29,7 +34,7 @@ for photo in "${photos[@]}"; do
     dir=out/$name
     mkdir -p "$dir"
     echo "== $photo"
-    $FLASHMAT estimate "$photo" -o "$dir/material.nmat" "$@"
+    $FLASHMAT estimate "$photo" -o "$dir/material.nmat" "${fov[@]}" "$@"
     $FLASHMAT show "$dir/material.nmat" -o "$dir/grid.png"
     $FLASHMAT relight "$dir/material.nmat" --orbit "$FRAMES" -o "$dir/orbit.gif"
 done
