@@ -8,7 +8,7 @@
 //! moments, so a resumed run continues exactly.
 
 use super::adam::Adam;
-use super::{losses, StepLosses, TrainConfig};
+use super::{losses, trainable, StepLosses, TrainConfig};
 use crate::archive::{restore_vars, Archive};
 use crate::baselines::{Baseline, BaselineNet};
 use crate::data::samples::TrainingBatch;
@@ -31,10 +31,6 @@ pub struct BaselineTrainer {
     pub lpips: Option<Lpips>,
     /// Steps completed.
     pub step: u64,
-}
-
-fn trainable(vs: &nn::VarStore) -> std::collections::HashMap<String, Tensor> {
-    vs.variables().into_iter().filter(|(_, t)| t.requires_grad()).collect()
 }
 
 impl BaselineTrainer {
@@ -62,23 +58,14 @@ impl BaselineTrainer {
 
     /// BatchNorm running statistics of both networks.
     fn buffers(&self) -> Vec<Tensor> {
-        [&self.net.vs, &self.disc_vs].iter().flat_map(|vs| vs.variables().into_values().filter(|t| !t.requires_grad())).collect()
+        super::buffers_of(&[&self.net.vs, &self.disc_vs])
     }
 
     /// One step on a batch. A NaN/Inf loss or gradient skips every update
     /// of the step (and restores the BatchNorm statistics).
     pub fn train_step(&mut self, batch: &TrainingBatch) -> Result<StepLosses> {
         let lr = self.config.lr_at(self.step);
-        let buffers = self.buffers();
-        let saved: Vec<Tensor> = buffers.iter().map(|b| b.copy()).collect();
-        let out = self.update(batch, lr)?;
-        if out.skipped {
-            tch::no_grad(|| {
-                for (b, s) in buffers.iter().zip(&saved) {
-                    b.shallow_clone().copy_(s);
-                }
-            });
-        }
+        let out = super::restoring_buffers_if_skipped(self.buffers(), || self.update(batch, lr))?;
         self.step += 1;
         Ok(StepLosses { step: self.step, lr, ..out })
     }

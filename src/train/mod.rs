@@ -61,8 +61,30 @@ pub struct Trainer {
     pub step: u64,
 }
 
-fn trainable(vs: &nn::VarStore) -> std::collections::HashMap<String, Tensor> {
+/// Trainable variables of a store, by name (what an optimizer updates).
+pub(crate) fn trainable(vs: &nn::VarStore) -> std::collections::HashMap<String, Tensor> {
     vs.variables().into_iter().filter(|(_, t)| t.requires_grad()).collect()
+}
+
+/// Non-trainable state (BatchNorm running statistics) of the stores.
+pub(crate) fn buffers_of(stores: &[&nn::VarStore]) -> Vec<Tensor> {
+    stores.iter().flat_map(|vs| vs.variables().into_values().filter(|t| !t.requires_grad())).collect()
+}
+
+/// Runs one update. Forward passes in training mode update BatchNorm
+/// running statistics, so when the update reports a skipped (NaN/Inf) step
+/// `buffers` get their values from before it back: never poisoned.
+pub(crate) fn restoring_buffers_if_skipped(buffers: Vec<Tensor>, update: impl FnOnce() -> Result<StepLosses>) -> Result<StepLosses> {
+    let saved: Vec<Tensor> = buffers.iter().map(|b| b.copy()).collect();
+    let out = update()?;
+    if out.skipped {
+        tch::no_grad(|| {
+            for (b, s) in buffers.iter().zip(&saved) {
+                b.shallow_clone().copy_(s);
+            }
+        });
+    }
+    Ok(out)
 }
 
 impl Trainer {
@@ -93,32 +115,18 @@ impl Trainer {
     /// gradient skips every update of the step (logged, never saved).
     pub fn train_step(&mut self, batch: &TrainingBatch) -> Result<StepLosses> {
         let lr = self.config.lr_at(self.step);
-        // Forward passes in training mode update BatchNorm running statistics;
-        // a skipped (NaN/Inf) step must not leave them poisoned.
-        let buffers = self.buffers();
-        let saved: Vec<Tensor> = buffers.iter().map(|b| b.copy()).collect();
         let weight_adv = self.config.adv_weight_at(self.step);
-        let out = match self.config.scheme {
-            UpdateScheme::Alternating => self.alternating_step(batch, lr, weight_adv)?,
-            UpdateScheme::Combined => self.combined_step(batch, lr, weight_adv)?,
-        };
-        if out.skipped {
-            tch::no_grad(|| {
-                for (b, s) in buffers.iter().zip(&saved) {
-                    b.shallow_clone().copy_(s);
-                }
-            });
-        }
+        let out = restoring_buffers_if_skipped(self.buffers(), || match self.config.scheme {
+            UpdateScheme::Alternating => self.alternating_step(batch, lr, weight_adv),
+            UpdateScheme::Combined => self.combined_step(batch, lr, weight_adv),
+        })?;
         self.step += 1;
         Ok(StepLosses { step: self.step, lr, ..out })
     }
 
     /// Non-trainable state of all networks (BatchNorm running statistics).
     fn buffers(&self) -> Vec<Tensor> {
-        [&self.model.est_vs, &self.model.renderer_vs, &self.disc_vs]
-            .iter()
-            .flat_map(|vs| vs.variables().into_values().filter(|t| !t.requires_grad()))
-            .collect()
+        buffers_of(&[&self.model.est_vs, &self.model.renderer_vs, &self.disc_vs])
     }
 
     fn zero_all(&mut self) {
