@@ -17,7 +17,7 @@ use std::process::Command;
 const MATERIALS: [usize; 3] = [0, 7, 19];
 
 /// Largest accepted ratio of the model's error to the flat image's.
-const FLAT_RATIO_MAX: f64 = 2.5;
+const FLAT_RATIO_MAX: f64 = 2.2;
 
 /// A side light, well away from the co-located input configuration.
 const SIDE_LIGHT: [f64; 3] = [1.5, 1.0, 2.5];
@@ -95,10 +95,12 @@ fn check(ldr: bool, identity_max: f64, relit_max: f64) {
 
 #[test]
 fn bundled_hdr_model_round_trips_held_out_materials() {
-    check(false, 1.0, 1.0);
+    // Measured (1,875 steps): identity 0.0923, side light 0.0719.
+    check(false, 0.11, 0.085);
 }
 
 #[test]
 fn bundled_ldr_model_round_trips_held_out_materials() {
-    check(true, 1.0, 1.0);
+    // Measured (1,785 steps): identity 0.1065, side light 0.0841.
+    check(true, 0.125, 0.10);
 }
