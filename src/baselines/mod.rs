@@ -147,15 +147,7 @@ impl Baseline {
     /// metadata the method, model id, width configuration and `info`.
     /// `half` stores large weight tensors as f16 (as flashmat exports do).
     pub fn save(&self, path: impl AsRef<Path>, info: &ModelInfo, half: bool) -> Result<()> {
-        let mut a = Archive { store_half: half, ..Archive::new() };
-        for (name, t) in self.named_variables() {
-            a.insert(name, &t);
-        }
-        a.set_meta(METHOD_KEY, self.method.name());
-        a.set_meta("model_id", self.model_id());
-        a.set_meta("config", self.config.to_toml_string()?);
-        a.set_meta("info", serde_json::to_string(info)?);
-        a.save(path.as_ref(), MODEL_FORMAT, MODEL_VERSION)
+        crate::model::save_model_file(path.as_ref(), self.named_variables(), self.method.name(), &self.model_id(), &self.config, info, half)
     }
 
     /// Reads a file written by [`Baseline::save`]. Flashmat model files,

@@ -185,15 +185,7 @@ impl Model {
     /// exported-model format that `flashmat export` writes. `half` stores
     /// the large weight tensors as f16 ([`Archive::store_half`]).
     pub fn save(&self, path: impl AsRef<Path>, info: &ModelInfo, half: bool) -> Result<()> {
-        let mut a = Archive { store_half: half, ..Archive::new() };
-        for (name, t) in self.named_variables() {
-            a.insert(name, &t);
-        }
-        a.set_meta(crate::baselines::METHOD_KEY, crate::baselines::TrainMethod::Flashmat.name());
-        a.set_meta("model_id", self.model_id());
-        a.set_meta("config", self.config.to_toml_string()?);
-        a.set_meta("info", serde_json::to_string(info)?);
-        a.save(path.as_ref(), MODEL_FORMAT, MODEL_VERSION)
+        save_model_file(path.as_ref(), self.named_variables(), crate::baselines::TrainMethod::Flashmat.name(), &self.model_id(), &self.config, info, half)
     }
 
     /// Builds the model a file written by [`Model::save`] describes and
@@ -225,6 +217,21 @@ impl Model {
         );
         Ok((m, info))
     }
+}
+
+/// Writes an exported-model file (flashmat or baseline): the weights
+/// (large ones as f16 when `half`), the method, model id, configuration
+/// and `info` in the metadata.
+pub(crate) fn save_model_file(path: &Path, weights: Vec<(String, Tensor)>, method: &str, model_id: &str, config: &ModelConfig, info: &ModelInfo, half: bool) -> Result<()> {
+    let mut a = Archive { store_half: half, ..Archive::new() };
+    for (name, t) in weights {
+        a.insert(name, &t);
+    }
+    a.set_meta(crate::baselines::METHOD_KEY, method);
+    a.set_meta("model_id", model_id);
+    a.set_meta("config", config.to_toml_string()?);
+    a.set_meta("info", serde_json::to_string(info)?);
+    a.save(path, MODEL_FORMAT, MODEL_VERSION)
 }
 
 /// Format tag and version of exported model files.

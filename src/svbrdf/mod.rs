@@ -151,15 +151,7 @@ pub fn encode_normal(n: [f32; 3]) -> [f32; 3] {
 
 /// Decodes a `[3, H, W]` normal-map image (values in [0,1]) to unit normals.
 pub fn decode_normal_map(encoded: &Image) -> Image {
-    let mut out = encoded.clone();
-    let n = encoded.height * encoded.width;
-    for i in 0..n {
-        let d = decode_normal([encoded.data[i], encoded.data[n + i], encoded.data[2 * n + i]]);
-        for c in 0..3 {
-            out.data[c * n + i] = d[c];
-        }
-    }
-    out
+    renormalize_normals(&encoded.map(|c| 2.0 * c - 1.0))
 }
 
 /// Encodes unit normals `[3, H, W]` as a normal-map image in [0,1].
