@@ -3,6 +3,23 @@ use crate::data::procedural::{generate_family, Family};
 use crate::model::{Model, ModelConfig, ModelInfo};
 use crate::svbrdf::scalar::{add, normalize, sub};
 
+/// All three cases on 2 held-out materials at 32x32, 2 configurations.
+fn small_eval(models: Vec<String>, out: &std::path::Path) -> EvalOptions {
+    EvalOptions {
+        models,
+        dataset: PROCEDURAL_TEST.into(),
+        cases: vec![Sampling::Reflect, Sampling::Identity, Sampling::Hemisphere],
+        out: out.to_path_buf(),
+        size: 32,
+        seed: 1,
+        limit: Some(2),
+        configs: 2,
+        ldr_input: false,
+        device: Device::Cpu,
+        progress: false,
+    }
+}
+
 #[test]
 fn case_samplers_are_deterministic_and_follow_the_protocol() {
     for case in [Sampling::Reflect, Sampling::Identity, Sampling::Hemisphere] {
@@ -77,19 +94,7 @@ fn eval_end_to_end_on_two_materials() {
     let model_path = t.path().join("tiny.safetensors");
     Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(&model_path, &ModelInfo::default(), false).unwrap();
     let out = t.path().join("report");
-    let opts = EvalOptions {
-        models: vec![model_path.to_string_lossy().into_owned(), PRINTOUT.into()],
-        dataset: PROCEDURAL_TEST.into(),
-        cases: vec![Sampling::Reflect, Sampling::Identity, Sampling::Hemisphere],
-        out: out.clone(),
-        size: 32,
-        seed: 1,
-        limit: Some(2),
-        configs: 2,
-        ldr_input: false,
-        device: Device::Cpu,
-        progress: false,
-    };
+    let opts = small_eval(vec![model_path.to_string_lossy().into_owned(), PRINTOUT.into()], &out);
     let results = run(&opts).unwrap();
     assert_eq!(results.len(), 2);
     for name in ["tiny.csv", "printout.csv", "summary.md", "best.png", "worst.png", "grids.txt"] {
@@ -194,19 +199,7 @@ fn eval_scores_baseline_model_files() {
     Baseline::new(TrainMethod::RelightUnet, &ModelConfig::tiny(), Device::Cpu).unwrap().save(&relight, &info, false).unwrap();
     let out = t.path().join("report");
     let models = [&flashmat, &analytic, &relight].map(|p| p.to_string_lossy().into_owned());
-    let opts = EvalOptions {
-        models: vec![models[0].clone(), PRINTOUT.into(), models[1].clone(), models[2].clone()],
-        dataset: PROCEDURAL_TEST.into(),
-        cases: vec![Sampling::Reflect, Sampling::Identity, Sampling::Hemisphere],
-        out: out.clone(),
-        size: 32,
-        seed: 1,
-        limit: Some(2),
-        configs: 2,
-        ldr_input: false,
-        device: Device::Cpu,
-        progress: false,
-    };
+    let opts = small_eval(vec![models[0].clone(), PRINTOUT.into(), models[1].clone(), models[2].clone()], &out);
     let results = run(&opts).unwrap();
     let names: Vec<&str> = results.iter().map(|r| r.name.as_str()).collect();
     assert_eq!(names, ["flashmat", "printout", "analytic", "relight-unet"]);
