@@ -43,6 +43,7 @@ import numpy as np
 
 from .network import CoopVecNetwork, UnrolledNetwork, coopvec_available
 from .nmat import read_nmat, reference_log_radiance
+from .sampling import cosine_sampled_base
 
 INV_PI = 1.0 / math.pi
 MAX_LOG_RADIANCE = 80.0
@@ -90,7 +91,7 @@ def neural_brdf_class():
     if variant in _CLASSES:
         return _CLASSES[variant]
 
-    class NeuralBRDF(mi.BSDF):
+    class NeuralBRDF(cosine_sampled_base()):
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
             if "spectral" in mi.variant() or "mono" in mi.variant():
@@ -244,39 +245,6 @@ def neural_brdf_class():
             return dr.select(active, r * INV_PI, 0.0), active
 
         # ------------------------------------------------------------ BSDF API
-        def _enabled(self, ctx):
-            return ctx.is_enabled(mi.BSDFFlags.GlossyReflection, 0)
-
-        def eval(self, ctx, si, wo, active=True):
-            if not self._enabled(ctx):
-                return mi.Color3f(0.0)
-            value, _ = self._value(si, wo, active)
-            return value
-
-        def pdf(self, ctx, si, wo, active=True):
-            if not self._enabled(ctx):
-                return mi.Float(0.0)
-            ok = active & (mi.Frame3f.cos_theta(si.wi) > 0) & (mi.Frame3f.cos_theta(wo) > 0)
-            return dr.select(ok, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0)
-
-        def eval_pdf(self, ctx, si, wo, active=True):
-            return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
-
-        def sample(self, ctx, si, sample1, sample2, active=True):
-            bs = dr.zeros(mi.BSDFSample3f)
-            if not self._enabled(ctx):
-                return bs, mi.Color3f(0.0)
-            active = active & (mi.Frame3f.cos_theta(si.wi) > 0)
-            bs.wo = mi.warp.square_to_cosine_hemisphere(sample2)
-            bs.pdf = dr.select(active, mi.warp.square_to_cosine_hemisphere_pdf(bs.wo), 0.0)
-            bs.eta = 1.0
-            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyReflection)
-            bs.sampled_component = mi.UInt32(0)
-            value, ok = self._value(si, bs.wo, active)
-            ok = ok & (bs.pdf > 0)
-            weight = dr.select(ok, value / dr.select(ok, bs.pdf, 1.0), 0.0)
-            return bs, weight
-
         def traverse(self, callback):
             pass
 

@@ -128,6 +128,8 @@ def flashmat_ggx_class():
     import drjit as dr
     import mitsuba as mi
 
+    from .sampling import cosine_sampled_base
+
     variant = mi.variant()
     if variant is None:
         raise RuntimeError("flashmat_mitsuba: set a Mitsuba variant (mi.set_variant) first")
@@ -138,7 +140,7 @@ def flashmat_ggx_class():
         fr = mi.file_resolver() if hasattr(mi, "file_resolver") else mi.Thread.thread().file_resolver()
         return str(fr.resolve(path))
 
-    class FlashmatGGX(mi.BSDF):
+    class FlashmatGGX(cosine_sampled_base()):
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
             if "spectral" in mi.variant() or "mono" in mi.variant():
@@ -223,37 +225,6 @@ def flashmat_ggx_class():
             brdf = kd * (1.0 / math.pi) + f * (d * g / (4.0 * nol * nov + 1e-12))
             # eval = R / pi = f (n . wi)
             return dr.select(active, brdf * nol, 0.0), active
-
-        def _enabled(self, ctx):
-            return ctx.is_enabled(mi.BSDFFlags.GlossyReflection, 0)
-
-        def eval(self, ctx, si, wo, active=True):
-            if not self._enabled(ctx):
-                return mi.Color3f(0.0)
-            return self._value(si, wo, active)[0]
-
-        def pdf(self, ctx, si, wo, active=True):
-            if not self._enabled(ctx):
-                return mi.Float(0.0)
-            ok = active & (mi.Frame3f.cos_theta(si.wi) > 0) & (mi.Frame3f.cos_theta(wo) > 0)
-            return dr.select(ok, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0)
-
-        def eval_pdf(self, ctx, si, wo, active=True):
-            return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
-
-        def sample(self, ctx, si, sample1, sample2, active=True):
-            bs = dr.zeros(mi.BSDFSample3f)
-            if not self._enabled(ctx):
-                return bs, mi.Color3f(0.0)
-            active = active & (mi.Frame3f.cos_theta(si.wi) > 0)
-            bs.wo = mi.warp.square_to_cosine_hemisphere(sample2)
-            bs.pdf = dr.select(active, mi.warp.square_to_cosine_hemisphere_pdf(bs.wo), 0.0)
-            bs.eta = 1.0
-            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyReflection)
-            bs.sampled_component = mi.UInt32(0)
-            value, ok = self._value(si, bs.wo, active)
-            ok = ok & (bs.pdf > 0)
-            return bs, dr.select(ok, value / dr.select(ok, bs.pdf, 1.0), 0.0)
 
         def traverse(self, callback):
             pass
