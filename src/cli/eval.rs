@@ -1,7 +1,9 @@
 //! `flashmat eval`: scores models and the print-out baseline on held-out
 //! materials (work done in `crate::eval`).
 
+use crate::eval::shadows::ShadowEvalOptions;
 use crate::eval::{self, EvalOptions, DEFAULT_CONFIGS, PROCEDURAL_TEST};
+use crate::svbrdf::shadow::ShadowOptions;
 use crate::geometry::Sampling;
 use anyhow::Result;
 use clap::Args;
@@ -12,7 +14,7 @@ pub struct EvalArgs {
     /// A model file (flashmat export), or `printout` for the print-out baseline. Repeat to compare methods.
     #[arg(long = "model", value_name = "FILE|printout", required = true)]
     pub models: Vec<String>,
-    /// `procedural-test` (the 50 held-out procedural materials) or a dataset folder/strip file
+    /// `procedural-test` (the 50 held-out procedural materials), `procedural-test:I` (one of them) or a dataset folder/strip file
     /// (materials centre-cropped to a square and resized to --size).
     #[arg(long, default_value = PROCEDURAL_TEST)]
     pub dataset: String,
@@ -59,6 +61,61 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     eval::run(&opts)?;
     let summary = std::fs::read_to_string(args.output.join("summary.md"))?;
     println!("{summary}");
+    println!("wrote {}", args.output.display());
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct ShadowEvalArgs {
+    /// A model file (flashmat or baseline export), or `printout`. Repeat to compare methods.
+    #[arg(long = "model", value_name = "FILE|printout", required = true)]
+    pub models: Vec<String>,
+    /// `procedural-test`, `procedural-test:I` (one held-out material: the over-fitting experiment) or a dataset folder
+    /// (loaded maps get a height field integrated from their normals).
+    #[arg(long, default_value = PROCEDURAL_TEST)]
+    pub dataset: String,
+    /// Output folder: shadows.csv, summary.md, grid-NAME.png and photo-NAME.png of the most shadowed materials.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Resolution in pixels (a multiple of 8, at least 32).
+    #[arg(long, default_value_t = 256)]
+    pub size: usize,
+    /// Evaluate only the first N materials.
+    #[arg(long, value_name = "N")]
+    pub limit: Option<usize>,
+    /// Lights per material (elevations 20/30/45/60 degrees in turn, spread in azimuth).
+    #[arg(long, default_value_t = 8)]
+    pub lights: usize,
+    /// Multiplies the height fields (use the value the model was trained with).
+    #[arg(long, default_value_t = 1.0)]
+    pub height_scale: f64,
+    /// Grids of the N most shadowed materials.
+    #[arg(long, value_name = "N", default_value_t = 3)]
+    pub grids: usize,
+    /// Give the methods LDR photos (renders clamped to [0, 1]) instead of HDR ones.
+    #[arg(long)]
+    pub ldr_input: bool,
+    /// cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+}
+
+pub fn shadow_eval(args: &ShadowEvalArgs) -> Result<()> {
+    let opts = ShadowEvalOptions {
+        models: args.models.clone(),
+        dataset: args.dataset.clone(),
+        out: args.output.clone(),
+        size: args.size,
+        limit: args.limit,
+        lights: args.lights,
+        shadows: ShadowOptions { height_scale: args.height_scale, ..Default::default() },
+        ldr_input: args.ldr_input,
+        grids: args.grids,
+        device: super::train::parse_device(&args.device)?,
+        progress: true,
+    };
+    eval::shadows::run(&opts)?;
+    println!("{}", std::fs::read_to_string(args.output.join("summary.md"))?);
     println!("wrote {}", args.output.display());
     Ok(())
 }

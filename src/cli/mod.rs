@@ -40,6 +40,8 @@ pub enum Command {
     Show(infer::ShowArgs),
     /// Score models (flashmat and baseline model files) and the print-out baseline against GGX renders (Reflect / Identity / Hemisphere).
     Eval(eval::EvalArgs),
+    /// The shadows experiment: score models on shadowed GGX renders (height-field shadows) against the un-shadowed GGX of the true maps.
+    ShadowEval(eval::ShadowEvalArgs),
     /// Reference rows (pixel parameters, wi, wo, M_render output) of a neural material, as JSON.
     NmatRows(nmat_rows::NmatRowsArgs),
     /// Speed benchmarks (ratios against a baseline measured in the same run).
@@ -201,6 +203,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Train(a) => train::train(&a),
         Command::Export(a) => train::export(&a),
         Command::Eval(a) => eval::eval(&a),
+        Command::ShadowEval(a) => eval::shadow_eval(&a),
         Command::Bench(b) => bench::run(&b),
     }
 }

@@ -39,9 +39,12 @@ pub struct TrainArgs {
     /// Multiplies the height fields for --shadows.
     #[arg(long, default_value_t = 1.0, requires = "shadows")]
     pub height_scale: f64,
-    /// Training data: `procedural` or a dataset folder (MatFusion, per-material or INRIA strips).
+    /// Training data: `procedural`, `procedural-test:I` (only held-out material I: the shadow over-fitting experiment) or a dataset folder (MatFusion, per-material or INRIA strips)
     #[arg(long, default_value = "procedural")]
     pub data: String,
+    /// Fine-tune: start from the weights of this run folder's checkpoint (same model size; fresh optimizers, step 0).
+    #[arg(long, value_name = "RUN_DIR", conflicts_with = "resume")]
+    pub init_from: Option<PathBuf>,
     /// Total training steps (with --resume: the new total).
     #[arg(long)]
     pub steps: Option<u64>,
@@ -162,6 +165,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         ldr_input: a.ldr,
         shadows: a.shadows,
         height_scale: a.height_scale,
+        init_from: a.init_from.as_ref().map(|p| p.display().to_string()),
         lr: a.lr,
         pixel_sampling: a.pixel_sampling.unwrap_or(PixelSampling::InverseNorm),
         scheme: a.scheme.unwrap_or(UpdateScheme::Alternating),

@@ -255,6 +255,21 @@ pub fn test_seeds() -> Vec<u64> {
     (0..TEST_SET_SIZE as u64).map(|i| TEST_SEED_BASE + i).collect()
 }
 
+/// Prefix naming one held-out material: `procedural-test:I` is test material
+/// I (0-based), for single-material experiments (the shadow over-fit).
+pub const TEST_MATERIAL_PREFIX: &str = "procedural-test:";
+
+/// The test-material index of a `procedural-test:I` data name; `None` for
+/// other names, an error for a malformed or out-of-range index.
+pub fn parse_test_material(name: &str) -> anyhow::Result<Option<usize>> {
+    let Some(index) = name.strip_prefix(TEST_MATERIAL_PREFIX) else { return Ok(None) };
+    let i: usize = index
+        .parse()
+        .map_err(|_| anyhow::anyhow!("`{name}`: expected {TEST_MATERIAL_PREFIX}I with I a material index from 0 to {}", TEST_SET_SIZE - 1))?;
+    anyhow::ensure!(i < TEST_SET_SIZE, "`{name}`: the test set has materials 0 to {}", TEST_SET_SIZE - 1);
+    Ok(Some(i))
+}
+
 /// Whether `seed` belongs to the held-out test set.
 pub fn is_test_seed(seed: u64) -> bool {
     seed.wrapping_sub(TEST_SEED_BASE) < TEST_SET_SIZE as u64
@@ -436,6 +451,18 @@ mod tests {
 
     fn lum_mean(im: &Image) -> f32 {
         (mean(im.plane(0)) + mean(im.plane(1)) + mean(im.plane(2))) / 3.0
+    }
+
+    #[test]
+    fn test_material_names_parse_and_refuse_bad_indices() {
+        assert_eq!(parse_test_material("procedural-test:0").unwrap(), Some(0));
+        assert_eq!(parse_test_material("procedural-test:49").unwrap(), Some(49));
+        assert_eq!(parse_test_material("procedural-test").unwrap(), None);
+        assert_eq!(parse_test_material("procedural").unwrap(), None);
+        let err = parse_test_material("procedural-test:50").unwrap_err().to_string();
+        assert!(err.contains("0 to 49"), "{err}");
+        assert!(parse_test_material("procedural-test:x").is_err());
+        assert!(parse_test_material("procedural-test:-1").is_err());
     }
 
     #[test]

@@ -15,6 +15,7 @@ pub mod captures;
 pub mod methods;
 pub mod metrics;
 pub mod report;
+pub mod shadows;
 
 pub use methods::{open_methods, open_model_file, AnalyticMethod, Method, ModelMethod, PrintoutMethod, RelightMethod, PRINTOUT};
 pub use metrics::{mean_ci95, mean_scores, score_renders, Scores, PSNR_CAP_DB};
@@ -89,7 +90,8 @@ pub fn case_configs(case: Sampling, seed: u64, material: usize, count: usize) ->
 pub struct EvalOptions {
     /// Model files, or `printout`.
     pub models: Vec<String>,
-    /// `procedural-test` or a dataset folder/file `open_dataset` reads.
+    /// `procedural-test`, `procedural-test:I` (one of its materials) or a
+    /// dataset folder/file `open_dataset` reads.
     pub dataset: String,
     pub cases: Vec<Sampling>,
     pub out: PathBuf,
@@ -128,6 +130,10 @@ pub fn load_materials(dataset: &str, size: usize, limit: Option<usize>) -> Resul
         let n = limit.unwrap_or(seeds.len()).min(seeds.len());
         let mats = procedural::generate_many(&seeds[..n], size);
         return Ok(mats.into_iter().enumerate().map(|(i, m)| (format!("test{i:02}"), m)).collect());
+    }
+    if let Some(i) = procedural::parse_test_material(dataset)? {
+        let m = procedural::generate_many(&[procedural::test_seeds()[i]], size).remove(0);
+        return Ok(vec![(format!("test{i:02}"), m)]);
     }
     let ds = open_dataset(Path::new(dataset))?;
     let n = limit.unwrap_or(ds.len()).min(ds.len());

@@ -24,6 +24,8 @@ pub fn step_rng(seed: u64, step: u64, stream: u64) -> Pcg64 {
 #[derive(Clone)]
 pub enum MaterialStream {
     Procedural { size: usize },
+    /// One held-out material (`procedural-test:I`): the over-fitting experiment.
+    Single(Arc<Svbrdf>),
     Dataset(Arc<dyn SvbrdfSource>),
 }
 
@@ -31,6 +33,9 @@ impl MaterialStream {
     pub fn open(cfg: &TrainConfig) -> Result<Self> {
         if cfg.data == "procedural" {
             Ok(Self::Procedural { size: cfg.material_size })
+        } else if let Some(index) = procedural::parse_test_material(&cfg.data)? {
+            let seed = procedural::test_seeds()[index];
+            Ok(Self::Single(Arc::new(procedural::generate_many(&[seed], cfg.material_size).remove(0))))
         } else {
             let ds = open_dataset(std::path::Path::new(&cfg.data))?;
             anyhow::ensure!(ds.len() > 0, "dataset {} holds no materials", cfg.data);
@@ -47,6 +52,7 @@ impl MaterialStream {
                 let seeds: Vec<u64> = (0..n).map(|i| procedural::training_seed(step * n + i)).collect();
                 procedural::generate_many(&seeds, *size)
             }
+            Self::Single(m) => vec![m.as_ref().clone(); n as usize],
             Self::Dataset(ds) => (0..n).map(|_| ds.load(rng.random_range(0..ds.len()))).collect::<Result<_>>()?,
         };
         // Loaded maps have no height field: integrate the whole material

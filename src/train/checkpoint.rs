@@ -34,6 +34,21 @@ impl Trainer {
         serde_json::from_str(a.meta("train_config")?).with_context(|| format!("{}: unreadable training configuration", path.display()))
     }
 
+    /// Fine-tuning: replaces every network's weights (BatchNorm statistics
+    /// included) with those of another run's checkpoint of the same model.
+    /// The optimizers and the step stay fresh.
+    pub fn load_weights_from(&mut self, path: &Path) -> Result<()> {
+        let a = Archive::load(path, FORMAT, VERSION)?;
+        let theirs = a.meta("model_id")?;
+        if theirs != self.model.model_id() {
+            bail!("{}: weights of model '{theirs}' cannot start a '{}' run (another preset or configuration)", path.display(), self.model.model_id());
+        }
+        let ctx = |what: &str| format!("{}: {what}", path.display());
+        restore_vars(&self.model.est_vs.variables(), &a.with_prefix("est/"), &ctx("M_est"))?;
+        restore_vars(&self.model.renderer_vs.variables(), &a.with_prefix("renderer/"), &ctx("renderer"))?;
+        restore_vars(&self.disc_vs.variables(), &a.with_prefix("disc/"), &ctx("discriminator"))
+    }
+
     /// Rebuilds a trainer from a checkpoint. `expect` (when given) must
     /// describe the same model, otherwise the checkpoint is refused.
     pub fn resume(path: &Path, device: Device, expect: Option<&TrainConfig>) -> Result<Self> {

@@ -50,6 +50,10 @@ pub struct TrainConfig {
     /// Multiplies the height fields for shadows.
     #[serde(default = "unit_height_scale")]
     pub height_scale: f64,
+    /// Run folder whose checkpoint gave the starting weights (fine-tuning;
+    /// flashmat only). `None`: fresh networks from the seed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub init_from: Option<String>,
     pub lr: f64,
     /// Multiplicative learning-rate decay applied every `lr_decay_every` steps (paper: 1.5% per 20,000).
     pub lr_decay: f64,
@@ -100,6 +104,7 @@ impl Default for TrainConfig {
             ldr_input: false,
             shadows: false,
             height_scale: 1.0,
+            init_from: None,
             lr: 1e-4,
             lr_decay: 0.985,
             lr_decay_every: 20_000,

@@ -145,7 +145,12 @@ impl RunTrainer for Trainer {
         preview_grid(self, batch, max_outputs)
     }
     fn create(config: TrainConfig, device: Device) -> Result<Self> {
-        Trainer::new(config, device)
+        let init = config.init_from.clone();
+        let mut t = Trainer::new(config, device)?;
+        if let Some(run) = init {
+            t.load_weights_from(&checkpoint_path(Path::new(&run)))?;
+        }
+        Ok(t)
     }
     fn resume_from(path: &Path, device: Device) -> Result<Self> {
         Trainer::resume(path, device, None)
@@ -172,6 +177,7 @@ impl RunTrainer for BaselineTrainer {
         BaselineTrainer::preview_grid(self, batch, max_outputs)
     }
     fn create(config: TrainConfig, device: Device) -> Result<Self> {
+        anyhow::ensure!(config.init_from.is_none(), "--init-from only applies to --method flashmat");
         BaselineTrainer::new(config, device)
     }
     fn resume_from(path: &Path, device: Device) -> Result<Self> {

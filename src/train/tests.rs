@@ -8,6 +8,7 @@ use crate::geometry::Sampling;
 use crate::model::ModelConfig;
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
+use std::path::Path;
 
 fn tiny_config() -> TrainConfig {
     TrainConfig {
@@ -128,6 +129,42 @@ fn interrupted_and_resumed_run_equals_straight_run() {
     let steps: Vec<u64> = run::read_log(&dir.path().join("b")).iter().map(|l| l.step).collect();
     assert_eq!(steps, vec![1, 2, 3, 4, 5, 6]);
     assert!(dir.path().join("b").join("losses.png").exists());
+}
+
+#[test]
+fn init_from_starts_a_new_run_from_another_runs_weights() {
+    let dir = tempfile::tempdir().unwrap();
+    let opts = |name: &str| RunOptions { run_dir: dir.path().join(name), device: tch::Device::Cpu, max_steps_this_run: None, progress: false };
+    let base = TrainConfig { steps: 2, weight_lpips: 0.0, ..tiny_config() };
+    let pretrained = run::start(base.clone(), &opts("pretrained")).unwrap();
+    let source = dir.path().join("pretrained").display().to_string();
+
+    // Fresh networks from another seed, then the pretrained weights: equal to them, step 0.
+    let mut tuned = Trainer::new(TrainConfig { seed: 77, shadows: true, ..base.clone() }, tch::Device::Cpu).unwrap();
+    let differs = all_weights(&tuned).iter().zip(all_weights(&pretrained)).any(|((_, a), (_, b))| (a - &b).abs().max().double_value(&[]) > 0.0);
+    assert!(differs, "seed 77 should start from other weights");
+    tuned.load_weights_from(&checkpoint_path(Path::new(&source))).unwrap();
+    assert_eq!(tuned.step, 0);
+    for ((na, a), (nb, b)) in all_weights(&tuned).iter().zip(all_weights(&pretrained)) {
+        assert_eq!(na, &nb);
+        assert_eq!((a - &b).abs().max().double_value(&[]), 0.0, "{na}");
+    }
+
+    // Through a run: the configuration records where the weights came from.
+    let fine = run::start(TrainConfig { steps: 1, init_from: Some(source.clone()), ..base.clone() }, &opts("fine")).unwrap();
+    assert_eq!(fine.step, 1);
+    let saved = Trainer::checkpoint_config(&checkpoint_path(&dir.path().join("fine"))).unwrap();
+    assert_eq!(saved.init_from.as_deref(), Some(source.as_str()));
+
+    // Another model size, a missing run and a baseline are refused.
+    let mut other = Trainer::new(TrainConfig { model: ModelConfig { est_width: 4, ..ModelConfig::tiny() }, ..base.clone() }, tch::Device::Cpu).unwrap();
+    let e = other.load_weights_from(&checkpoint_path(Path::new(&source))).unwrap_err();
+    assert!(format!("{e:#}").contains("cannot start"), "{e:#}");
+    let missing = TrainConfig { init_from: Some(dir.path().join("nowhere").display().to_string()), ..base.clone() };
+    assert!(run::start(missing, &opts("missing")).is_err());
+    let baseline = TrainConfig { method: crate::baselines::TrainMethod::Analytic, init_from: Some(source), ..base };
+    let e = run::start_baseline(baseline, &opts("baseline")).err().unwrap();
+    assert!(format!("{e:#}").contains("--init-from only applies"), "{e:#}");
 }
 
 #[test]
