@@ -405,22 +405,27 @@ mod tests {
         assert_eq!(shadow_ratios(&u, &u, &v.ones_like()), None);
     }
 
-    #[test]
-    fn flat_materials_cast_no_shadow_and_the_unshadowed_ggx_row_is_exact() {
-        let dir = tempfile::tempdir().unwrap();
-        let opts = ShadowEvalOptions {
+    /// The print-out baseline on one held-out material at 32x32, 4 lights.
+    fn small_options(dataset: &str, height_scale: f64, out: &std::path::Path) -> ShadowEvalOptions {
+        ShadowEvalOptions {
             models: vec!["printout".into()],
-            dataset: "procedural-test:38".into(),
-            out: dir.path().to_path_buf(),
+            dataset: dataset.into(),
+            out: out.to_path_buf(),
             size: 32,
             limit: None,
             lights: 4,
-            shadows: ShadowOptions { height_scale: 4.0, ..Default::default() },
+            shadows: ShadowOptions { height_scale, ..Default::default() },
             ldr_input: false,
             grids: 1,
             device: Device::Cpu,
             progress: false,
-        };
+        }
+    }
+
+    #[test]
+    fn flat_materials_cast_no_shadow_and_the_unshadowed_ggx_row_is_exact() {
+        let dir = tempfile::tempdir().unwrap();
+        let opts = small_options("procedural-test:38", 4.0, dir.path());
         let rows = run(&opts).unwrap();
         assert_eq!(rows.len(), 2 * 4);
         let ggx: Vec<&ShadowRow> = rows.iter().filter(|r| r.method == GGX_UNSHADOWED).collect();
@@ -451,19 +456,7 @@ mod tests {
     #[test]
     fn bad_options_are_refused_with_one_line() {
         let dir = tempfile::tempdir().unwrap();
-        let base = ShadowEvalOptions {
-            models: vec!["printout".into()],
-            dataset: "procedural-test:51".into(),
-            out: dir.path().to_path_buf(),
-            size: 32,
-            limit: None,
-            lights: 4,
-            shadows: ShadowOptions::default(),
-            ldr_input: false,
-            grids: 0,
-            device: Device::Cpu,
-            progress: false,
-        };
+        let base = small_options("procedural-test:51", 1.0, dir.path());
         let err = |o: ShadowEvalOptions| format!("{:#}", run(&o).unwrap_err());
         assert!(err(base.clone()).contains("0 to 49"));
         assert!(err(ShadowEvalOptions { lights: 0, ..base.clone() }).contains("--lights"));

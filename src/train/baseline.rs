@@ -8,7 +8,7 @@
 //! moments, so a resumed run continues exactly.
 
 use super::adam::Adam;
-use super::{losses, trainable, StepLosses, TrainConfig};
+use super::{trainable, StepLosses, TrainConfig};
 use crate::archive::{restore_vars, Archive};
 use crate::baselines::{Baseline, BaselineNet};
 use crate::data::samples::TrainingBatch;
@@ -17,7 +17,7 @@ use crate::lpips::Lpips;
 use crate::model::Discriminator;
 use anyhow::{bail, ensure, Context, Result};
 use std::path::Path;
-use tch::{nn, Device, Kind, Tensor};
+use tch::{nn, Device, Tensor};
 
 /// A baseline network, the discriminator, their optimizers and the
 /// perceptual metric.
@@ -75,44 +75,10 @@ impl BaselineTrainer {
         let weight_adv = cfg.adv_weight_at(self.step);
         let target_log = crate::spaces::to_log(&b.targets);
         let photo_log = b.est_input.narrow(1, 0, 3);
-        let mut out = StepLosses::default();
         self.zero_all();
         let pred = self.net.forward_t(&b.est_input, &b.out_wi, &b.out_wo, true)?;
-        let l1 = (&pred - &target_log).abs().mean(Kind::Float);
-        let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
-        let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
-        let loss = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
-        out.l1 = l1.double_value(&[]);
-        out.l1_render = out.l1;
-        out.lpips = lp.double_value(&[]);
-        out.adv = adv.double_value(&[]);
-        out.loss_est = loss.double_value(&[]);
-        out.loss_render = out.loss_est;
-        if !out.loss_est.is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
-        }
-        loss.backward();
-        if !self.opt_net.grad_norm().is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
-        }
-        self.opt_disc.zero_grad();
-        let loss_disc = losses::discriminator_loss(&self.disc, &pred.detach(), &target_log, &photo_log, weight_adv)?;
-        out.loss_disc = loss_disc.double_value(&[]);
-        if weight_adv > 0.0 {
-            loss_disc.backward();
-            if !(out.loss_disc.is_finite() && self.opt_disc.grad_norm().is_finite()) {
-                self.zero_all();
-                return Ok(StepLosses { skipped: true, ..out });
-            }
-        }
-        self.opt_net.step(lr, cfg.grad_clip);
-        if weight_adv > 0.0 {
-            self.opt_disc.step(lr, cfg.grad_clip);
-        }
-        self.zero_all();
-        Ok(out)
+        let mut nets = [&mut self.opt_net];
+        super::combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv)
     }
 
     /// Writes a checkpoint (same archive format as flashmat's, with the

@@ -222,48 +222,75 @@ impl Trainer {
         let cfg = self.config.clone();
         let target_log = crate::spaces::to_log(&b.targets);
         let photo_log = b.est_input.narrow(1, 0, 3);
-        let mut out = StepLosses::default();
         self.zero_all();
         let neural = self.model.est.forward_t(&b.est_input, true)?;
         let pred = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
-        let l1 = (&pred - &target_log).abs().mean(tch::Kind::Float);
-        let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
-        let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
-        let loss = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
-        out.l1 = l1.double_value(&[]);
-        out.l1_render = out.l1;
-        out.lpips = lp.double_value(&[]);
-        out.adv = adv.double_value(&[]);
-        out.loss_est = loss.double_value(&[]);
-        out.loss_render = out.loss_est;
-        out.param_norm = losses::mean_param_norm(&neural);
-        if !out.loss_est.is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
-        }
-        loss.backward();
-        if !(self.opt_est.grad_norm().is_finite() && self.opt_render.grad_norm().is_finite()) {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
-        }
-        self.opt_disc.zero_grad();
-        let loss_disc = losses::discriminator_loss(&self.disc, &pred.detach(), &target_log, &photo_log, weight_adv)?;
-        out.loss_disc = loss_disc.double_value(&[]);
-        if weight_adv > 0.0 {
-            loss_disc.backward();
-            if !(out.loss_disc.is_finite() && self.opt_disc.grad_norm().is_finite()) {
-                self.zero_all();
-                return Ok(StepLosses { skipped: true, ..out });
-            }
-        }
-        self.opt_est.step(lr, cfg.grad_clip);
-        self.opt_render.step(lr, cfg.grad_clip);
-        if weight_adv > 0.0 {
-            self.opt_disc.step(lr, cfg.grad_clip);
-        }
-        self.zero_all();
-        Ok(out)
+        let param_norm = losses::mean_param_norm(&neural);
+        let mut nets = [&mut self.opt_est, &mut self.opt_render];
+        let out = combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv)?;
+        Ok(StepLosses { param_norm, ..out })
     }
+}
+
+/// The update shared by one-pass training (flashmat's combined scheme and
+/// the baselines): the paper's three loss terms on `pred`, one backward
+/// pass into the networks of `nets`, the discriminator's least-squares
+/// step on the detached prediction, then every optimizer step. A NaN/Inf
+/// loss or gradient clears all gradients and returns `skipped` without
+/// stepping. The caller zeroes the gradients before its forward pass.
+/// pred, target_log: `[B*K, 3, H, W]` log renders; photo_log: `[B, 3, H, W]`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn combined_update(
+    cfg: &TrainConfig,
+    lpips: Option<&Lpips>,
+    disc: &Discriminator,
+    nets: &mut [&mut Adam],
+    opt_disc: &mut Adam,
+    pred: &Tensor,
+    target_log: &Tensor,
+    photo_log: &Tensor,
+    lr: f64,
+    weight_adv: f64,
+) -> Result<StepLosses> {
+    let mut out = StepLosses::default();
+    let l1 = (pred - target_log).abs().mean(tch::Kind::Float);
+    let lp = losses::perceptual(lpips, pred, target_log)?;
+    let adv = losses::adversarial(disc, pred, photo_log, weight_adv)?;
+    let loss = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
+    out.l1 = l1.double_value(&[]);
+    out.l1_render = out.l1;
+    out.lpips = lp.double_value(&[]);
+    out.adv = adv.double_value(&[]);
+    out.loss_est = loss.double_value(&[]);
+    out.loss_render = out.loss_est;
+    let skip = |nets: &mut [&mut Adam], opt_disc: &mut Adam, out: StepLosses| {
+        nets.iter_mut().for_each(|o| o.zero_grad());
+        opt_disc.zero_grad();
+        Ok(StepLosses { skipped: true, ..out })
+    };
+    if !out.loss_est.is_finite() {
+        return skip(nets, opt_disc, out);
+    }
+    loss.backward();
+    if !nets.iter().all(|o| o.grad_norm().is_finite()) {
+        return skip(nets, opt_disc, out);
+    }
+    opt_disc.zero_grad();
+    let loss_disc = losses::discriminator_loss(disc, &pred.detach(), target_log, photo_log, weight_adv)?;
+    out.loss_disc = loss_disc.double_value(&[]);
+    if weight_adv > 0.0 {
+        loss_disc.backward();
+        if !(out.loss_disc.is_finite() && opt_disc.grad_norm().is_finite()) {
+            return skip(nets, opt_disc, out);
+        }
+    }
+    nets.iter_mut().for_each(|o| o.step(lr, cfg.grad_clip));
+    if weight_adv > 0.0 {
+        opt_disc.step(lr, cfg.grad_clip);
+    }
+    nets.iter_mut().for_each(|o| o.zero_grad());
+    opt_disc.zero_grad();
+    Ok(out)
 }
 
 #[cfg(test)]

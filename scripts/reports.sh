@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Regenerates the evaluation reports in reports/ from the committed model
+# files (models/): the paper's table with the baselines and the LDR vs HDR
+# ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
+# Deterministic: the same models give the same numbers.
+# Usage: scripts/reports.sh [CONFIGS]   (configurations per material for
+#        Reflect and Hemisphere; the committed reports use 16, the paper 128)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+source scripts/env.sh
+cargo build --release --quiet
+FLASHMAT=target/release/flashmat
+CONFIGS=${1:-16}
+M=models
+
+# The table: every method on HDR photos of the 50 held-out materials.
+$FLASHMAT eval --model $M/compact-hdr.safetensors --model $M/compact-ldr.safetensors \
+    --model $M/baseline-analytic.safetensors --model $M/baseline-relight-unet.safetensors --model printout \
+    --dataset procedural-test --configs "$CONFIGS" -o reports/eval-hdr-inputs
+# The ablation's other half: the same photos clamped to [0, 1] (8-bit-like).
+$FLASHMAT eval --model $M/compact-hdr.safetensors --model $M/compact-ldr.safetensors --model printout \
+    --dataset procedural-test --configs "$CONFIGS" --ldr-input -o reports/eval-ldr-inputs
+
+# Shadows: the over-fitted material, then the held-out distribution.
+$FLASHMAT shadow-eval --model $M/experiments/shadow-overfit-test38.safetensors --model $M/compact-hdr.safetensors \
+    --dataset procedural-test:38 --height-scale 2 --grids 1 -o reports/shadows-overfit
+$FLASHMAT shadow-eval --model $M/experiments/shadow-distribution.safetensors --model $M/compact-hdr.safetensors \
+    --dataset procedural-test --height-scale 2 --grids 3 -o reports/shadows-distribution
