@@ -315,7 +315,7 @@ pub fn run(opts: &ShadowEvalOptions) -> Result<Vec<ShadowRow>> {
     std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;
     let configs = shadow_configs(opts.lights);
 
-    // The most shadowed materials get grids: rank by the light removed.
+    // The most shadowed materials get grids: rank by the mean shadowed fraction of pixels over the lights.
     let mut shadow_amount: Vec<(f64, usize)> = materials
         .iter()
         .enumerate()
