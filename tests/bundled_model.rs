@@ -104,3 +104,24 @@ fn bundled_ldr_model_round_trips_held_out_materials() {
     // Measured (1,785 steps): identity 0.1065, side light 0.0841.
     check(true, 0.125, 0.10);
 }
+
+/// The committed models of the evaluation and the shadows experiment open
+/// as the method, model and step count their recipes (models/MODEL.md) say.
+#[test]
+fn committed_evaluation_models_record_their_method_and_steps() {
+    use flashmat::baselines::{read_header_metadata, METHOD_KEY};
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
+    for (file, method, steps) in [
+        ("baseline-analytic.safetensors", "analytic", "1875"),
+        ("baseline-relight-unet.safetensors", "relight-unet", "1875"),
+        ("experiments/shadow-overfit-test38.safetensors", "flashmat", "300"),
+        ("experiments/shadow-distribution.safetensors", "flashmat", "300"),
+    ] {
+        let meta = read_header_metadata(&root.join(file)).unwrap();
+        assert_eq!(meta.get(METHOD_KEY).map(String::as_str), Some(method), "{file}: {meta:?}");
+        let info = meta.get("info").cloned().unwrap_or_default();
+        assert!(info.contains(&format!("\"steps\":{steps}")) && info.contains("\"ldr_input\":false"), "{file}: {info}");
+        let opened = flashmat::eval::open_model_file(&root.join(file), "m".into(), false, tch::Device::Cpu).unwrap();
+        assert_eq!(opened.name(), "m");
+    }
+}
