@@ -239,10 +239,12 @@ fn start_with<T: RunTrainer>(config: TrainConfig, opts: &RunOptions) -> Result<T
     if ckpt.exists() {
         anyhow::bail!("{} already holds a run; continue it with `flashmat train --resume {}`", opts.run_dir.display(), opts.run_dir.display());
     }
-    std::fs::create_dir_all(opts.run_dir.join("previews")).with_context(|| format!("cannot create run folder {}", opts.run_dir.display()))?;
-    crate::io::atomic_write_bytes(&opts.run_dir.join("config.json"), serde_json::to_string_pretty(&config)?.as_bytes())?;
-    let _ = std::fs::remove_file(log_path(&opts.run_dir));
+    // Networks first: a refused configuration (bad --init-from) leaves no run folder behind.
+    let config_json = serde_json::to_string_pretty(&config)?;
     let trainer = T::create(config, opts.device)?;
+    std::fs::create_dir_all(opts.run_dir.join("previews")).with_context(|| format!("cannot create run folder {}", opts.run_dir.display()))?;
+    crate::io::atomic_write_bytes(&opts.run_dir.join("config.json"), config_json.as_bytes())?;
+    let _ = std::fs::remove_file(log_path(&opts.run_dir));
     train_loop(trainer, opts)
 }
 

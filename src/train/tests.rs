@@ -162,6 +162,7 @@ fn init_from_starts_a_new_run_from_another_runs_weights() {
     assert!(format!("{e:#}").contains("cannot start"), "{e:#}");
     let missing = TrainConfig { init_from: Some(dir.path().join("nowhere").display().to_string()), ..base.clone() };
     assert!(run::start(missing, &opts("missing")).is_err());
+    assert!(!dir.path().join("missing").exists(), "a refused start must not leave a run folder");
     let baseline = TrainConfig { method: crate::baselines::TrainMethod::Analytic, init_from: Some(source), ..base };
     let e = run::start_baseline(baseline, &opts("baseline")).err().unwrap();
     assert!(format!("{e:#}").contains("--init-from only applies"), "{e:#}");
