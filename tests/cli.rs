@@ -137,6 +137,39 @@ fn bad_inputs_give_one_clear_line() {
 }
 
 #[test]
+fn synthetic_captures_then_eval_captures() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = dir.path().join("capture");
+    let out = flashmat(&["svbrdf", "captures", "--svbrdf", "procedural:3", "--size", "64", "--photos", "4", "--sample-width", "12", "-o", cap.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // Positions in units of the 12-wide sample: the overhead camera at the
+    // model's 4.010781 half-widths, times 6 = 24.064686.
+    let cams = std::fs::read_to_string(cap.join("camera_pos.txt")).unwrap();
+    assert_eq!(cams.lines().count(), 4);
+    assert_eq!(cams.lines().next().unwrap(), "0.000000,0.000000,24.064686");
+    assert_eq!(std::fs::read_to_string(cap.join("image_size.txt")).unwrap().trim(), "12");
+
+    let report = dir.path().join("report");
+    let out = flashmat(&["eval", "--model", "printout", "--captures", cap.to_str().unwrap(), "--size", "64", "-o", report.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("Scored on the other 3 photos at 64x64"), "{stdout}");
+    for f in ["captures.csv", "summary.md", "grid.png", "grid.txt"] {
+        assert!(report.join(f).exists(), "{f}");
+    }
+    no_temp_files(&report);
+
+    // Bad inputs: one line each; eval-table options are usage errors with --captures.
+    assert_error(&flashmat(&["svbrdf", "captures", "--svbrdf", "procedural:3", "--photos", "1", "-o", cap.to_str().unwrap()]), &["--photos"]);
+    let nowhere = dir.path().join("nowhere");
+    assert_error(&flashmat(&["eval", "--model", "printout", "--captures", nowhere.to_str().unwrap(), "-o", report.to_str().unwrap()]), &["nowhere", "does not exist"]);
+    std::fs::remove_file(cap.join("light_pos.txt")).unwrap();
+    assert_error(&flashmat(&["eval", "--model", "printout", "--captures", cap.to_str().unwrap(), "-o", report.to_str().unwrap()]), &["light_pos.txt"]);
+    let out = flashmat(&["eval", "--model", "printout", "--captures", cap.to_str().unwrap(), "--cases", "identity", "-o", report.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(2));
+}
+
+#[test]
 fn baselines_train_resume_export_and_eval() {
     let dir = tempfile::tempdir().unwrap();
     let s = |p: &Path| p.to_str().unwrap().to_owned();

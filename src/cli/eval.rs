@@ -1,6 +1,7 @@
 //! `flashmat eval`: scores models and the print-out baseline on held-out
 //! materials (work done in `crate::eval`).
 
+use crate::eval::captures::CaptureEvalOptions;
 use crate::eval::shadows::ShadowEvalOptions;
 use crate::eval::{self, EvalOptions, DEFAULT_CONFIGS, PROCEDURAL_TEST};
 use crate::svbrdf::shadow::ShadowOptions;
@@ -18,13 +19,19 @@ pub struct EvalArgs {
     /// (materials centre-cropped to a square and resized to --size).
     #[arg(long, default_value = PROCEDURAL_TEST)]
     pub dataset: String,
+    /// Score on real captures instead: a folder of photos NN.png of one flat material with camera_pos.txt, light_pos.txt
+    /// (x,y,z per photo, origin at the sample centre) and image_size.txt (the sample's width, the positions' unit).
+    /// Estimates from the photo nearest overhead, re-renders the others (1/r^2 fall-off compensated), LPIPS on display images.
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["dataset", "cases", "seed", "limit", "configs", "ldr_input"])]
+    pub captures: Option<PathBuf>,
     /// Cases of the paper's table, comma-separated.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "reflect,identity,hemisphere")]
     pub cases: Vec<Sampling>,
-    /// Output folder: NAME.csv per method, summary.md, best.png, worst.png, grids.txt.
+    /// Output folder: NAME.csv per method, summary.md, best.png, worst.png, grids.txt
+    /// (with --captures: captures.csv, summary.md, grid.png, grid.txt).
     #[arg(short, long)]
     pub output: PathBuf,
-    /// Resolution in pixels (a multiple of 8, at least 32).
+    /// Resolution in pixels (a multiple of 8, at least 32; capture photos are resized to it).
     #[arg(long, default_value_t = 256)]
     pub size: usize,
     /// Seed of the light/view configurations (fixed per material and case).
@@ -45,6 +52,20 @@ pub struct EvalArgs {
 }
 
 pub fn eval(args: &EvalArgs) -> Result<()> {
+    if let Some(dir) = &args.captures {
+        let opts = CaptureEvalOptions {
+            models: args.models.clone(),
+            dir: dir.clone(),
+            out: args.output.clone(),
+            size: args.size,
+            device: super::train::parse_device(&args.device)?,
+            progress: true,
+        };
+        eval::captures::run(&opts)?;
+        println!("{}", std::fs::read_to_string(args.output.join("summary.md"))?);
+        println!("wrote {}", args.output.display());
+        return Ok(());
+    }
     let opts = EvalOptions {
         models: args.models.clone(),
         dataset: args.dataset.clone(),

@@ -1,6 +1,6 @@
 //! `flashmat render` and `flashmat svbrdf generate|preview`.
 
-use super::{light_view, prepare_output, GenerateArgs, MaterialArgs, PreviewArgs, RenderArgs, Renderer};
+use super::{light_view, prepare_output, CapturesArgs, GenerateArgs, MaterialArgs, PreviewArgs, RenderArgs, Renderer};
 use crate::data::loaders::{open_dataset, write_material_dir, write_matfusion};
 use crate::data::procedural::{self, Family, ProceduralConfig};
 use crate::geometry::LightView;
@@ -130,5 +130,20 @@ pub fn preview(args: &PreviewArgs) -> Result<()> {
     let grid = crate::viz::grid(&rows, 4)?;
     crate::io::write_png(&args.output, &grid, crate::io::BitDepth::Eight)?;
     eprintln!("wrote {} ({} materials: diffuse | specular | roughness | normals | co-located render)", args.output.display(), rows.len());
+    Ok(())
+}
+
+/// `flashmat svbrdf captures`: a synthetic capture folder of one material
+/// (square-cropped and resized to --size).
+pub fn captures(args: &CapturesArgs) -> Result<()> {
+    if args.photos < 2 {
+        bail!("--photos must be at least 2 (one to estimate from, others to compare with), got {}", args.photos);
+    }
+    crate::infer::photo::check_size(args.material.size)?;
+    let (name, material) = load_material(&args.material)?;
+    let material = crate::eval::fit_to_size(&material, args.material.size)?;
+    let configs = crate::eval::captures::synthetic_configs(args.photos);
+    crate::eval::captures::write_synthetic(&args.output, &material, &configs, args.sample_width)?;
+    println!("wrote {} photos of {name} with their positions to {}", configs.len(), args.output.display());
     Ok(())
 }

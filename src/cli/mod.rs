@@ -55,6 +55,24 @@ pub enum SvbrdfCommand {
     Generate(GenerateArgs),
     /// Draw a grid of maps and a co-located render for each material of a dataset.
     Preview(PreviewArgs),
+    /// Write a synthetic capture folder of a material (8-bit flash photos with 1/r^2 fall-off, camera_pos.txt,
+    /// light_pos.txt, image_size.txt): the format `eval --captures` reads.
+    Captures(CapturesArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct CapturesArgs {
+    #[command(flatten)]
+    pub material: MaterialArgs,
+    /// Output folder (created).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Photos: one straight overhead, the others co-located flash photos around the sample (elevations 65/50/35 degrees).
+    #[arg(long, default_value_t = 9)]
+    pub photos: usize,
+    /// The sample's width, the unit of the written positions (e.g. centimetres).
+    #[arg(long, default_value_t = 10.0)]
+    pub sample_width: f64,
 }
 
 /// A 3-vector given as `X,Y,Z`.
@@ -196,6 +214,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Render(a) => materials::render(&a),
         Command::Svbrdf(SvbrdfCommand::Generate(a)) => materials::generate(&a),
         Command::Svbrdf(SvbrdfCommand::Preview(a)) => materials::preview(&a),
+        Command::Svbrdf(SvbrdfCommand::Captures(a)) => materials::captures(&a),
         Command::Estimate(a) => infer::estimate(&a),
         Command::Relight(a) => infer::relight(&a),
         Command::Show(a) => infer::show(&a),

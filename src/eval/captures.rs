@@ -1,17 +1,44 @@
-//! Reader for real captures of one flat material: a folder with photos
-//! `NN.png` (numbered; sorted by number), `camera_pos.txt` and
-//! `light_pos.txt` (one `x,y,z` per line, one line per photo, in photo
-//! order) and `image_size.txt` (the sample's width: the unit of the
-//! positions). The origin is the sample centre, z points out of it.
+//! Real captures of one flat material: a folder with photos `NN.png`
+//! (numbered; sorted by number), `camera_pos.txt` and `light_pos.txt` (one
+//! `x,y,z` per line, one line per photo, in photo order) and
+//! `image_size.txt` (the sample's width: the unit of the positions). The
+//! origin is the sample centre, x points right and y up in the photos, z
+//! out of the sample; photos are rectified to the sample square.
 //!
 //! Positions are converted to flashmat units, where the material spans
 //! [-1, 1]: divided by width / 2.
 //!
-//! (Comparing renders against the real photos, with the photos' 1/r^2
-//! fall-off compensated, is not implemented yet.)
+//! `flashmat eval --captures` ([`run`]) estimates from the photo nearest
+//! straight overhead and re-renders every other photo's configuration.
+//! Photos hold the light's 1/r^2 fall-off, which the renderers omit: each
+//! photo is multiplied by |light - p|^2 / r0^2 per surface point p, with
+//! r0 the overhead light's distance to the sample centre (so the input
+//! photo keeps its level at the centre). Scores are LPIPS on display
+//! images, with RMSE of ln(1 + R) and PSNR of display images.
+//!
+//! [`write_synthetic`] writes such a folder from a GGX material (the
+//! fall-off applied), for trying the format and for tests.
 
+use super::metrics::{mean_ci95, score_renders_on, LpipsOn, Scores};
+use super::methods::open_methods;
+use crate::geometry::{fov_to_distance, pixel_positions, LightView, MODEL_FOV_DEG};
+use crate::image::Image;
+use crate::lpips::Lpips;
+use crate::svbrdf::Svbrdf;
 use anyhow::{anyhow, bail, ensure, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use tch::{Device, Kind, Tensor};
+
+/// Photos shown in `grid.png` at most (besides the input), evenly spaced.
+const GRID_PHOTOS: usize = 8;
+
+/// Smallest photo side accepted, in pixels (LPIPS needs 31).
+const MIN_PHOTO_SIDE: usize = 32;
+
+/// How far from square a rectified photo may be (relative).
+const SQUARE_TOLERANCE: f64 = 0.02;
 
 /// One capture folder, parsed and checked.
 #[derive(Clone, Debug, PartialEq)]
@@ -49,15 +76,78 @@ impl Captures {
     /// Index of the photo taken closest to straight overhead: the camera
     /// with the smallest angle to +z (the first one on ties).
     pub fn overhead(&self) -> usize {
-        let cos = |c: &[f64; 3]| c[2] / (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
-        let mut best = 0;
-        for (i, c) in self.cameras.iter().enumerate() {
-            if cos(c) > cos(&self.cameras[best]) {
-                best = i;
-            }
-        }
-        best
+        overhead_index(&self.cameras)
     }
+
+    /// Light and camera of photo `i`, flashmat units.
+    pub fn config(&self, i: usize) -> LightView {
+        LightView { light: self.lights[i], view: self.cameras[i] }
+    }
+
+    /// r0: distance of the overhead photo's light to the sample centre,
+    /// flashmat units; photos are compensated to this distance.
+    pub fn reference_distance(&self) -> f64 {
+        norm(self.lights[self.overhead()])
+    }
+
+    /// Every photo at `size x size`, linear (decoded with ^2.2) and with
+    /// the 1/r^2 fall-off compensated (see the module docs): `[3, S, S]` each.
+    pub fn load_compensated(&self, size: usize) -> Result<Vec<Tensor>> {
+        let r0 = self.reference_distance();
+        self.photos
+            .iter()
+            .zip(&self.lights)
+            .map(|(path, &light)| Ok(load_photo(path, size)? / falloff(light, r0, size, size)))
+            .collect()
+    }
+}
+
+fn norm(v: [f64; 3]) -> f64 {
+    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+}
+
+/// Index of the camera with the smallest angle to +z (the first on ties).
+pub fn overhead_index(cameras: &[[f64; 3]]) -> usize {
+    let cos = |c: &[f64; 3]| c[2] / norm(*c);
+    let mut best = 0;
+    for (i, c) in cameras.iter().enumerate() {
+        if cos(c) > cos(&cameras[best]) {
+            best = i;
+        }
+    }
+    best
+}
+
+/// Light fall-off relative to distance r0: r0^2 / |light - p|^2 for each
+/// pixel's surface point p of an H x W photo of the [-1,1]^2 sample.
+/// Returns `[1, H, W]` (CPU, float).
+pub fn falloff(light: [f64; 3], r0: f64, h: usize, w: usize) -> Tensor {
+    let p = pixel_positions(h, w, (Kind::Float, Device::Cpu));
+    let l = Tensor::from_slice(&light.map(|c| c as f32)).view([3, 1, 1]);
+    let r2 = (l - p).square().sum_dim_intlist([0i64].as_slice(), true, Kind::Float);
+    r2.reciprocal() * (r0 * r0)
+}
+
+/// One capture photo, linear `[3, S, S]`: gamma-decoded (^2.2, as every
+/// 8-bit photo flashmat reads) and resized to `size` (area when shrinking,
+/// bilinear when enlarging). Refuses photos that are not square (they
+/// should be rectified to the sample square) or smaller than 32 pixels.
+pub fn load_photo(path: &Path, size: usize) -> Result<Tensor> {
+    let rgb = crate::io::read_rgb(path)?;
+    let (w, h) = (rgb.width, rgb.height);
+    ensure!(
+        w.min(h) >= MIN_PHOTO_SIDE,
+        "{}: the photo is {w}x{h} pixels; capture photos need at least {MIN_PHOTO_SIDE}x{MIN_PHOTO_SIDE}",
+        path.display()
+    );
+    ensure!(
+        (w as f64 - h as f64).abs() <= SQUARE_TOLERANCE * w.max(h) as f64,
+        "{}: the photo is {w}x{h} pixels, not square; capture photos must be rectified to the sample square",
+        path.display()
+    );
+    let linear = rgb.map(crate::spaces::gamma_decode);
+    let resized = if w >= size && h >= size { linear.resize_area(size, size) } else { linear.resize_bilinear(size, size) };
+    Ok(resized.to_tensor())
 }
 
 fn read_text(path: &Path) -> Result<String> {
@@ -104,6 +194,231 @@ fn read_positions(path: &Path, scale: f64, expected: usize) -> Result<Vec<[f64; 
     Ok(out)
 }
 
+/// Everything `flashmat eval --captures` needs.
+#[derive(Clone, Debug)]
+pub struct CaptureEvalOptions {
+    /// Model files, or `printout`.
+    pub models: Vec<String>,
+    /// The capture folder.
+    pub dir: PathBuf,
+    pub out: PathBuf,
+    /// Resolution the photos are scored at.
+    pub size: usize,
+    pub device: Device,
+    pub progress: bool,
+}
+
+/// Scores of one method on one photo.
+#[derive(Clone, Debug)]
+pub struct CaptureRow {
+    /// File name of the photo.
+    pub photo: String,
+    pub config: LightView,
+    pub scores: Scores,
+}
+
+/// Per-method results on a capture folder.
+#[derive(Debug)]
+pub struct CaptureResults {
+    pub name: String,
+    pub rows: Vec<CaptureRow>,
+}
+
+fn file_name(p: &Path) -> String {
+    p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
+}
+
+/// `flashmat eval --captures`: every method estimates from the overhead
+/// photo and re-renders the other photos' configurations; writes
+/// `captures.csv`, `summary.md` and `grid.png` into `opts.out`.
+pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
+    ensure!(opts.size >= 32, "--size must be at least 32 (LPIPS needs 31x31 pixels), got {}", opts.size);
+    crate::infer::photo::check_size(opts.size)?;
+    let captures = Captures::open(&opts.dir)?;
+    let n = captures.photos.len();
+    ensure!(n >= 2, "capture folder {} has 1 photo; it needs at least 2 (one to estimate from, others to compare with)", opts.dir.display());
+    // Capture photos are 8-bit: the methods get LDR photos.
+    let mut methods = open_methods(&opts.models, true, opts.device)?;
+    let photos = captures.load_compensated(opts.size)?;
+    let input = captures.overhead();
+    let others: Vec<usize> = (0..n).filter(|&i| i != input).collect();
+    let configs: Vec<LightView> = others.iter().map(|&i| captures.config(i)).collect();
+    let target = Tensor::stack(&others.iter().map(|&i| photos[i].shallow_clone()).collect::<Vec<_>>(), 0);
+    let lpips = Lpips::new(opts.device)?;
+    std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;
+
+    let bar = if opts.progress { ProgressBar::new(methods.len() as u64) } else { ProgressBar::hidden() };
+    bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} methods, {elapsed} {msg}").expect("valid template"));
+    let shown: Vec<usize> = grid_picks(others.len());
+    let mut results = Vec::new();
+    // Grid columns: the photos, then each method's renders.
+    let mut columns: Vec<Vec<Tensor>> = vec![std::iter::once(photos[input].shallow_clone()).chain(shown.iter().map(|&k| target.get(k as i64))).collect()];
+    for method in methods.iter_mut() {
+        let name = method.name();
+        bar.set_message(name.clone());
+        method.prepare(&photos[input]).map_err(|e| anyhow!("{name}: {e:#}"))?;
+        let pred = method.render(&configs).map_err(|e| anyhow!("{name}: {e:#}"))?;
+        let scores = score_renders_on(&lpips, &pred, &target, LpipsOn::Display)?;
+        let rows = others
+            .iter()
+            .zip(&configs)
+            .zip(scores)
+            .map(|((&i, &config), scores)| CaptureRow { photo: file_name(&captures.photos[i]), config, scores })
+            .collect();
+        let identity = method.render(&[captures.config(input)]).map_err(|e| anyhow!("{name}: {e:#}"))?.get(0);
+        columns.push(std::iter::once(identity).chain(shown.iter().map(|&k| pred.get(k as i64))).collect());
+        results.push(CaptureResults { name, rows });
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+
+    crate::io::atomic_write_bytes(&opts.out.join("captures.csv"), csv_text(&results).as_bytes())?;
+    crate::io::atomic_write_bytes(&opts.out.join("summary.md"), summary_markdown(&captures, opts.size, &results).as_bytes())?;
+    let grid_rows: Vec<Vec<Image>> = (0..=shown.len())
+        .map(|r| columns.iter().map(|c| Image::from_tensor(&crate::spaces::linear_to_display(&c[r]))).collect::<Result<_>>())
+        .collect::<Result<_>>()?;
+    crate::io::write_png(&opts.out.join("grid.png"), &crate::viz::grid(&grid_rows, 4)?, crate::io::BitDepth::Eight)?;
+    let mut note = format!(
+        "Columns: photo (fall-off compensated) | {}\nRow 1: the input {} and each method's re-render of it.\n",
+        results.iter().map(|r| r.name.as_str()).collect::<Vec<_>>().join(" | "),
+        file_name(&captures.photos[input])
+    );
+    for (row, &k) in shown.iter().enumerate() {
+        let _ = writeln!(note, "Row {}: {}", row + 2, file_name(&captures.photos[others[k]]));
+    }
+    crate::io::atomic_write_bytes(&opts.out.join("grid.txt"), note.as_bytes())?;
+    Ok(results)
+}
+
+/// Up to [`GRID_PHOTOS`] indices of `count`, evenly spaced, first included.
+fn grid_picks(count: usize) -> Vec<usize> {
+    let k = count.min(GRID_PHOTOS);
+    let mut picks: Vec<usize> = (0..k).map(|i| i * count / k.max(1)).collect();
+    picks.dedup();
+    picks
+}
+
+/// `method,photo,light_x,light_y,light_z,camera_x,camera_y,camera_z,lpips,rmse_log,psnr`
+/// (positions in flashmat units).
+pub fn csv_text(results: &[CaptureResults]) -> String {
+    let mut s = String::from("method,photo,light_x,light_y,light_z,camera_x,camera_y,camera_z,lpips,rmse_log,psnr\n");
+    for r in results {
+        for row in &r.rows {
+            let (l, c) = (row.config.light, row.config.view);
+            let _ = writeln!(
+                s,
+                "{},{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.6},{:.6},{:.4}",
+                r.name, row.photo, l[0], l[1], l[2], c[0], c[1], c[2], row.scores.lpips, row.scores.rmse_log, row.scores.psnr
+            );
+        }
+    }
+    s
+}
+
+/// Markdown summary: the input photo's geometry against the model's, the
+/// mean scores per method (95% intervals over photos) and LPIPS per photo.
+pub fn summary_markdown(captures: &Captures, size: usize, results: &[CaptureResults]) -> String {
+    let input = captures.overhead();
+    let cam = captures.cameras[input];
+    let light = captures.lights[input];
+    let off_vertical = (cam[2] / norm(cam)).clamp(-1.0, 1.0).acos().to_degrees();
+    let fmt = |v: [f64; 3]| format!("({:.3}, {:.3}, {:.3})", v[0], v[1], v[2]);
+    let mut s = String::from("# Evaluation on captures\n\n");
+    let _ = writeln!(
+        s,
+        "Folder `{}`: {} photos of a sample {} units wide. Positions below are in half-widths (the sample spans [-1, 1]).\n",
+        captures.dir.display(),
+        captures.photos.len(),
+        captures.sample_width
+    );
+    let _ = writeln!(
+        s,
+        "Estimated from `{}`, the photo nearest straight overhead: camera at {} ({:.3} from the centre, {:.1} degrees off vertical), light at {} ({:.3} from the camera). \
+         The models expect a co-located camera and light {:.3} straight above (a {MODEL_FOV_DEG} degree view of the sample).\n",
+        file_name(&captures.photos[input]),
+        fmt(cam),
+        norm(cam),
+        off_vertical,
+        fmt(light),
+        norm([light[0] - cam[0], light[1] - cam[1], light[2] - cam[2]]),
+        fov_to_distance(MODEL_FOV_DEG)
+    );
+    let _ = writeln!(
+        s,
+        "Scored on the other {} photos at {size}x{size}, after compensating their 1/r^2 fall-off to r0 = {:.3} (the overhead light's distance to the centre). \
+         LPIPS (AlexNet) on display images; RMSE of ln(1 + R); PSNR of display images clamp(R)^(1/2.2).\n",
+        captures.photos.len() - 1,
+        captures.reference_distance()
+    );
+    let _ = writeln!(s, "| Method | LPIPS (lower is better) | RMSE ln(1+R) | PSNR, dB |\n|---|---|---|---|");
+    for r in results {
+        let stat = |get: fn(&Scores) -> f64, digits: usize| {
+            let (m, h) = mean_ci95(&r.rows.iter().map(|x| get(&x.scores)).collect::<Vec<_>>());
+            format!("{m:.digits$} ± {h:.digits$}")
+        };
+        let _ = writeln!(s, "| {} | {} | {} | {} |", r.name, stat(|x| x.lpips, 3), stat(|x| x.rmse_log, 3), stat(|x| x.psnr, 2));
+    }
+    let _ = writeln!(s, "\n## LPIPS per photo\n");
+    let _ = writeln!(s, "| Photo | light | camera | {} |", results.iter().map(|r| r.name.as_str()).collect::<Vec<_>>().join(" | "));
+    let _ = writeln!(s, "|---|---|---|{}", "---|".repeat(results.len()));
+    if let Some(first) = results.first() {
+        for (k, row) in first.rows.iter().enumerate() {
+            let cells: Vec<String> = results.iter().map(|r| format!("{:.3}", r.rows[k].scores.lpips)).collect();
+            let _ = writeln!(s, "| {} | {} | {} | {} |", row.photo, fmt(row.config.light), fmt(row.config.view), cells.join(" | "));
+        }
+    }
+    s
+}
+
+/// Co-located flash configurations of a synthetic capture (a phone with
+/// its flash): photo 0 straight overhead at the model's camera distance,
+/// then `count - 1` around the sample at the same distance, elevations 65,
+/// 50 and 35 degrees in turn, azimuths evenly spread.
+pub fn synthetic_configs(count: usize) -> Vec<LightView> {
+    let d = fov_to_distance(MODEL_FOV_DEG);
+    let mut out = vec![LightView::colocated(MODEL_FOV_DEG)];
+    let others = count.saturating_sub(1);
+    for i in 0..others {
+        let elevation = [65.0f64, 50.0, 35.0][i % 3].to_radians();
+        let azimuth = 2.0 * std::f64::consts::PI * i as f64 / others as f64;
+        let p = [d * elevation.cos() * azimuth.cos(), d * elevation.cos() * azimuth.sin(), d * elevation.sin()];
+        out.push(LightView { light: p, view: p });
+    }
+    out.truncate(count);
+    out
+}
+
+/// Writes a capture folder of a GGX material (CPU renderer): 8-bit
+/// photos `NN.png` (display-encoded, with the 1/r^2 fall-off relative to
+/// the overhead light, see [`Captures::reference_distance`]), the
+/// positions in units of `sample_width` and `image_size.txt`.
+/// configs: flashmat units, at least one.
+pub fn write_synthetic(dir: &Path, material: &Svbrdf, configs: &[LightView], sample_width: f64) -> Result<()> {
+    ensure!(!configs.is_empty(), "a capture needs at least one photo");
+    ensure!(sample_width.is_finite() && sample_width > 0.0, "the sample's width must be > 0, got {sample_width}");
+    for c in configs {
+        ensure!(c.light[2] > 0.0 && c.view[2] > 0.0, "capture positions must be above the sample (z > 0)");
+    }
+    std::fs::create_dir_all(dir).map_err(|e| anyhow!("cannot create capture folder {}: {e}", dir.display()))?;
+    let (h, w) = (material.height(), material.width());
+    let cameras: Vec<[f64; 3]> = configs.iter().map(|c| c.view).collect();
+    let r0 = norm(configs[overhead_index(&cameras)].light);
+    let renders = crate::svbrdf::cpu::render(material, configs);
+    let per = 3 * h * w;
+    for (i, c) in configs.iter().enumerate() {
+        let linear = Tensor::from_slice(&renders[i * per..(i + 1) * per]).view([3, h as i64, w as i64]) * falloff(c.light, r0, h, w);
+        let display = Image::from_tensor(&crate::spaces::linear_to_display(&linear))?;
+        crate::io::write_png(&dir.join(format!("{i:02}.png")), &display, crate::io::BitDepth::Eight)?;
+    }
+    let unit = sample_width / 2.0;
+    let lines = |pick: fn(&LightView) -> [f64; 3]| -> String {
+        configs.iter().map(|c| pick(c).map(|v| v * unit)).map(|p| format!("{:.6},{:.6},{:.6}\n", p[0], p[1], p[2])).collect()
+    };
+    crate::io::atomic_write_bytes(&dir.join("camera_pos.txt"), lines(|c| c.view).as_bytes())?;
+    crate::io::atomic_write_bytes(&dir.join("light_pos.txt"), lines(|c| c.light).as_bytes())?;
+    crate::io::atomic_write_bytes(&dir.join("image_size.txt"), format!("{sample_width}\n").as_bytes())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -136,6 +451,137 @@ mod tests {
         assert_eq!(c.cameras[0], [1.0, 0.0, 4.0]);
         assert_eq!(c.lights[2], [-2.0, 0.5, 3.0]);
         assert_eq!(c.overhead(), 1);
+    }
+
+    #[test]
+    fn falloff_is_r0_squared_over_r_squared() {
+        // 2x2 pixels: centres at (+-0.5, +-0.5, 0); light at (0, 0, 2),
+        // r^2 = 0.25 + 0.25 + 4 = 4.5 everywhere, r0 = 2: 4 / 4.5.
+        let f = falloff([0.0, 0.0, 2.0], 2.0, 2, 2);
+        assert_eq!(f.size(), vec![1, 2, 2]);
+        for v in Vec::<f32>::try_from(f.flatten(0, -1)).unwrap() {
+            assert!((v - 4.0 / 4.5).abs() < 1e-6, "{v}");
+        }
+        // Light at (1, 0, 1): the right column (x = 0.5) is nearer, r^2 =
+        // 0.25 + 0.25 + 1 = 1.5; the left one r^2 = 2.25 + 0.25 + 1 = 3.5.
+        let f = falloff([1.0, 0.0, 1.0], 1.0, 2, 2);
+        assert!((f.double_value(&[0, 0, 1]) - 1.0 / 1.5).abs() < 1e-6);
+        assert!((f.double_value(&[0, 1, 0]) - 1.0 / 3.5).abs() < 1e-6);
+    }
+
+    #[test]
+    fn synthetic_configs_are_colocated_flash_photos() {
+        let c = synthetic_configs(7);
+        assert_eq!(c.len(), 7);
+        let d = fov_to_distance(MODEL_FOV_DEG);
+        assert_eq!(c[0], LightView::colocated(MODEL_FOV_DEG));
+        for (i, x) in c.iter().enumerate().skip(1) {
+            assert_eq!(x.light, x.view);
+            assert!((norm(x.view) - d).abs() < 1e-9);
+            let elevation = (x.view[2] / d).asin().to_degrees();
+            assert!((elevation - [65.0, 50.0, 35.0][(i - 1) % 3]).abs() < 1e-9, "{elevation}");
+        }
+        assert_eq!(overhead_index(&c.iter().map(|x| x.view).collect::<Vec<_>>()), 0);
+        assert_eq!(synthetic_configs(1).len(), 1);
+    }
+
+    #[test]
+    fn synthetic_captures_round_trip_to_the_renderer() {
+        // Photos written with the fall-off, read back and compensated, are
+        // the renderer's images (up to 8-bit rounding of display values).
+        let t = tempfile::tempdir().unwrap();
+        let material = crate::data::procedural::generate_many(&[crate::data::procedural::test_seeds()[3]], 32).remove(0);
+        let configs = synthetic_configs(4);
+        write_synthetic(t.path(), &material, &configs, 8.0).unwrap();
+        let c = Captures::open(t.path()).unwrap();
+        assert_eq!(c.photos.len(), 4);
+        assert_eq!(c.sample_width, 8.0);
+        for (a, b) in c.cameras.iter().zip(&configs) {
+            for k in 0..3 {
+                assert!((a[k] - b.view[k]).abs() < 1e-5, "{a:?} vs {:?}", b.view);
+            }
+        }
+        assert_eq!(c.overhead(), 0);
+        assert!((c.reference_distance() - fov_to_distance(MODEL_FOV_DEG)).abs() < 1e-5);
+        let photos = c.load_compensated(32).unwrap();
+        let truth = crate::eval::reference_renders(&material, &configs);
+        let disp = crate::spaces::linear_to_display;
+        for (i, p) in photos.iter().enumerate() {
+            let err = (disp(p) - disp(&truth.get(i as i64))).abs().max().double_value(&[]);
+            assert!(err < 1.5 / 255.0 + 1e-4, "photo {i}: display error {err}");
+        }
+        // Uncompensated, the oblique photos are darker where the light is
+        // far: at the pixel farthest from photo 3's light the raw photo is
+        // the render times r0^2 / r^2 < 1.
+        let raw = load_photo(&c.photos[3], 32).unwrap();
+        let f = falloff(c.lights[3], c.reference_distance(), 32, 32);
+        let fmin = f.min().double_value(&[]);
+        assert!(fmin < 0.75, "{fmin}");
+        let lin_err = (&raw - truth.get(3) * &f).abs().max().double_value(&[]);
+        assert!(lin_err < 0.02, "{lin_err}");
+    }
+
+    fn eval_opts(dir: &Path, out: &Path, models: &[&str]) -> CaptureEvalOptions {
+        CaptureEvalOptions {
+            models: models.iter().map(|s| s.to_string()).collect(),
+            dir: dir.to_path_buf(),
+            out: out.to_path_buf(),
+            size: 32,
+            device: Device::Cpu,
+            progress: false,
+        }
+    }
+
+    #[test]
+    fn printout_re_renders_a_lambertian_capture_and_not_a_glossy_one() {
+        // Matte: kd varies across the sample, ks = 0. With co-located flash
+        // the GGX specular lobe is F(ks = 0, v.h = 1) = 0, so every photo is
+        // kd n.l, which the print-out re-renders exactly.
+        let t = tempfile::tempdir().unwrap();
+        let mut matte = Svbrdf::uniform(32, 32, [0.0; 3], [0.0; 3], 0.5);
+        matte.diffuse = Image::from_fn(3, 32, 32, |c, y, x| 0.15 + 0.6 * ((x / 8 + y / 8 + c) % 3) as f32 / 2.0);
+        write_synthetic(&t.path().join("matte"), &matte, &synthetic_configs(5), 10.0).unwrap();
+        let glossy = Svbrdf { specular: Image::filled(3, 32, 32, 0.6), roughness: Image::filled(1, 32, 32, 0.3), ..matte.clone() };
+        write_synthetic(&t.path().join("glossy"), &glossy, &synthetic_configs(5), 10.0).unwrap();
+
+        let out = t.path().join("report");
+        let res = run(&eval_opts(&t.path().join("matte"), &out, &["printout"])).unwrap();
+        assert_eq!(res.len(), 1);
+        assert_eq!(res[0].rows.len(), 4);
+        for r in &res[0].rows {
+            assert!(r.scores.lpips < 0.02 && r.scores.psnr > 35.0, "{}: {:?}", r.photo, r.scores);
+        }
+        assert_eq!(res[0].rows[0].photo, "01.png");
+        let csv = std::fs::read_to_string(out.join("captures.csv")).unwrap();
+        assert_eq!(csv.lines().count(), 5);
+        assert!(csv.lines().nth(1).unwrap().starts_with("printout,01.png,"));
+        let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+        assert!(summary.contains("Estimated from `00.png`") && summary.contains("| printout |"), "{summary}");
+        let grid = crate::io::read_image(&out.join("grid.png")).unwrap();
+        // 5 rows (input + 4 photos) x 2 columns of 32 px cells, 4 px gaps.
+        assert_eq!((grid.height, grid.width), (5 * 36 + 4, 2 * 36 + 4));
+
+        let glossy_res = run(&eval_opts(&t.path().join("glossy"), &t.path().join("report2"), &["printout"])).unwrap();
+        let mean = |r: &CaptureResults| r.rows.iter().map(|x| x.scores.lpips).sum::<f64>() / r.rows.len() as f64;
+        assert!(mean(&glossy_res[0]) > 0.1, "{}", mean(&glossy_res[0]));
+    }
+
+    #[test]
+    fn capture_eval_refuses_bad_folders() {
+        let t = tempfile::tempdir().unwrap();
+        let m = Svbrdf::uniform(32, 32, [0.5; 3], [0.04; 3], 0.5);
+        write_synthetic(t.path(), &m, &synthetic_configs(1), 10.0).unwrap();
+        let e = format!("{:#}", run(&eval_opts(t.path(), &t.path().join("o"), &["printout"])).unwrap_err());
+        assert!(e.contains("has 1 photo") && !e.contains('\n'), "{e}");
+
+        // A photo that is not square.
+        write_synthetic(t.path(), &m, &synthetic_configs(2), 10.0).unwrap();
+        crate::io::write_png(&t.path().join("01.png"), &Image::filled(3, 32, 48, 0.5), crate::io::BitDepth::Eight).unwrap();
+        let e = format!("{:#}", run(&eval_opts(t.path(), &t.path().join("o"), &["printout"])).unwrap_err());
+        assert!(e.contains("01.png") && e.contains("not square"), "{e}");
+        let e = format!("{:#}", run(&eval_opts(t.path(), &t.path().join("o"), &["/no/model.safetensors"])).unwrap_err());
+        assert!(e.contains("/no/model.safetensors"), "{e}");
+        assert!(write_synthetic(t.path(), &m, &[], 10.0).is_err());
     }
 
     #[test]

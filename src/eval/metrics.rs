@@ -20,10 +20,26 @@ pub struct Scores {
     pub psnr: f64,
 }
 
-/// Scores each configuration of `pred` against `target`.
+/// Which images LPIPS compares.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LpipsOn {
+    /// Linear renders clamped to [0, 1]: the paper's protocol on renders.
+    Linear,
+    /// Display images clamp(R, 0, 1)^(1/2.2): what real photos are.
+    Display,
+}
+
+/// Scores each configuration of `pred` against `target`, LPIPS on linear
+/// renders clamped to [0, 1] (the paper's protocol).
 /// pred, target: `[K, 3, H, W]` linear radiance (any device; moved to the
 /// LPIPS weights' device), H, W >= 31. Returns K scores.
 pub fn score_renders(lpips: &Lpips, pred: &Tensor, target: &Tensor) -> Result<Vec<Scores>> {
+    score_renders_on(lpips, pred, target, LpipsOn::Linear)
+}
+
+/// [`score_renders`] with LPIPS on the images `on` says (RMSE and PSNR are
+/// the same either way).
+pub fn score_renders_on(lpips: &Lpips, pred: &Tensor, target: &Tensor, on: LpipsOn) -> Result<Vec<Scores>> {
     let (sp, st) = (pred.size(), target.size());
     ensure!(sp.len() == 4 && sp[1] == 3 && sp == st, "renders to compare must both be [K, 3, H, W], got {sp:?} and {st:?}");
     ensure!(sp[2] >= 31 && sp[3] >= 31, "LPIPS needs images of at least 31x31 pixels, got {}x{}", sp[3], sp[2]);
@@ -36,7 +52,11 @@ pub fn score_renders(lpips: &Lpips, pred: &Tensor, target: &Tensor) -> Result<Ve
         let mut start = 0;
         while start < k {
             let n = LPIPS_CHUNK.min(k - start);
-            let d = lpips.distance_01(&pred.narrow(0, start, n).clamp_max(1.0), &target.narrow(0, start, n).clamp_max(1.0));
+            let image = |t: &Tensor| match on {
+                LpipsOn::Linear => t.narrow(0, start, n).clamp_max(1.0),
+                LpipsOn::Display => crate::spaces::linear_to_display(&t.narrow(0, start, n)),
+            };
+            let d = lpips.distance_01(&image(&pred), &image(&target));
             lp.extend(Vec::<f64>::try_from(d.to_kind(Kind::Double).to_device(tch::Device::Cpu)).unwrap_or_default());
             start += n;
         }
@@ -109,6 +129,21 @@ mod tests {
         let b = &a * 0.5;
         let d = score_renders(&lpips, &a, &b).unwrap();
         assert!(d[0].lpips > 0.01 && d[0].rmse_log > 0.01 && d[0].psnr < 40.0, "{:?}", d[0]);
+    }
+
+    #[test]
+    fn display_lpips_weighs_dark_differences_more() {
+        // Two renders that differ by 0.02 in the shadows: on display images
+        // (^(1/2.2)) the gap is 0.06..0.13, on linear ones 0.02.
+        let lpips = Lpips::new(Device::Cpu).unwrap();
+        tch::manual_seed(3);
+        let a = Tensor::rand([1, 3, 32, 32], (Kind::Float, Device::Cpu)) * 0.05;
+        let b = &a + 0.02;
+        let lin = score_renders_on(&lpips, &a, &b, LpipsOn::Linear).unwrap()[0];
+        let disp = score_renders_on(&lpips, &a, &b, LpipsOn::Display).unwrap()[0];
+        assert!(disp.lpips > lin.lpips * 1.5, "display {} linear {}", disp.lpips, lin.lpips);
+        assert_eq!((disp.rmse_log, disp.psnr), (lin.rmse_log, lin.psnr));
+        assert!(score_renders_on(&lpips, &a, &a, LpipsOn::Display).unwrap()[0].lpips.abs() < 1e-6);
     }
 
     #[test]

@@ -18,7 +18,7 @@ pub mod report;
 pub mod shadows;
 
 pub use methods::{open_methods, open_model_file, AnalyticMethod, Method, ModelMethod, PrintoutMethod, RelightMethod, PRINTOUT};
-pub use metrics::{mean_ci95, mean_scores, score_renders, Scores, PSNR_CAP_DB};
+pub use metrics::{mean_ci95, mean_scores, score_renders, score_renders_on, LpipsOn, Scores, PSNR_CAP_DB};
 
 use crate::data::loaders::{center_crop, open_dataset};
 use crate::data::procedural;
