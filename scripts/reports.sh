@@ -26,3 +26,13 @@ $FLASHMAT shadow-eval --model $M/experiments/shadow-overfit-test38.safetensors -
     --dataset procedural-test:38 --height-scale 2 --grids 1 -o reports/shadows-overfit
 $FLASHMAT shadow-eval --model $M/experiments/shadow-distribution.safetensors --model $M/compact-hdr.safetensors \
     --dataset procedural-test --height-scale 2 --grids 3 -o reports/shadows-distribution
+
+# Captures: synthetic capture folders (8-bit co-located flash photos with the
+# 1/r^2 fall-off, 9 per material) of three held-out materials, scored the way
+# real captures are (`eval --captures`).
+for I in 05 25 45; do
+    $FLASHMAT svbrdf captures --svbrdf procedural-test:$((10#$I)) --photos 9 -o target/captures/test$I
+    $FLASHMAT eval --model $M/compact-hdr.safetensors --model $M/compact-ldr.safetensors \
+        --model $M/baseline-analytic.safetensors --model $M/baseline-relight-unet.safetensors --model printout \
+        --captures target/captures/test$I -o reports/eval-captures/test$I
+done

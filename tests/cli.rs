@@ -121,6 +121,7 @@ fn bad_inputs_give_one_clear_line() {
     assert_error(&flashmat(&["render", "--svbrdf", "procedural:1", "--view", "1,1,0", "-o", o]), &["camera position"]);
     assert_error(&flashmat(&["render", "--svbrdf", "procedural:x", "-o", o]), &["procedural:SEED"]);
     assert_error(&flashmat(&["render", "--svbrdf", "procedural:1:velvet", "-o", o]), &["velvet"]);
+    assert_error(&flashmat(&["render", "--svbrdf", "procedural-test:50", "-o", o]), &["procedural-test:50", "0 to 49"]);
     assert_error(&flashmat(&["render", "--svbrdf", "procedural:1", "--size", "16", "-o", dir.path().join("o.bmp").to_str().unwrap()]), &[".png or .exr"]);
     assert_error(&flashmat(&["train", "--preset", "huge", "--out", dir.path().join("run").to_str().unwrap()]), &["huge", "compact"]);
     assert_error(&flashmat(&["train", "--resume", dir.path().join("norun").to_str().unwrap()]), &["no checkpoint"]);
@@ -140,7 +141,7 @@ fn bad_inputs_give_one_clear_line() {
 fn synthetic_captures_then_eval_captures() {
     let dir = tempfile::tempdir().unwrap();
     let cap = dir.path().join("capture");
-    let out = flashmat(&["svbrdf", "captures", "--svbrdf", "procedural:3", "--size", "64", "--photos", "4", "--sample-width", "12", "-o", cap.to_str().unwrap()]);
+    let out = flashmat(&["svbrdf", "captures", "--svbrdf", "procedural-test:3", "--size", "64", "--photos", "4", "--sample-width", "12", "-o", cap.to_str().unwrap()]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     // Positions in units of the 12-wide sample: the overhead camera at the
     // model's 4.010781 half-widths, times 6 = 24.064686.

@@ -16,6 +16,10 @@ use rayon::prelude::*;
 
 /// Resolves a `--svbrdf` source to a named material.
 pub fn load_material(args: &MaterialArgs) -> Result<(String, Svbrdf)> {
+    if let Some(i) = procedural::parse_test_material(&args.source)? {
+        let seed = procedural::test_seeds()[i];
+        return Ok((format!("test{i:02}"), procedural::generate_many(&[seed], args.size).remove(0)));
+    }
     if let Some(rest) = args.source.strip_prefix("procedural:") {
         let mut parts = rest.split(':');
         let seed: u64 = parts.next().unwrap_or("").parse().with_context(|| format!("'{}': expected procedural:SEED or procedural:SEED:FAMILY", args.source))?;

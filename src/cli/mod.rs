@@ -101,7 +101,8 @@ impl std::str::FromStr for Vec3Arg {
 #[derive(Args, Debug, Clone)]
 pub struct MaterialArgs {
     /// Material source: a folder in the MatFusion or per-material layout, an INRIA strip PNG (or a folder of
-    /// them), or `procedural:SEED` / `procedural:SEED:FAMILY` for a built-in procedural material.
+    /// them), `procedural:SEED` / `procedural:SEED:FAMILY` for a built-in procedural material, or `procedural-test:I`
+    /// for held-out material I (0-49; `testII` of `flashmat eval`).
     #[arg(long = "svbrdf", value_name = "SOURCE")]
     pub source: String,
     /// Which material of a multi-material source (0-based, sorted by name).

@@ -34,6 +34,9 @@ use tch::{Device, Kind, Tensor};
 /// Photos shown in `grid.png` at most (besides the input), evenly spaced.
 const GRID_PHOTOS: usize = 8;
 
+/// Grid cells are shrunk to at most this many pixels across.
+const GRID_CELL: usize = 128;
+
 /// Smallest photo side accepted, in pixels (LPIPS needs 31).
 const MIN_PHOTO_SIDE: usize = 32;
 
@@ -230,7 +233,8 @@ fn file_name(p: &Path) -> String {
 
 /// `flashmat eval --captures`: every method estimates from the overhead
 /// photo and re-renders the other photos' configurations; writes
-/// `captures.csv`, `summary.md` and `grid.png` into `opts.out`.
+/// `captures.csv`, `summary.md`, `grid.png` (cells of at most 128 pixels)
+/// and `grid.txt` into `opts.out`.
 pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
     ensure!(opts.size >= 32, "--size must be at least 32 (LPIPS needs 31x31 pixels), got {}", opts.size);
     crate::infer::photo::check_size(opts.size)?;
@@ -275,7 +279,7 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
     crate::io::atomic_write_bytes(&opts.out.join("captures.csv"), csv_text(&results).as_bytes())?;
     crate::io::atomic_write_bytes(&opts.out.join("summary.md"), summary_markdown(&captures, opts.size, &results).as_bytes())?;
     let grid_rows: Vec<Vec<Image>> = (0..=shown.len())
-        .map(|r| columns.iter().map(|c| Image::from_tensor(&crate::spaces::linear_to_display(&c[r]))).collect::<Result<_>>())
+        .map(|r| columns.iter().map(|c| grid_cell(&c[r])).collect::<Result<_>>())
         .collect::<Result<_>>()?;
     crate::io::write_png(&opts.out.join("grid.png"), &crate::viz::grid(&grid_rows, 4)?, crate::io::BitDepth::Eight)?;
     let mut note = format!(
@@ -288,6 +292,13 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
     }
     crate::io::atomic_write_bytes(&opts.out.join("grid.txt"), note.as_bytes())?;
     Ok(results)
+}
+
+/// Display image of a linear `[3, S, S]` render, shrunk (area) to
+/// [`GRID_CELL`] pixels when larger.
+fn grid_cell(linear: &Tensor) -> Result<Image> {
+    let im = Image::from_tensor(&crate::spaces::linear_to_display(linear))?;
+    Ok(if im.width > GRID_CELL { im.resize_area(GRID_CELL, GRID_CELL) } else { im })
 }
 
 /// Up to [`GRID_PHOTOS`] indices of `count`, evenly spaced, first included.
