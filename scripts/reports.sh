@@ -21,6 +21,14 @@ $FLASHMAT eval --model $M/compact-hdr.safetensors --model $M/compact-ldr.safeten
 $FLASHMAT eval --model $M/compact-hdr.safetensors --model $M/compact-ldr.safetensors --model printout \
     --dataset procedural-test --configs "$CONFIGS" --ldr-input -o reports/eval-ldr-inputs
 
+# The bundled 4,000-step models (same runs, longer): HDR photos, then the
+# ablation's LDR photos (the LDR-input model clamps HDR photos itself, so
+# its HDR-photo row equals its LDR-photo row).
+$FLASHMAT eval --model $M/compact-hdr-4000.safetensors \
+    --dataset procedural-test --configs "$CONFIGS" -o reports/eval-4000-hdr-inputs
+$FLASHMAT eval --model $M/compact-ldr-4000.safetensors --model $M/compact-hdr-4000.safetensors \
+    --dataset procedural-test --configs "$CONFIGS" --ldr-input -o reports/eval-4000-ldr-inputs
+
 # Shadows: the over-fitted material, then the held-out distribution.
 $FLASHMAT shadow-eval --model $M/experiments/shadow-overfit-test38.safetensors --model $M/compact-hdr.safetensors \
     --dataset procedural-test:38 --height-scale 2 --grids 1 -o reports/shadows-overfit
@@ -32,7 +40,8 @@ $FLASHMAT shadow-eval --model $M/experiments/shadow-distribution.safetensors --m
 # real captures are (`eval --captures`).
 for I in 05 25 45; do
     $FLASHMAT svbrdf captures --svbrdf procedural-test:$((10#$I)) --photos 9 -o target/captures/test$I
-    $FLASHMAT eval --model $M/compact-hdr.safetensors --model $M/compact-ldr.safetensors \
+    $FLASHMAT eval --model $M/compact-ldr-4000.safetensors --model $M/compact-hdr-4000.safetensors \
+        --model $M/compact-hdr.safetensors --model $M/compact-ldr.safetensors \
         --model $M/baseline-analytic.safetensors --model $M/baseline-relight-unet.safetensors --model printout \
         --captures target/captures/test$I -o reports/eval-captures/test$I
 done

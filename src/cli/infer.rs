@@ -14,8 +14,8 @@ use tch::Device;
 /// How a photo becomes a neural material (shared by estimate, relight, show).
 #[derive(Args, Debug, Clone)]
 pub struct EstimateOptions {
-    /// Model file (flashmat export). Default: models/compact-ldr.safetensors for PNG/JPEG photos,
-    /// models/compact-hdr.safetensors for EXR (folder overridden by $FLASHMAT_MODELS).
+    /// Model file (flashmat export). Default: models/compact-ldr-4000.safetensors for PNG/JPEG photos,
+    /// models/compact-hdr-4000.safetensors for EXR (folder overridden by $FLASHMAT_MODELS).
     #[arg(long, value_name = "FILE")]
     pub model: Option<PathBuf>,
     /// Field of view of the photo across its shorter side, in degrees (default 45 for PNG/JPEG, a phone;

@@ -30,7 +30,7 @@ use anyhow::{bail, ensure, Result};
 use std::path::{Path, PathBuf};
 use tch::Device;
 
-/// Preset of the bundled models (`models/compact-{ldr,hdr}.safetensors`).
+/// Preset of the bundled models (`models/compact-{ldr,hdr}-4000.safetensors`).
 pub const BUNDLED_PRESET: &str = "compact";
 
 /// Environment variable that replaces the bundled-models folder.
@@ -50,10 +50,17 @@ pub fn models_dir() -> PathBuf {
     }
 }
 
+/// File of the bundled model for 8-bit photos (LDR-input training), in
+/// [`models_dir`]: the compact preset, 4,000 steps (models/MODEL.md).
+pub const BUNDLED_LDR_MODEL: &str = "compact-ldr-4000.safetensors";
+
+/// File of the bundled model for EXR photos (HDR-input training).
+pub const BUNDLED_HDR_MODEL: &str = "compact-hdr-4000.safetensors";
+
 /// The bundled model for a photo type: LDR-input for 8-bit photos,
 /// HDR-input for EXR.
 pub fn default_model_path(ldr_photo: bool) -> PathBuf {
-    models_dir().join(format!("{BUNDLED_PRESET}-{}.safetensors", if ldr_photo { "ldr" } else { "hdr" }))
+    models_dir().join(if ldr_photo { BUNDLED_LDR_MODEL } else { BUNDLED_HDR_MODEL })
 }
 
 /// A loaded model and where it came from.
@@ -227,7 +234,7 @@ mod tests {
     fn missing_model_names_the_file_and_the_option() {
         let e = load_model(Some(Path::new("/nonexistent/m.safetensors")), true, Device::Cpu).unwrap_err().to_string();
         assert!(e.contains("/nonexistent/m.safetensors") && e.contains("--model"), "{e}");
-        assert!(default_model_path(true).ends_with("compact-ldr.safetensors"));
-        assert!(default_model_path(false).ends_with("compact-hdr.safetensors"));
+        assert!(default_model_path(true).ends_with("compact-ldr-4000.safetensors"));
+        assert!(default_model_path(false).ends_with("compact-hdr-4000.safetensors"));
     }
 }
