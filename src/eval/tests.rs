@@ -181,8 +181,11 @@ fn relight_method_renders_are_the_network_output() {
     method.prepare(&photo).unwrap();
     let pred = method.render(&configs).unwrap();
     assert_eq!(pred.size(), [11, 3, 32, 32]);
-    let expect = crate::spaces::from_log(&log.clamp(0.0, crate::infer::nmat::MAX_LOG_RADIANCE));
-    assert!((&pred - &expect).abs().max().double_value(&[]) < 1e-5);
+    // Compared in log space: an untrained decoder reaches the clamp (log
+    // radiance 80), where float32 sums that reorder with the thread count
+    // differ by ~1e-4 (a few ulps at 80), i.e. ~1e30 in radiance.
+    let expect_log = log.clamp(0.0, crate::infer::nmat::MAX_LOG_RADIANCE);
+    assert!((pred.log1p() - &expect_log).abs().max().double_value(&[]) < 1e-3);
     assert!(pred.min().double_value(&[]) >= 0.0);
 }
 
