@@ -160,6 +160,16 @@ impl Image {
         out
     }
 
+    /// Resize to `h x w`: area average when shrinking (both sides no
+    /// larger than now), bilinear otherwise.
+    pub fn resize_to(&self, h: usize, w: usize) -> Self {
+        if h <= self.height && w <= self.width {
+            self.resize_area(h, w)
+        } else {
+            self.resize_bilinear(h, w)
+        }
+    }
+
     /// Bilinear resize (pixel-centre aligned, as torch's `align_corners=false`).
     pub fn resize_bilinear(&self, h: usize, w: usize) -> Self {
         let sy = self.height as f32 / h as f32;
@@ -310,5 +320,14 @@ mod tests {
         let flat = Image::filled(3, 13, 11, 0.25).resize_area(5, 7);
         assert!(flat.data.iter().all(|v| (v - 0.25).abs() < 1e-6));
         assert_eq!(im.resize_area(12, 9), im);
+    }
+
+    #[test]
+    fn resize_to_shrinks_by_area_and_enlarges_bilinearly() {
+        let im = Image::from_fn(1, 6, 6, |_, y, x| (y * 6 + x) as f32);
+        assert_eq!(im.resize_to(3, 3), im.resize_area(3, 3));
+        assert_eq!(im.resize_to(9, 9), im.resize_bilinear(9, 9));
+        // One side larger: bilinear (area cannot enlarge).
+        assert_eq!(im.resize_to(3, 8), im.resize_bilinear(3, 8));
     }
 }

@@ -62,9 +62,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             progress: true,
         };
         eval::captures::run(&opts)?;
-        println!("{}", std::fs::read_to_string(args.output.join("summary.md"))?);
-        println!("wrote {}", args.output.display());
-        return Ok(());
+        return print_summary(&args.output);
     }
     let opts = EvalOptions {
         models: args.models.clone(),
@@ -80,9 +78,13 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         progress: true,
     };
     eval::run(&opts)?;
-    let summary = std::fs::read_to_string(args.output.join("summary.md"))?;
-    println!("{summary}");
-    println!("wrote {}", args.output.display());
+    print_summary(&args.output)
+}
+
+/// Prints the `summary.md` an evaluation wrote into `out`, then where it went.
+fn print_summary(out: &std::path::Path) -> Result<()> {
+    println!("{}", std::fs::read_to_string(out.join("summary.md"))?);
+    println!("wrote {}", out.display());
     Ok(())
 }
 
@@ -136,7 +138,5 @@ pub fn shadow_eval(args: &ShadowEvalArgs) -> Result<()> {
         progress: true,
     };
     eval::shadows::run(&opts)?;
-    println!("{}", std::fs::read_to_string(args.output.join("summary.md"))?);
-    println!("wrote {}", args.output.display());
-    Ok(())
+    print_summary(&args.output)
 }

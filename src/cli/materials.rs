@@ -17,8 +17,7 @@ use rayon::prelude::*;
 /// Resolves a `--svbrdf` source to a named material.
 pub fn load_material(args: &MaterialArgs) -> Result<(String, Svbrdf)> {
     if let Some(i) = procedural::parse_test_material(&args.source)? {
-        let seed = procedural::test_seeds()[i];
-        return Ok((format!("test{i:02}"), procedural::generate_many(&[seed], args.size).remove(0)));
+        return Ok((format!("test{i:02}"), procedural::test_material(i, args.size)));
     }
     if let Some(rest) = args.source.strip_prefix("procedural:") {
         let mut parts = rest.split(':');

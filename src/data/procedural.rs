@@ -255,6 +255,11 @@ pub fn test_seeds() -> Vec<u64> {
     (0..TEST_SET_SIZE as u64).map(|i| TEST_SEED_BASE + i).collect()
 }
 
+/// Held-out test material `index` (0-based) at `size x size`.
+pub fn test_material(index: usize, size: usize) -> Svbrdf {
+    generate(test_seeds()[index], &ProceduralConfig::with_size(size))
+}
+
 /// Prefix naming one held-out material: `procedural-test:I` is test material
 /// I (0-based), for single-material experiments (the shadow over-fit).
 pub const TEST_MATERIAL_PREFIX: &str = "procedural-test:";
@@ -411,6 +416,15 @@ mod tests {
     use std::collections::HashSet;
 
     const S: usize = 64;
+
+    #[test]
+    fn test_material_is_the_held_out_set_entry() {
+        let all = generate_many(&test_seeds()[..3], 32);
+        let one = test_material(2, 32);
+        assert_eq!(one.diffuse, all[2].diffuse);
+        assert_eq!(one.normal, all[2].normal);
+        assert!(is_test_seed(test_seeds()[2]));
+    }
 
     fn mean(v: &[f32]) -> f32 {
         v.iter().map(|&x| x as f64).sum::<f64>() as f32 / v.len() as f32

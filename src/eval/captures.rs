@@ -149,8 +149,7 @@ pub fn load_photo(path: &Path, size: usize) -> Result<Tensor> {
         path.display()
     );
     let linear = rgb.map(crate::spaces::gamma_decode);
-    let resized = if w >= size && h >= size { linear.resize_area(size, size) } else { linear.resize_bilinear(size, size) };
-    Ok(resized.to_tensor())
+    Ok(linear.resize_to(size, size).to_tensor())
 }
 
 fn read_text(path: &Path) -> Result<String> {
@@ -236,8 +235,7 @@ fn file_name(p: &Path) -> String {
 /// `captures.csv`, `summary.md`, `grid.png` (cells of at most 128 pixels)
 /// and `grid.txt` into `opts.out`.
 pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
-    ensure!(opts.size >= 32, "--size must be at least 32 (LPIPS needs 31x31 pixels), got {}", opts.size);
-    crate::infer::photo::check_size(opts.size)?;
+    super::check_eval_size(opts.size)?;
     let captures = Captures::open(&opts.dir)?;
     let n = captures.photos.len();
     ensure!(n >= 2, "capture folder {} has 1 photo; it needs at least 2 (one to estimate from, others to compare with)", opts.dir.display());
@@ -414,10 +412,9 @@ pub fn write_synthetic(dir: &Path, material: &Svbrdf, configs: &[LightView], sam
     let (h, w) = (material.height(), material.width());
     let cameras: Vec<[f64; 3]> = configs.iter().map(|c| c.view).collect();
     let r0 = norm(configs[overhead_index(&cameras)].light);
-    let renders = crate::svbrdf::cpu::render(material, configs);
-    let per = 3 * h * w;
+    let renders = super::reference_renders(material, configs);
     for (i, c) in configs.iter().enumerate() {
-        let linear = Tensor::from_slice(&renders[i * per..(i + 1) * per]).view([3, h as i64, w as i64]) * falloff(c.light, r0, h, w);
+        let linear = renders.get(i as i64) * falloff(c.light, r0, h, w);
         let display = Image::from_tensor(&crate::spaces::linear_to_display(&linear))?;
         crate::io::write_png(&dir.join(format!("{i:02}.png")), &display, crate::io::BitDepth::Eight)?;
     }
@@ -501,7 +498,7 @@ mod tests {
         // Photos written with the fall-off, read back and compensated, are
         // the renderer's images (up to 8-bit rounding of display values).
         let t = tempfile::tempdir().unwrap();
-        let material = crate::data::procedural::generate_many(&[crate::data::procedural::test_seeds()[3]], 32).remove(0);
+        let material = crate::data::procedural::test_material(3, 32);
         let configs = synthetic_configs(4);
         write_synthetic(t.path(), &material, &configs, 8.0).unwrap();
         let c = Captures::open(t.path()).unwrap();

@@ -132,8 +132,7 @@ pub fn load_materials(dataset: &str, size: usize, limit: Option<usize>) -> Resul
         return Ok(mats.into_iter().enumerate().map(|(i, m)| (format!("test{i:02}"), m)).collect());
     }
     if let Some(i) = procedural::parse_test_material(dataset)? {
-        let m = procedural::generate_many(&[procedural::test_seeds()[i]], size).remove(0);
-        return Ok(vec![(format!("test{i:02}"), m)]);
+        return Ok(vec![(format!("test{i:02}"), procedural::test_material(i, size))]);
     }
     let ds = open_dataset(Path::new(dataset))?;
     let n = limit.unwrap_or(ds.len()).min(ds.len());
@@ -155,13 +154,7 @@ pub fn fit_to_size(m: &Svbrdf, size: usize) -> Result<Svbrdf> {
     if side == size {
         return Ok(sq);
     }
-    let resize = |im: &crate::image::Image| {
-        if side > size {
-            im.resize_area(size, size)
-        } else {
-            im.resize_bilinear(size, size)
-        }
-    };
+    let resize = |im: &crate::image::Image| im.resize_to(size, size);
     let normal = crate::svbrdf::renormalize_normals(&resize(&sq.normal));
     Ok(Svbrdf { diffuse: resize(&sq.diffuse), specular: resize(&sq.specular), roughness: resize(&sq.roughness), normal, height_field: None })
 }
@@ -219,13 +212,19 @@ pub fn evaluate(
     Ok(results)
 }
 
+/// Checks an evaluation resolution: a multiple of 8 (M_est) and at least
+/// 32 pixels (LPIPS needs 31x31).
+pub fn check_eval_size(size: usize) -> Result<()> {
+    ensure!(size >= 32, "--size must be at least 32 (LPIPS needs 31x31 pixels), got {size}");
+    crate::infer::photo::check_size(size)
+}
+
 /// `flashmat eval`: loads methods and materials, scores them, writes the
 /// CSVs, `summary.md` and the best/worst grids into `opts.out`.
 pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     ensure!(!opts.cases.is_empty(), "give at least one case with --cases (reflect, identity, hemisphere)");
     ensure!(opts.configs > 0, "--configs must be at least 1");
-    ensure!(opts.size >= 32, "--size must be at least 32 (LPIPS needs 31x31 pixels), got {}", opts.size);
-    crate::infer::photo::check_size(opts.size)?;
+    check_eval_size(opts.size)?;
     let mut cases = opts.cases.clone();
     cases.dedup();
     let opts = EvalOptions { cases, ..opts.clone() };

@@ -306,8 +306,7 @@ fn material_grid(r: &MaterialRenders) -> Result<Image> {
 /// materials (`grid-NAME.png`, with the input photo as `photo-NAME.png`).
 pub fn run(opts: &ShadowEvalOptions) -> Result<Vec<ShadowRow>> {
     ensure!(opts.lights > 0, "--lights must be at least 1");
-    ensure!(opts.size >= 32, "--size must be at least 32 (LPIPS needs 31x31 pixels), got {}", opts.size);
-    crate::infer::photo::check_size(opts.size)?;
+    super::check_eval_size(opts.size)?;
     opts.shadows.validate()?;
     let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device)?;
     let materials = super::load_materials(&opts.dataset, opts.size, opts.limit)?;

@@ -34,8 +34,7 @@ impl MaterialStream {
         if cfg.data == "procedural" {
             Ok(Self::Procedural { size: cfg.material_size })
         } else if let Some(index) = procedural::parse_test_material(&cfg.data)? {
-            let seed = procedural::test_seeds()[index];
-            Ok(Self::Single(Arc::new(procedural::generate_many(&[seed], cfg.material_size).remove(0))))
+            Ok(Self::Single(Arc::new(procedural::test_material(index, cfg.material_size))))
         } else {
             let ds = open_dataset(std::path::Path::new(&cfg.data))?;
             anyhow::ensure!(ds.len() > 0, "dataset {} holds no materials", cfg.data);
