@@ -21,5 +21,12 @@ fi
 # The Mitsuba 3 plugin (Python, pytest): installs mitsuba and libllvm19 once.
 python_rc=0
 bash scripts/test_python.sh 2>&1 || python_rc=$?
-echo "rust tests exit $rust_rc, python tests exit $python_rc"
-[ "$rust_rc" = 0 ] && [ "$python_rc" = 0 ]
+# The GPU campaign's steps on the CPU (tiny preset, under a minute).
+campaign_rc=0
+bash scripts/gpu-train.sh --cpu-dry-run 2>&1 || campaign_rc=$?
+# A GPU job takes at most 64 MiB: the tracked tree stays within 32 MiB so
+# the binary and a model to resume from fit beside it.
+size_rc=0
+bash scripts/check-size.sh || size_rc=$?
+echo "rust tests exit $rust_rc, python tests exit $python_rc, GPU campaign dry run exit $campaign_rc, tree size check exit $size_rc"
+[ "$rust_rc" = 0 ] && [ "$python_rc" = 0 ] && [ "$campaign_rc" = 0 ] && [ "$size_rc" = 0 ]

@@ -82,6 +82,23 @@ impl Image {
     }
 
     /// Rectangular crop: rows `top..top+h`, columns `left..left+w`.
+    /// One of the 8 symmetries of the square grid: bit 0 reverses the
+    /// columns, bit 1 the rows, bit 2 then swaps rows and columns
+    /// (`[C, H, W]` -> `[C, W, H]`).
+    pub fn dihedral(&self, code: u8) -> Self {
+        let (h, w) = (self.height, self.width);
+        let at = |c: usize, y: usize, x: usize| {
+            let x = if code & 1 != 0 { w - 1 - x } else { x };
+            let y = if code & 2 != 0 { h - 1 - y } else { y };
+            self.get(c, y, x)
+        };
+        if code & 4 != 0 {
+            Self::from_fn(self.channels, w, h, |c, y, x| at(c, x, y))
+        } else {
+            Self::from_fn(self.channels, h, w, at)
+        }
+    }
+
     pub fn crop(&self, top: usize, left: usize, h: usize, w: usize) -> Result<Self> {
         if top + h > self.height || left + w > self.width {
             bail!(

@@ -303,6 +303,30 @@ pub fn write_png(path: &Path, image: &Image, bits: BitDepth) -> Result<()> {
     })
 }
 
+/// Writes an 8-bit JPEG (the display values as [`write_png`] would store
+/// them, alpha dropped) at `quality` (1-100): report pictures, a tenth of
+/// a PNG's size. Replaced atomically.
+pub fn write_jpeg(path: &Path, image: &Image, quality: u8) -> Result<()> {
+    use image::{DynamicImage as D, ImageBuffer};
+    check_writable(path, image)?;
+    let (w, h) = (image.width as u32, image.height as u32);
+    let raw = interleaved(image, crate::spaces::quantize_u8);
+    let dynamic = match image.channels {
+        1 => ImageBuffer::from_raw(w, h, raw).map(D::ImageLuma8),
+        2 => ImageBuffer::from_raw(w, h, raw).map(D::ImageLumaA8),
+        3 => ImageBuffer::from_raw(w, h, raw).map(D::ImageRgb8),
+        _ => ImageBuffer::from_raw(w, h, raw).map(D::ImageRgba8),
+    }
+    .expect("buffer length follows from the checked shape");
+    let dynamic = if image.channels % 2 == 0 { D::ImageRgb8(dynamic.to_rgb8()) } else { dynamic };
+    atomic_write(path, |tmp| {
+        let mut out = BufWriter::new(std::fs::File::create(tmp)?);
+        dynamic.write_with_encoder(image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, quality.clamp(1, 100)))?;
+        out.flush()?;
+        Ok(())
+    })
+}
+
 /// Writes an uncompressed-precision (float32, lossless compression) OpenEXR
 /// file: 1 channel as Y, 2 as Y, A, 3 as R, G, B, 4 as R, G, B, A. Values
 /// are stored exactly (Inf allowed, NaN an error). Replaced atomically.
@@ -496,6 +520,22 @@ mod tests {
             assert!(max_abs_diff(&im, &back) <= 0.5 / 255.0 + 1e-6, "c={c}");
             // Values are the stored codes / 255 exactly.
             assert_eq!(back.get(0, 3, 4) * 255.0, (im.get(0, 3, 4) * 255.0).round());
+        }
+        assert!(leftovers(dir.path()).is_empty());
+    }
+
+    #[test]
+    fn jpeg_keeps_flat_colours_and_drops_alpha() {
+        let dir = tempfile::tempdir().unwrap();
+        for c in [1, 3, 4] {
+            // A flat patch survives JPEG's 8x8 DCT up to about one code.
+            let im = Image::filled(c, 16, 24, 0.4);
+            let p = dir.path().join(format!("a{c}.jpg"));
+            write_jpeg(&p, &im, 90).unwrap();
+            let back = read_image(&p).unwrap();
+            assert_eq!(back.channels, if c == 1 { 1 } else { 3 }, "c={c}");
+            assert_eq!((back.width, back.height), (24, 16));
+            assert!(back.data.iter().all(|v| (v - 0.4).abs() <= 1.5 / 255.0), "c={c}");
         }
         assert!(leftovers(dir.path()).is_empty());
     }

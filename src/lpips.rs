@@ -19,7 +19,12 @@ use anyhow::{anyhow, bail, Context, Result};
 use tch::{Device, Kind, Tensor};
 
 /// Default weights file, inside the crate.
-pub const DEFAULT_WEIGHTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/assets/lpips/alexnet-lpips-v0.1.safetensors");
+pub const DEFAULT_WEIGHTS: &str = "assets/lpips/alexnet-lpips-v0.1.safetensors";
+
+/// [`DEFAULT_WEIGHTS`] under [`crate::bundled_root`].
+pub fn default_weights_path() -> PathBuf {
+    crate::bundled_root().join(DEFAULT_WEIGHTS)
+}
 
 /// Scaling layer constants of LPIPS (inputs in [-1, 1]).
 const SHIFT: [f32; 3] = [-0.030, -0.088, -0.188];
@@ -57,9 +62,9 @@ impl std::fmt::Debug for Lpips {
 }
 
 impl Lpips {
-    /// Loads the weights from [`DEFAULT_WEIGHTS`] onto `device`.
+    /// Loads the weights from [`default_weights_path`] onto `device`.
     pub fn new(device: Device) -> Result<Self> {
-        Self::load(DEFAULT_WEIGHTS, device)
+        Self::load(default_weights_path(), device)
     }
 
     /// Loads the weights from a safetensors file onto `device`. Errors (naming
@@ -105,11 +110,6 @@ impl Lpips {
     /// Device the weights live on; inputs must be on it too.
     pub fn device(&self) -> Device {
         self.device
-    }
-
-    /// The weights file this crate ships, as a path.
-    pub fn default_path() -> PathBuf {
-        PathBuf::from(DEFAULT_WEIGHTS)
     }
 
     /// LPIPS distance per pair, differentiable w.r.t. `a` and `b` (wrap in
@@ -271,7 +271,7 @@ mod tests {
         assert!(format!("{err:#}").contains("nope.safetensors"), "{err:#}");
 
         let damaged = dir.path().join("damaged.safetensors");
-        let bytes = std::fs::read(DEFAULT_WEIGHTS).unwrap();
+        let bytes = std::fs::read(default_weights_path()).unwrap();
         std::fs::write(&damaged, &bytes[..bytes.len() / 2]).unwrap();
         let err = Lpips::load(&damaged, Device::Cpu).unwrap_err();
         assert!(format!("{err:#}").contains("damaged.safetensors"), "{err:#}");

@@ -1,4 +1,4 @@
-//! End-to-end checks of the bundled models (`models/compact-{ldr,hdr}-4000.safetensors`)
+//! End-to-end checks of the bundled model (`models/flashmat.safetensors`)
 //! on held-out procedural materials: render a flash photo, `flashmat estimate`
 //! it, `flashmat relight` the material, and compare with the true renders.
 //!
@@ -107,21 +107,14 @@ fn bundled_ldr_model_round_trips_held_out_materials() {
     check(true, 0.08, 0.065);
 }
 
-/// The committed models of the evaluation and the shadows experiment open
-/// as the method, model and step count their recipes (models/MODEL.md) say.
+/// The committed model opens as the method, model and step count its
+/// recipe (models/MODEL.md) says.
 #[test]
-fn committed_evaluation_models_record_their_method_and_steps() {
+fn bundled_model_records_its_method_and_steps() {
     use flashmat::baselines::{read_header_metadata, METHOD_KEY};
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
     for (file, method, steps, ldr) in [
-        ("compact-ldr-4000.safetensors", "flashmat", "4000", true),
-        ("compact-hdr-4000.safetensors", "flashmat", "4000", false),
-        ("compact-ldr.safetensors", "flashmat", "1785", true),
-        ("compact-hdr.safetensors", "flashmat", "1875", false),
-        ("baseline-analytic.safetensors", "analytic", "1875", false),
-        ("baseline-relight-unet.safetensors", "relight-unet", "1875", false),
-        ("experiments/shadow-overfit-test38.safetensors", "flashmat", "300", false),
-        ("experiments/shadow-distribution.safetensors", "flashmat", "300", false),
+        ("flashmat.safetensors", "flashmat", "4000", true),
     ] {
         let meta = read_header_metadata(&root.join(file)).unwrap();
         assert_eq!(meta.get(METHOD_KEY).map(String::as_str), Some(method), "{file}: {meta:?}");

@@ -155,7 +155,7 @@ fn synthetic_captures_then_eval_captures() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("Scored on the other 3 photos at 64x64"), "{stdout}");
-    for f in ["captures.csv", "summary.md", "grid.png", "grid.txt"] {
+    for f in ["captures.csv", "summary.md", "grid.jpg", "grid.txt"] {
         assert!(report.join(f).exists(), "{f}");
     }
     no_temp_files(&report);

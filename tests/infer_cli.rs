@@ -185,21 +185,21 @@ fn default_models_are_found_checked_and_explained() {
         flashmat_env(&args, &env)
     };
     // Missing default model: which file, and how to pick another.
-    assert_error(&run(&[]), &["compact-ldr-4000.safetensors", "does not exist", "--model"]);
+    assert_error(&run(&[]), &["flashmat.safetensors", "does not exist", "--model"]);
     // The default file must hold the bundled (compact) preset.
-    tiny_model(&models.join("compact-ldr-4000.safetensors"), true, 4);
-    assert_error(&run(&[]), &["compact-ldr-4000.safetensors", "holds model 'tiny-", "expected 'compact-"]);
+    tiny_model(&models.join("flashmat.safetensors"), true, 4);
+    assert_error(&run(&[]), &["flashmat.safetensors", "holds model 'tiny-", "expected 'compact-"]);
     // --model accepts any preset, but not a missing file...
     assert_error(&run(&["--model", s(&d.join("nope.safetensors"))]), &["nope.safetensors", "does not exist", "--model"]);
     // ...nor another version of the model format...
-    let a = flashmat::archive::Archive::load(&models.join("compact-ldr-4000.safetensors"), "flashmat-model", 1).unwrap();
+    let a = flashmat::archive::Archive::load(&models.join("flashmat.safetensors"), "flashmat-model", 1).unwrap();
     let v2 = d.join("v2.safetensors");
     a.save(&v2, "flashmat-model", 2).unwrap();
     assert_error(&run(&["--model", s(&v2)]), &["v2.safetensors", "version 2 is not supported"]);
     // ...nor a neural material.
-    assert_ok(&flashmat_env(&["estimate", s(&photo), "--fov", "28", "--size", "32", "--model", s(&models.join("compact-ldr-4000.safetensors")), "-o", s(&o)], &env));
+    assert_ok(&flashmat_env(&["estimate", s(&photo), "--fov", "28", "--size", "32", "--model", s(&models.join("flashmat.safetensors")), "-o", s(&o)], &env));
     assert_error(&run(&["--model", s(&o)]), &["m.nmat", "'flashmat-nmat' file, expected a 'flashmat-model' file"]);
-    assert_ok(&run(&["--model", s(&models.join("compact-ldr-4000.safetensors"))]));
+    assert_ok(&run(&["--model", s(&models.join("flashmat.safetensors"))]));
 }
 
 #[test]

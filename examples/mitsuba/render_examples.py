@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """flashmat's neural BRDF in Mitsuba 3: the paper's sphere figure and a textured plane.
 
-    python examples/mitsuba/render_examples.py OUT [--model models/compact-hdr.safetensors]
+    python examples/mitsuba/render_examples.py OUT [--model models/flashmat.safetensors]
         [--spp 64] [--res 256] [--variant llvm_ad_rgb]
 
 Steps (each skipped when its result is given with --svbrdf / --nmat):
@@ -43,7 +43,7 @@ ROOT = HERE.parents[1]
 sys.path.insert(0, str(HERE))
 import scenes  # noqa: E402
 
-DEFAULT_MODEL = ROOT / "models" / "compact-hdr.safetensors"
+DEFAULT_MODEL = ROOT / "models" / "flashmat.safetensors"
 
 
 class ExampleError(RuntimeError):

@@ -3,7 +3,7 @@
 # (release), installs the plugin from this checkout and renders the examples.
 #   examples/mitsuba/run.sh [OUT] [render_examples.py options...]
 #   examples/mitsuba/run.sh out/mitsuba --model /path/model.safetensors --res 256 --spp 64
-# OUT defaults to out/mitsuba; --model defaults to models/compact-hdr.safetensors.
+# OUT defaults to out/mitsuba; --model defaults to models/flashmat.safetensors.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 out="${1:-out/mitsuba}"

@@ -23,6 +23,25 @@ pub enum BenchCommand {
     Train(TrainBenchArgs),
     /// M_est forward for one photo and ND_enc + M_render for one frame (inference mode).
     Infer(InferBenchArgs),
+    /// Device smoke test: a few training steps on the CPU and on --device from the same weights and batches;
+    /// fails (exit 1, one line) when a loss term differs by more than 2%.
+    Smoke(SmokeArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct SmokeArgs {
+    /// Model preset (paper, compact, tiny).
+    #[arg(long, default_value = "compact")]
+    pub preset: String,
+    /// Training crop size.
+    #[arg(long, default_value_t = 64)]
+    pub crop: usize,
+    /// Steps compared (the second and later run after an optimizer update).
+    #[arg(long, default_value_t = 2)]
+    pub steps: usize,
+    /// The device to prove: cuda, cuda:N (cpu compares the CPU with itself).
+    #[arg(long, default_value = "cuda")]
+    pub device: String,
 }
 
 #[derive(Args, Debug)]
@@ -74,6 +93,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Data(a) => bench_data(a),
         BenchCommand::Train(a) => bench_train(a),
+        BenchCommand::Smoke(a) => smoke(a),
         BenchCommand::Infer(a) => {
             let device = super::train::parse_device(&a.device)?;
             let t = crate::model::bench_infer_runs(&crate::model::ModelConfig::preset(&a.preset)?, a.size, device, a.runs)?;
@@ -90,6 +110,32 @@ pub fn peak_memory_gib() -> Option<f64> {
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
     let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib / (1024.0 * 1024.0))
+}
+
+fn smoke(args: &SmokeArgs) -> Result<()> {
+    use crate::train::smoke::{compare_devices, SMOKE_TOLERANCE};
+    println!(
+        "libtorch: CUDA available {}, {} CUDA device(s), cuDNN {}",
+        tch::Cuda::is_available(),
+        tch::Cuda::device_count(),
+        tch::Cuda::cudnn_is_available()
+    );
+    let device = super::train::parse_device(&args.device)?;
+    let model = crate::model::ModelConfig::preset(&args.preset)?;
+    let cfg = crate::train::TrainConfig { model, crop: args.crop, material_size: args.crop.max(256), outputs_per_material: 4, ..Default::default() };
+    let r = compare_devices(&cfg, device, args.steps)?;
+    for (a, b) in r.cpu.iter().zip(&r.device) {
+        println!(
+            "step {}: L1 {:.6} / {:.6}  LPIPS {:.6} / {:.6}  renderer L1 {:.6} / {:.6}  discriminator {:.6} / {:.6}  (CPU / {device:?})",
+            a.step, a.l1, b.l1, a.lpips, b.lpips, a.l1_render, b.l1_render, a.loss_disc, b.loss_disc
+        );
+    }
+    println!("step time: {:.3} s on the CPU, {:.3} s on {device:?} ({:.1}x)", r.cpu_step_seconds, r.device_step_seconds, r.cpu_step_seconds / r.device_step_seconds.max(1e-9));
+    if !r.passed() {
+        anyhow::bail!("smoke test failed on {device:?}: {} differs by {:.2e} relative (tolerance {SMOKE_TOLERANCE})", r.worst.1, r.worst.0);
+    }
+    println!("smoke test passed on {device:?}: largest difference {:.2e} relative ({}), tolerance {SMOKE_TOLERANCE}", r.worst.0, r.worst.1);
+    Ok(())
 }
 
 fn bench_train(args: &TrainBenchArgs) -> Result<()> {

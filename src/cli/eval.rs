@@ -27,8 +27,8 @@ pub struct EvalArgs {
     /// Cases of the paper's table, comma-separated.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "reflect,identity,hemisphere")]
     pub cases: Vec<Sampling>,
-    /// Output folder: NAME.csv per method, summary.md, best.png, worst.png, grids.txt
-    /// (with --captures: captures.csv, summary.md, grid.png, grid.txt).
+    /// Output folder: NAME.csv per method, summary.md, best.jpg, worst.jpg, grids.txt
+    /// (with --captures: captures.csv, summary.md, grid.jpg, grid.txt).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Resolution in pixels (a multiple of 8, at least 32; capture photos are resized to it).
@@ -97,7 +97,7 @@ pub struct ShadowEvalArgs {
     /// (loaded maps get a height field integrated from their normals).
     #[arg(long, default_value = PROCEDURAL_TEST)]
     pub dataset: String,
-    /// Output folder: shadows.csv, summary.md, grid-NAME.png and photo-NAME.png of the most shadowed materials.
+    /// Output folder: shadows.csv, summary.md, grid-NAME.jpg and photo-NAME.jpg of the most shadowed materials.
     #[arg(short, long)]
     pub output: PathBuf,
     /// Resolution in pixels (a multiple of 8, at least 32).

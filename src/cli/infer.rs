@@ -14,8 +14,8 @@ use tch::Device;
 /// How a photo becomes a neural material (shared by estimate, relight, show).
 #[derive(Args, Debug, Clone)]
 pub struct EstimateOptions {
-    /// Model file (flashmat export). Default: models/compact-ldr-4000.safetensors for PNG/JPEG photos,
-    /// models/compact-hdr-4000.safetensors for EXR (folder overridden by $FLASHMAT_MODELS).
+    /// Model file (flashmat export). Default: the bundled models/flashmat.safetensors, for 8-bit and EXR photos alike
+    /// (folder overridden by $FLASHMAT_MODELS).
     #[arg(long, value_name = "FILE")]
     pub model: Option<PathBuf>,
     /// Field of view of the photo across its shorter side, in degrees (default 45 for PNG/JPEG, a phone;
@@ -94,8 +94,9 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
     let t0 = Instant::now();
     let prepared = infer::load_photo(photo, opts.fov, opts.size)?;
     let t_photo = t0.elapsed().as_secs_f64();
-    let loaded = infer::load_model(opts.model.as_deref(), prepared.ldr, device)?;
-    if let Some(w) = infer::input_mismatch_warning(&loaded.info, &loaded.path, prepared.ldr) {
+    let loaded = infer::load_model(opts.model.as_deref(), device)?;
+    // The bundled model serves both photo types by design: warn only for a chosen one.
+    if let Some(w) = opts.model.as_ref().and_then(|_| infer::input_mismatch_warning(&loaded.info, &loaded.path, prepared.ldr)) {
         eprintln!("{w}");
     }
     let t1 = Instant::now();

@@ -45,6 +45,20 @@ pub struct TrainArgs {
     /// Fine-tune: start from the weights of this run folder's checkpoint (same model size; fresh optimizers, step 0).
     #[arg(long, value_name = "RUN_DIR", conflicts_with = "resume")]
     pub init_from: Option<PathBuf>,
+    /// Continue from an exported model file when the run's checkpoint is lost (a GPU job's disk): its weights and
+    /// step count, fresh optimizers and discriminator. A new run (--out) with the same model and recipe.
+    #[arg(long, value_name = "MODEL_FILE", conflicts_with_all = ["resume", "init_from"])]
+    pub warm_start: Option<PathBuf>,
+    /// Procedural data from a bank of N materials generated once at the start on all cores, drawn with random
+    /// crops and the 8 symmetries of the square (0: a fresh material every draw). Keeps a GPU fed.
+    #[arg(long, default_value_t = 0, value_name = "N", conflicts_with = "resume")]
+    pub bank: usize,
+    /// Stop cleanly (checkpoint, export) after M minutes of this invocation; continue with --resume.
+    #[arg(long, value_name = "M")]
+    pub minutes: Option<f64>,
+    /// Also write DIR/model.safetensors (an f16 export, as `flashmat export`) at every checkpoint and at the end.
+    #[arg(long, value_name = "DIR")]
+    pub export_dir: Option<PathBuf>,
     /// Total training steps (with --resume: the new total).
     #[arg(long)]
     pub steps: Option<u64>,
@@ -137,8 +151,17 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         tch::set_num_threads(t);
     }
     let device = parse_device(&a.device)?;
+    if let Some(m) = a.minutes {
+        anyhow::ensure!(m.is_finite() && m >= 0.0, "--minutes must be a number of minutes >= 0 (got {m})");
+    }
+    let options = |dir: &PathBuf| RunOptions {
+        max_steps_this_run: a.max_steps_now,
+        max_minutes: a.minutes,
+        export_dir: a.export_dir.clone(),
+        ..RunOptions::new(dir.clone(), device, true)
+    };
     if let Some(dir) = &a.resume {
-        let opts = RunOptions { run_dir: dir.clone(), device, max_steps_this_run: a.max_steps_now, progress: true };
+        let opts = options(dir);
         let t = run::resume_any(&opts, a.steps)?;
         eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
         return Ok(());
@@ -166,6 +189,8 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         shadows: a.shadows,
         height_scale: a.height_scale,
         init_from: a.init_from.as_ref().map(|p| p.display().to_string()),
+        warm_start: a.warm_start.as_ref().map(|p| p.display().to_string()),
+        bank: a.bank,
         lr: a.lr,
         pixel_sampling: a.pixel_sampling.unwrap_or(PixelSampling::InverseNorm),
         scheme: a.scheme.unwrap_or(UpdateScheme::Alternating),
@@ -182,26 +207,25 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         ..Default::default()
     };
     let dir = a.out.clone().context("--out DIR is required for a new run")?;
-    let opts = RunOptions { run_dir: dir.clone(), device, max_steps_this_run: a.max_steps_now, progress: true };
+    let opts = options(&dir);
     let t = run::start_any(config, &opts)?;
     eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
     Ok(())
 }
 
 pub fn export(a: &ExportArgs) -> Result<()> {
+    use crate::train::run::RunTrainer;
     let ckpt = run::checkpoint_path(&a.run);
     if ckpt.exists() && !crate::train::Trainer::checkpoint_config(&ckpt)?.method.is_flashmat() {
         let trainer = BaselineTrainer::resume(&ckpt, Device::Cpu)?;
         super::prepare_output(&a.output)?;
-        let info = crate::model::ModelInfo { ldr_input: trainer.config.ldr_input, steps: trainer.step };
-        trainer.net.save(&a.output, &info, !a.f32)?;
+        trainer.export_model(&a.output, !a.f32)?;
         eprintln!("wrote {} ({} baseline {}, step {})", a.output.display(), trainer.config.method, trainer.net.model_id(), trainer.step);
         return Ok(());
     }
     let trainer = crate::train::Trainer::resume(&ckpt, Device::Cpu, None)?;
     super::prepare_output(&a.output)?;
-    let info = crate::model::ModelInfo { ldr_input: trainer.config.ldr_input, steps: trainer.step };
-    trainer.model.save(&a.output, &info, !a.f32)?;
+    trainer.export_model(&a.output, !a.f32)?;
     eprintln!("wrote {} (model {}, step {})", a.output.display(), trainer.model.model_id(), trainer.step);
     Ok(())
 }

@@ -31,7 +31,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use tch::{Device, Kind, Tensor};
 
-/// Photos shown in `grid.png` at most (besides the input), evenly spaced.
+/// Photos shown in `grid.jpg` at most (besides the input), evenly spaced.
 const GRID_PHOTOS: usize = 8;
 
 /// Grid cells are shrunk to at most this many pixels across.
@@ -232,7 +232,7 @@ fn file_name(p: &Path) -> String {
 
 /// `flashmat eval --captures`: every method estimates from the overhead
 /// photo and re-renders the other photos' configurations; writes
-/// `captures.csv`, `summary.md`, `grid.png` (cells of at most 128 pixels)
+/// `captures.csv`, `summary.md`, `grid.jpg` (cells of at most 128 pixels)
 /// and `grid.txt` into `opts.out`.
 pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
     super::check_eval_size(opts.size)?;
@@ -279,7 +279,7 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
     let grid_rows: Vec<Vec<Image>> = (0..=shown.len())
         .map(|r| columns.iter().map(|c| grid_cell(&c[r])).collect::<Result<_>>())
         .collect::<Result<_>>()?;
-    crate::io::write_png(&opts.out.join("grid.png"), &crate::viz::grid(&grid_rows, 4)?, crate::io::BitDepth::Eight)?;
+    crate::io::write_jpeg(&opts.out.join("grid.jpg"), &crate::viz::grid(&grid_rows, 4)?, super::report::REPORT_JPEG_QUALITY)?;
     let mut note = format!(
         "Columns: photo (fall-off compensated) | {}\nRow 1: the input {} and each method's re-render of it.\n",
         results.iter().map(|r| r.name.as_str()).collect::<Vec<_>>().join(" | "),
@@ -565,7 +565,7 @@ mod tests {
         assert!(csv.lines().nth(1).unwrap().starts_with("printout,01.png,"));
         let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
         assert!(summary.contains("Estimated from `00.png`") && summary.contains("| printout |"), "{summary}");
-        let grid = crate::io::read_image(&out.join("grid.png")).unwrap();
+        let grid = crate::io::read_image(&out.join("grid.jpg")).unwrap();
         // 5 rows (input + 4 photos) x 2 columns of 32 px cells, 4 px gaps.
         assert_eq!((grid.height, grid.width), (5 * 36 + 4, 2 * 36 + 4));
 

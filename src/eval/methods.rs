@@ -46,7 +46,7 @@ impl ModelMethod {
     /// Loads a model file; `ldr_photo`: the photos are clamped LDR renders
     /// (recorded in the neural material's metadata).
     pub fn load(path: &Path, name: String, ldr_photo: bool, device: Device) -> Result<Self> {
-        let loaded = infer::load_model(Some(path), ldr_photo, device)?;
+        let loaded = infer::load_model(Some(path), device)?;
         Ok(Self { name, model: loaded.model, info: loaded.info, ldr_photo, material: None })
     }
 }

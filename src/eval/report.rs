@@ -9,6 +9,10 @@ use anyhow::Result;
 use std::fmt::Write as _;
 use tch::Tensor;
 
+/// JPEG quality of report pictures (grids): small enough for the
+/// repository, no visible blocking at the grids' cell sizes.
+pub const REPORT_JPEG_QUALITY: u8 = 88;
+
 /// CSV text of one method: `material,case,lpips,rmse_log,psnr`.
 pub fn csv_text(res: &MethodResults) -> String {
     let mut s = String::from("material,case,lpips,rmse_log,psnr\n");
@@ -106,7 +110,7 @@ pub fn material_grid(opts: &EvalOptions, methods: &mut [Box<dyn Method>], index:
     crate::viz::grid(&rows, 4)
 }
 
-/// Writes `best.png` and `worst.png`: grids of the materials the first
+/// Writes `best.jpg` and `worst.jpg`: grids of the materials the first
 /// method re-renders best and worst (mean LPIPS over the cases); the
 /// material names go to `grids.txt`.
 pub fn write_grids(opts: &EvalOptions, methods: &mut [Box<dyn Method>], materials: &[(String, Svbrdf)], results: &[MethodResults]) -> Result<()> {
@@ -119,9 +123,9 @@ pub fn write_grids(opts: &EvalOptions, methods: &mut [Box<dyn Method>], material
         opts.cases.iter().map(|&c| case_title(c)).collect::<Vec<_>>().join(", "),
         names.first().cloned().unwrap_or_default()
     );
-    for (file, i) in [("best.png", best), ("worst.png", worst)] {
+    for (file, i) in [("best.jpg", best), ("worst.jpg", worst)] {
         let g = material_grid(opts, methods, i, &materials[i].1)?;
-        crate::io::write_png(&opts.out.join(file), &g, crate::io::BitDepth::Eight)?;
+        crate::io::write_jpeg(&opts.out.join(file), &g, REPORT_JPEG_QUALITY)?;
         let _ = writeln!(note, "{file}: {}", materials[i].0);
     }
     crate::io::atomic_write_bytes(&opts.out.join("grids.txt"), note.as_bytes())

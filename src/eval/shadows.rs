@@ -303,7 +303,7 @@ fn material_grid(r: &MaterialRenders) -> Result<Image> {
 
 /// `flashmat shadow-eval`: scores the methods on shadowed renders and
 /// writes `shadows.csv`, `summary.md` and grids of the most shadowed
-/// materials (`grid-NAME.png`, with the input photo as `photo-NAME.png`).
+/// materials (`grid-NAME.jpg`, with the input photo as `photo-NAME.jpg`).
 pub fn run(opts: &ShadowEvalOptions) -> Result<Vec<ShadowRow>> {
     ensure!(opts.lights > 0, "--lights must be at least 1");
     super::check_eval_size(opts.size)?;
@@ -339,8 +339,8 @@ pub fn run(opts: &ShadowEvalOptions) -> Result<Vec<ShadowRow>> {
             rows.extend(score_method(&lpips, name, method, pred, &r.unshadowed, &r.shadowed, &r.visibility)?);
         }
         if grid_set.contains(&i) {
-            crate::io::write_png(&opts.out.join(format!("grid-{name}.png")), &material_grid(&r)?, crate::io::BitDepth::Eight)?;
-            crate::io::write_png(&opts.out.join(format!("photo-{name}.png")), &display(&photo)?, crate::io::BitDepth::Eight)?;
+            crate::io::write_jpeg(&opts.out.join(format!("grid-{name}.jpg")), &material_grid(&r)?, super::report::REPORT_JPEG_QUALITY)?;
+            crate::io::write_jpeg(&opts.out.join(format!("photo-{name}.jpg")), &display(&photo)?, super::report::REPORT_JPEG_QUALITY)?;
         }
         bar.inc(1);
     }
@@ -350,7 +350,7 @@ pub fn run(opts: &ShadowEvalOptions) -> Result<Vec<ShadowRow>> {
     let mut summary = summary_markdown(opts, &rows, &names, &material_names);
     let _ = writeln!(
         summary,
-        "\nGrids (`grid-NAME.png`, one row per light, at most 8): visibility | GGX without shadows | shadowed GGX reference | {}. Input photos: `photo-NAME.png`.",
+        "\nGrids (`grid-NAME.jpg`, one row per light, at most 8): visibility | GGX without shadows | shadowed GGX reference | {}. Input photos: `photo-NAME.jpg`.",
         names[1..].join(" | ")
     );
     crate::io::atomic_write_bytes(&opts.out.join("summary.md"), summary.as_bytes())?;
@@ -441,7 +441,7 @@ mod tests {
         assert_eq!(csv.lines().count(), 1 + rows.len());
         let summary = std::fs::read_to_string(dir.path().join("summary.md")).unwrap();
         assert!(summary.contains("| ggx-unshadowed | ") && summary.contains("## Per light"), "{summary}");
-        assert!(dir.path().join("grid-test38.png").exists() && dir.path().join("photo-test38.png").exists());
+        assert!(dir.path().join("grid-test38.jpg").exists() && dir.path().join("photo-test38.jpg").exists());
 
         // A flat material: no shadows, so every light reports n/a.
         let flat = Svbrdf::uniform(32, 32, [0.5; 3], [0.04; 3], 0.3);

@@ -97,7 +97,7 @@ fn eval_end_to_end_on_two_materials() {
     let opts = small_eval(vec![model_path.to_string_lossy().into_owned(), PRINTOUT.into()], &out);
     let results = run(&opts).unwrap();
     assert_eq!(results.len(), 2);
-    for name in ["tiny.csv", "printout.csv", "summary.md", "best.png", "worst.png", "grids.txt"] {
+    for name in ["tiny.csv", "printout.csv", "summary.md", "best.jpg", "worst.jpg", "grids.txt"] {
         assert!(out.join(name).is_file(), "{name} missing");
     }
     let csv = std::fs::read_to_string(out.join("printout.csv")).unwrap();

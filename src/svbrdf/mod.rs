@@ -106,6 +106,41 @@ impl Svbrdf {
         }
     }
 
+    /// One of the 8 symmetries of the square (data augmentation for a
+    /// material bank): bit 0 mirrors x (columns), bit 1 mirrors y (rows),
+    /// bit 2 then transposes rows and columns, applied as in
+    /// [`Image::dihedral`]. The normals turn with the plane: a mirror negates
+    /// the component across it; the transpose is the reflection across the
+    /// line y = -x (rows run towards -y), so (n_x, n_y) -> (-n_y, -n_x).
+    /// The result renders as the original would under the same transform of
+    /// the light and camera ([`dihedral_point`]).
+    pub fn dihedral(&self, code: u8) -> Self {
+        let mut normal = self.normal.dihedral(code);
+        let n = normal.height * normal.width;
+        let (xs, rest) = normal.data.split_at_mut(n);
+        let ys = &mut rest[..n];
+        for (x, y) in xs.iter_mut().zip(ys.iter_mut()) {
+            let (mut nx, mut ny) = (*x, *y);
+            if code & 1 != 0 {
+                nx = -nx;
+            }
+            if code & 2 != 0 {
+                ny = -ny;
+            }
+            if code & 4 != 0 {
+                (nx, ny) = (-ny, -nx);
+            }
+            (*x, *y) = (nx, ny);
+        }
+        Self {
+            diffuse: self.diffuse.dihedral(code),
+            specular: self.specular.dihedral(code),
+            roughness: self.roughness.dihedral(code),
+            normal,
+            height_field: self.height_field.as_ref().map(|h| h.dihedral(code)),
+        }
+    }
+
     /// A uniform material (handy in tests and examples).
     pub fn uniform(h: usize, w: usize, kd: [f32; 3], ks: [f32; 3], roughness: f32) -> Self {
         Self {
@@ -116,6 +151,21 @@ impl Svbrdf {
             height_field: None,
         }
     }
+}
+
+/// Where a light or camera position goes under [`Svbrdf::dihedral`]`(code)`.
+pub fn dihedral_point(code: u8, p: [f64; 3]) -> [f64; 3] {
+    let (mut x, mut y) = (p[0], p[1]);
+    if code & 1 != 0 {
+        x = -x;
+    }
+    if code & 2 != 0 {
+        y = -y;
+    }
+    if code & 4 != 0 {
+        (x, y) = (-y, -x);
+    }
+    [x, y, p[2]]
 }
 
 /// v / |v| (a zero vector stays zero).
@@ -188,6 +238,27 @@ pub fn normals_from_height(height: &Image) -> Image {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Rendering a transformed material under transformed light and camera
+    /// gives the transformed render, for all 8 symmetries (normals,
+    /// pixel grid and positions turn together).
+    #[test]
+    fn dihedral_transform_commutes_with_rendering() {
+        use crate::geometry::LightView;
+        let m = crate::data::procedural::generate(7, &crate::data::procedural::ProceduralConfig::with_size(24));
+        let config = LightView { light: [0.7, -0.4, 2.5], view: [-0.3, 0.5, 3.0] };
+        let reference = crate::svbrdf::render::render_material(&m, &[config]).unwrap().remove(0);
+        for code in 0..8u8 {
+            let moved = LightView { light: dihedral_point(code, config.light), view: dihedral_point(code, config.view) };
+            let render = crate::svbrdf::render::render_material(&m.dihedral(code), &[moved]).unwrap().remove(0);
+            let expected = reference.dihedral(code);
+            let worst = render.data.iter().zip(&expected.data).map(|(a, b)| (a - b).abs() / (1e-3 + b.abs())).fold(0f32, f32::max);
+            assert!(worst < 1e-4, "code {code}: relative difference {worst}");
+        }
+        // The transform is not the identity (except code 0), and 8 codes give 8 different materials.
+        let firsts: std::collections::HashSet<Vec<u32>> = (0..8u8).map(|c| m.dihedral(c).normal.data[..30].iter().map(|v| v.to_bits()).collect()).collect();
+        assert_eq!(firsts.len(), 8);
+    }
 
     #[test]
     fn normal_codec_round_trip() {

@@ -24,6 +24,8 @@ pub fn step_rng(seed: u64, step: u64, stream: u64) -> Pcg64 {
 #[derive(Clone)]
 pub enum MaterialStream {
     Procedural { size: usize },
+    /// A bank of procedural materials, drawn with random symmetries.
+    Bank(Arc<Vec<Svbrdf>>),
     /// One held-out material (`procedural-test:I`): the over-fitting experiment.
     Single(Arc<Svbrdf>),
     Dataset(Arc<dyn SvbrdfSource>),
@@ -31,7 +33,9 @@ pub enum MaterialStream {
 
 impl MaterialStream {
     pub fn open(cfg: &TrainConfig) -> Result<Self> {
-        if cfg.data == "procedural" {
+        if cfg.data == "procedural" && cfg.bank > 0 {
+            Ok(Self::Bank(Arc::new(generate_bank(cfg.bank, cfg.material_size))))
+        } else if cfg.data == "procedural" {
             Ok(Self::Procedural { size: cfg.material_size })
         } else if let Some(index) = procedural::parse_test_material(&cfg.data)? {
             Ok(Self::Single(Arc::new(procedural::test_material(index, cfg.material_size))))
@@ -52,6 +56,16 @@ impl MaterialStream {
                 procedural::generate_many(&seeds, *size)
             }
             Self::Single(m) => vec![m.as_ref().clone(); n as usize],
+            Self::Bank(bank) => {
+                // Crop first, then turn: the symmetry costs a crop's pixels, not a material's.
+                return (0..n)
+                    .map(|_| {
+                        let m = &bank[rng.random_range(0..bank.len())];
+                        let code = rng.random_range(0..8u8);
+                        random_crop(m, cfg.crop, &mut rng).map(|c| c.dihedral(code))
+                    })
+                    .collect();
+            }
             Self::Dataset(ds) => (0..n).map(|_| ds.load(rng.random_range(0..ds.len()))).collect::<Result<_>>()?,
         };
         // Loaded maps have no height field: integrate the whole material
@@ -63,6 +77,21 @@ impl MaterialStream {
         };
         full.iter().map(|m| random_crop(m, cfg.crop, &mut rng)).collect()
     }
+}
+
+/// The first `count` training materials, generated on all cores, with a
+/// progress bar (thousands take a minute on a 16-core machine).
+pub fn generate_bank(count: usize, size: usize) -> Vec<Svbrdf> {
+    use indicatif::ParallelProgressIterator;
+    use rayon::prelude::*;
+    let bar = indicatif::ProgressBar::new(count as u64);
+    if let Ok(style) = indicatif::ProgressStyle::with_template("material bank {bar:30} {pos}/{len}  {per_sec}  ETA {eta}") {
+        bar.set_style(style);
+    }
+    let config = procedural::ProceduralConfig::with_size(size);
+    let bank = (0..count as u64).into_par_iter().progress_with(bar.clone()).map(|i| procedural::generate(procedural::training_seed(i), &config)).collect();
+    bar.finish_and_clear();
+    bank
 }
 
 /// Renders the batch of a step on `device`.

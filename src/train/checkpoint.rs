@@ -49,6 +49,28 @@ impl Trainer {
         restore_vars(&self.disc_vs.variables(), &a.with_prefix("disc/"), &ctx("discriminator"))
     }
 
+    /// Warm restart from an exported model file (`flashmat export`): M_est
+    /// (BatchNorm statistics included) and the renderer take its weights,
+    /// the step count its recorded steps; the optimizers and the
+    /// discriminator stay fresh. The file must hold the same model, trained
+    /// on the same kind of input photos.
+    pub fn warm_start_from(&mut self, path: &Path) -> Result<()> {
+        let device = self.device();
+        let (model, info) = crate::model::Model::load_expecting(path, device, &self.model.model_id())?;
+        if info.ldr_input != self.config.ldr_input {
+            bail!(
+                "{}: a model trained on {} photos cannot warm-start a run on {} photos (--ldr)",
+                path.display(),
+                if info.ldr_input { "LDR" } else { "HDR" },
+                if self.config.ldr_input { "LDR" } else { "HDR" }
+            );
+        }
+        let named = model.named_variables().into_iter().collect();
+        self.model.load_named(&named).with_context(|| format!("{}: warm start", path.display()))?;
+        self.step = info.steps;
+        Ok(())
+    }
+
     /// Rebuilds a trainer from a checkpoint. `expect` (when given) must
     /// describe the same model, otherwise the checkpoint is refused.
     pub fn resume(path: &Path, device: Device, expect: Option<&TrainConfig>) -> Result<Self> {

@@ -38,6 +38,12 @@ pub struct TrainConfig {
     pub data: String,
     /// Resolution materials are generated at before cropping (procedural data).
     pub material_size: usize,
+    /// Procedural data from a bank of this many materials (the first
+    /// training seeds), generated once in parallel when the run starts and
+    /// drawn with random crops and the 8 symmetries of the square; 0: a
+    /// fresh material every draw. A GPU step outruns the generator.
+    #[serde(default)]
+    pub bank: usize,
     /// Training crop (paper: 192, then 256).
     pub crop: usize,
     pub materials_per_batch: usize,
@@ -54,6 +60,12 @@ pub struct TrainConfig {
     /// flashmat only). `None`: fresh networks from the seed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub init_from: Option<String>,
+    /// Exported model file whose weights and step count continue a run
+    /// whose checkpoint was lost (a GPU job's disk is gone after the job):
+    /// fresh optimizers and discriminator, the step and data stream go on
+    /// from the file's step count.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub warm_start: Option<String>,
     pub lr: f64,
     /// Multiplicative learning-rate decay applied every `lr_decay_every` steps (paper: 1.5% per 20,000).
     pub lr_decay: f64,
@@ -98,6 +110,7 @@ impl Default for TrainConfig {
             model: ModelConfig::compact(),
             data: "procedural".into(),
             material_size: 256,
+            bank: 0,
             crop: 128,
             materials_per_batch: 2,
             outputs_per_material: 8,
@@ -105,6 +118,7 @@ impl Default for TrainConfig {
             shadows: false,
             height_scale: 1.0,
             init_from: None,
+            warm_start: None,
             lr: 1e-4,
             lr_decay: 0.985,
             lr_decay_every: 20_000,
@@ -149,6 +163,8 @@ impl TrainConfig {
         anyhow::ensure!(self.outputs_per_material >= 1, "at least one output render per material");
         anyhow::ensure!(self.pixel_fraction > 0.0 && self.pixel_fraction <= 1.0, "pixel fraction must be in (0, 1]");
         anyhow::ensure!(self.lr > 0.0 && self.lr.is_finite(), "learning rate must be positive");
+        anyhow::ensure!(self.init_from.is_none() || self.warm_start.is_none(), "--init-from and --warm-start exclude each other");
+        anyhow::ensure!(self.bank == 0 || self.data == "procedural", "--bank applies to procedural data only (got --data {})", self.data);
         anyhow::ensure!(self.height_scale >= 0.0 && self.height_scale.is_finite(), "height scale must be a finite number >= 0 (got {})", self.height_scale);
         Ok(())
     }
@@ -206,6 +222,7 @@ mod tests {
         obj.remove("warmup_steps");
         obj.remove("adv_start");
         obj.remove("straight_through_output");
+        obj.remove("bank");
         let c: TrainConfig = serde_json::from_value(v).unwrap();
         assert_eq!(c, TrainConfig::default());
     }

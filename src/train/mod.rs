@@ -11,6 +11,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod losses;
 pub mod run;
+pub mod smoke;
 
 pub use baseline::BaselineTrainer;
 pub use config::{PixelSampling, TrainConfig, UpdateScheme};

@@ -119,6 +119,9 @@ pub trait RunTrainer: Sized {
     fn train_step(&mut self, batch: &TrainingBatch) -> Result<StepLosses>;
     fn save_checkpoint(&self, path: &Path) -> Result<()>;
     fn preview_grid(&self, batch: &TrainingBatch, max_outputs: usize) -> Result<Image>;
+    /// Writes the inference weights as an exported model file (`flashmat
+    /// export`; large weights as f16 when `half`).
+    fn export_model(&self, path: &Path, half: bool) -> Result<()>;
     /// Fresh networks for a configuration.
     fn create(config: TrainConfig, device: Device) -> Result<Self>;
     /// Rebuilds the trainer from a checkpoint.
@@ -144,11 +147,18 @@ impl RunTrainer for Trainer {
     fn preview_grid(&self, batch: &TrainingBatch, max_outputs: usize) -> Result<Image> {
         preview_grid(self, batch, max_outputs)
     }
+    fn export_model(&self, path: &Path, half: bool) -> Result<()> {
+        let info = crate::model::ModelInfo { ldr_input: self.config.ldr_input, steps: self.step };
+        self.model.save(path, &info, half)
+    }
     fn create(config: TrainConfig, device: Device) -> Result<Self> {
-        let init = config.init_from.clone();
+        let (init, warm) = (config.init_from.clone(), config.warm_start.clone());
         let mut t = Trainer::new(config, device)?;
         if let Some(run) = init {
             t.load_weights_from(&checkpoint_path(Path::new(&run)))?;
+        }
+        if let Some(file) = warm {
+            t.warm_start_from(Path::new(&file))?;
         }
         Ok(t)
     }
@@ -176,8 +186,12 @@ impl RunTrainer for BaselineTrainer {
     fn preview_grid(&self, batch: &TrainingBatch, max_outputs: usize) -> Result<Image> {
         BaselineTrainer::preview_grid(self, batch, max_outputs)
     }
+    fn export_model(&self, path: &Path, half: bool) -> Result<()> {
+        let info = crate::model::ModelInfo { ldr_input: self.config.ldr_input, steps: self.step };
+        self.net.save(path, &info, half)
+    }
     fn create(config: TrainConfig, device: Device) -> Result<Self> {
-        anyhow::ensure!(config.init_from.is_none(), "--init-from only applies to --method flashmat");
+        anyhow::ensure!(config.init_from.is_none() && config.warm_start.is_none(), "--init-from and --warm-start only apply to --method flashmat");
         BaselineTrainer::new(config, device)
     }
     fn resume_from(path: &Path, device: Device) -> Result<Self> {
@@ -212,8 +226,24 @@ pub struct RunOptions {
     pub device: Device,
     /// Stop after this many steps in this invocation (tests, time-boxed runs).
     pub max_steps_this_run: Option<u64>,
+    /// Stop cleanly (checkpoint, export) once this many minutes have passed
+    /// in this invocation, counted from before the data is opened.
+    pub max_minutes: Option<f64>,
+    /// Also write `model.safetensors` (an f16 export) here at every
+    /// checkpoint: what a time-limited GPU job brings back.
+    pub export_dir: Option<PathBuf>,
     pub progress: bool,
 }
+
+impl RunOptions {
+    /// Options of a plain run in `run_dir` (no step, time or export limits).
+    pub fn new(run_dir: impl Into<PathBuf>, device: Device, progress: bool) -> Self {
+        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, progress }
+    }
+}
+
+/// File name of the model that `RunOptions::export_dir` receives.
+pub const EXPORT_FILE: &str = "model.safetensors";
 
 /// Starts a new flashmat run (fails if the folder already holds a checkpoint).
 pub fn start(config: TrainConfig, opts: &RunOptions) -> Result<Trainer> {
@@ -280,7 +310,21 @@ fn resume_with<T: RunTrainer>(opts: &RunOptions, steps: Option<u64>) -> Result<T
     train_loop(trainer, opts)
 }
 
+/// Writes the checkpoint, the charts and (with an export folder) the f16
+/// export: everything a stopped run leaves.
+fn save_all<T: RunTrainer>(trainer: &T, opts: &RunOptions) -> Result<()> {
+    trainer.save_checkpoint(&checkpoint_path(&opts.run_dir))?;
+    write_charts(&opts.run_dir)?;
+    if let Some(dir) = &opts.export_dir {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create export folder {}", dir.display()))?;
+        trainer.export_model(&dir.join(EXPORT_FILE), true)?;
+    }
+    Ok(())
+}
+
 fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
+    let started = Instant::now();
+    let out_of_time = || opts.max_minutes.is_some_and(|m| started.elapsed().as_secs_f64() >= m * 60.0);
     let cfg = trainer.config().clone();
     let run = &opts.run_dir;
     let stop = Arc::new(AtomicBool::new(false));
@@ -323,13 +367,17 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
             let grid = trainer.preview_grid(&batch, 4)?;
             crate::io::write_png(&run.join("previews").join(format!("step-{done:07}.png")), &grid, crate::io::BitDepth::Eight)?;
         }
-        if done % cfg.checkpoint_every.max(1) == 0 || done == last || stop.load(Ordering::SeqCst) {
+        let timed_out = out_of_time();
+        if done % cfg.checkpoint_every.max(1) == 0 || done == last || stop.load(Ordering::SeqCst) || timed_out {
             log.flush()?;
-            trainer.save_checkpoint(&checkpoint_path(run))?;
-            write_charts(run)?;
+            save_all(&trainer, opts)?;
         }
         if stop.load(Ordering::SeqCst) {
             bar.abandon_with_message(format!("interrupted at step {done}; checkpoint saved, continue with --resume"));
+            return Ok(trainer);
+        }
+        if timed_out {
+            bar.abandon_with_message(format!("time limit reached at step {done}; checkpoint saved, continue with --resume"));
             return Ok(trainer);
         }
     }

@@ -105,11 +105,11 @@ fn all_weights(t: &Trainer) -> Vec<(String, tch::Tensor)> {
 #[test]
 fn interrupted_and_resumed_run_equals_straight_run() {
     let dir = tempfile::tempdir().unwrap();
-    let straight = RunOptions { run_dir: dir.path().join("a"), device: tch::Device::Cpu, max_steps_this_run: None, progress: false };
+    let straight = RunOptions { max_steps_this_run: None, ..RunOptions::new(dir.path().join("a"), tch::Device::Cpu, false) };
     let a = run::start(tiny_config(), &straight).unwrap();
     assert_eq!(a.step, 6);
 
-    let half = RunOptions { run_dir: dir.path().join("b"), device: tch::Device::Cpu, max_steps_this_run: Some(3), progress: false };
+    let half = RunOptions { max_steps_this_run: Some(3), ..RunOptions::new(dir.path().join("b"), tch::Device::Cpu, false) };
     let b = run::start(tiny_config(), &half).unwrap();
     assert_eq!(b.step, 3);
     drop(b); // "kill": only the checkpoint survives
@@ -134,7 +134,7 @@ fn interrupted_and_resumed_run_equals_straight_run() {
 #[test]
 fn init_from_starts_a_new_run_from_another_runs_weights() {
     let dir = tempfile::tempdir().unwrap();
-    let opts = |name: &str| RunOptions { run_dir: dir.path().join(name), device: tch::Device::Cpu, max_steps_this_run: None, progress: false };
+    let opts = |name: &str| RunOptions { max_steps_this_run: None, ..RunOptions::new(dir.path().join(name), tch::Device::Cpu, false) };
     let base = TrainConfig { steps: 2, weight_lpips: 0.0, ..tiny_config() };
     let pretrained = run::start(base.clone(), &opts("pretrained")).unwrap();
     let source = dir.path().join("pretrained").display().to_string();
@@ -171,7 +171,7 @@ fn init_from_starts_a_new_run_from_another_runs_weights() {
 #[test]
 fn damaged_or_foreign_checkpoints_are_refused() {
     let dir = tempfile::tempdir().unwrap();
-    let opts = RunOptions { run_dir: dir.path().join("r"), device: tch::Device::Cpu, max_steps_this_run: Some(1), progress: false };
+    let opts = RunOptions { max_steps_this_run: Some(1), ..RunOptions::new(dir.path().join("r"), tch::Device::Cpu, false) };
     run::start(TrainConfig { steps: 1, weight_lpips: 0.0, ..tiny_config() }, &opts).unwrap();
     let ckpt = checkpoint_path(&opts.run_dir);
     // Another preset is refused.
@@ -264,10 +264,10 @@ fn baseline_runs_resume_exactly_and_refuse_other_trainers() {
     for method in [TrainMethod::Analytic, TrainMethod::RelightUnet] {
         let dir = tempfile::tempdir().unwrap();
         let cfg = TrainConfig { method, steps: 4, checkpoint_every: 2, preview_every: 2, ..tiny_config() };
-        let straight = RunOptions { run_dir: dir.path().join("a"), device: tch::Device::Cpu, max_steps_this_run: None, progress: false };
+        let straight = RunOptions { max_steps_this_run: None, ..RunOptions::new(dir.path().join("a"), tch::Device::Cpu, false) };
         let a = run::start_baseline(cfg.clone(), &straight).unwrap();
         assert_eq!(a.step, 4);
-        let half = RunOptions { run_dir: dir.path().join("b"), device: tch::Device::Cpu, max_steps_this_run: Some(2), progress: false };
+        let half = RunOptions { max_steps_this_run: Some(2), ..RunOptions::new(dir.path().join("b"), tch::Device::Cpu, false) };
         let b = match run::start_any(cfg.clone(), &half).unwrap() {
             run::AnyTrainer::Baseline(b) => b,
             run::AnyTrainer::Flashmat(_) => panic!("{method} started as flashmat"),
@@ -300,10 +300,10 @@ fn baseline_runs_resume_exactly_and_refuse_other_trainers() {
         // The flashmat trainer refuses a baseline checkpoint and vice versa.
         let ckpt = checkpoint_path(&dir.path().join("b"));
         assert!(Trainer::resume(&ckpt, tch::Device::Cpu, None).is_err());
-        assert!(run::resume(&RunOptions { run_dir: dir.path().join("b"), device: tch::Device::Cpu, max_steps_this_run: None, progress: false }, None).is_err());
+        assert!(run::resume(&RunOptions { max_steps_this_run: None, ..RunOptions::new(dir.path().join("b"), tch::Device::Cpu, false) }, None).is_err());
     }
     let dir = tempfile::tempdir().unwrap();
-    let opts = RunOptions { run_dir: dir.path().join("f"), device: tch::Device::Cpu, max_steps_this_run: Some(1), progress: false };
+    let opts = RunOptions { max_steps_this_run: Some(1), ..RunOptions::new(dir.path().join("f"), tch::Device::Cpu, false) };
     run::start(TrainConfig { steps: 1, weight_lpips: 0.0, ..tiny_config() }, &opts).unwrap();
     let e = BaselineTrainer::resume(&checkpoint_path(&opts.run_dir), tch::Device::Cpu).err().unwrap();
     assert!(format!("{e:#}").contains("flashmat checkpoint"), "{e:#}");
@@ -311,3 +311,75 @@ fn baseline_runs_resume_exactly_and_refuse_other_trainers() {
     assert!(!std::fs::read_to_string(opts.run_dir.join("config.json")).unwrap().contains("method"));
 }
 
+
+#[test]
+fn bank_draws_are_deterministic_per_step_and_turn_the_materials() {
+    use super::batches::MaterialStream;
+    let cfg = TrainConfig { bank: 3, ..tiny_config() };
+    let stream = MaterialStream::open(&cfg).unwrap();
+    let a = stream.materials(&cfg, 4).unwrap();
+    let b = MaterialStream::open(&cfg).unwrap().materials(&cfg, 4).unwrap();
+    assert_eq!(a.len(), cfg.materials_per_batch);
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(x.diffuse.data, y.diffuse.data);
+        assert_eq!(x.normal.data, y.normal.data);
+        assert_eq!((x.height(), x.width()), (cfg.crop, cfg.crop));
+    }
+    // Over many steps every draw comes from the 3 bank materials: each crop's
+    // diffuse values all occur in one of them (a symmetry only moves pixels).
+    let bank = super::batches::generate_bank(3, cfg.material_size);
+    let mut codes_seen = std::collections::HashSet::new();
+    for step in 0..20 {
+        for m in stream.materials(&cfg, step).unwrap() {
+            let v = m.diffuse.data[0].to_bits();
+            assert!(bank.iter().any(|full| full.diffuse.data.iter().any(|u| u.to_bits() == v)));
+            // A transposed or mirrored normal field has some n_x or n_y sign pattern that
+            // the unturned crop lacks; count distinct (sign n_x at (0,0), sign n_y at (0,0)).
+            codes_seen.insert((m.normal.data[0] > 0.0, m.normal.data[cfg.crop * cfg.crop] > 0.0));
+        }
+    }
+    assert!(codes_seen.len() >= 3, "symmetries should vary the normals: {codes_seen:?}");
+    // Bank data is procedural only.
+    assert!(TrainConfig { bank: 3, data: "some/folder".into(), ..tiny_config() }.validate().is_err());
+}
+
+#[test]
+fn time_limit_stops_with_checkpoint_and_export_then_warm_start_continues_the_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let export = dir.path().join("export");
+    // A zero-minute budget stops after the first step, saved and exported.
+    let opts = RunOptions { max_minutes: Some(0.0), export_dir: Some(export.clone()), ..RunOptions::new(dir.path().join("a"), tch::Device::Cpu, false) };
+    let cfg = TrainConfig { weight_lpips: 0.0, ..tiny_config() };
+    let a = run::start(cfg.clone(), &opts).unwrap();
+    assert_eq!(a.step, 1);
+    assert!(checkpoint_path(&opts.run_dir).is_file());
+    let file = export.join(run::EXPORT_FILE);
+    let (model, info) = crate::model::Model::load(&file, tch::Device::Cpu).unwrap();
+    assert_eq!(info, crate::model::ModelInfo { ldr_input: false, steps: 1 });
+    // The export holds the trained M_est (f16 storage: close, not exact).
+    let (ours, theirs) = (a.model.named_variables(), model.named_variables());
+    for ((n, x), (_, y)) in ours.iter().zip(&theirs) {
+        let tol = 2e-3 * (1.0 + x.abs().max().double_value(&[]));
+        assert!((x - y).abs().max().double_value(&[]) <= tol, "{n}");
+    }
+
+    // Warm start: the export's weights, step 1, fresh optimizers; training goes on to step 3.
+    let warm = TrainConfig { warm_start: Some(file.display().to_string()), steps: 3, ..cfg.clone() };
+    let mut fresh = Trainer::new(warm.clone(), tch::Device::Cpu).unwrap();
+    fresh.warm_start_from(&file).unwrap();
+    assert_eq!(fresh.step, 1);
+    for ((n, x), (_, y)) in fresh.model.named_variables().iter().zip(&theirs) {
+        assert!(x.equal(y), "{n} differs from the export");
+    }
+    let c = run::start(warm, &RunOptions::new(dir.path().join("b"), tch::Device::Cpu, false)).unwrap();
+    assert_eq!(c.step, 3);
+    let log = run::read_log(&dir.path().join("b"));
+    assert_eq!(log.iter().map(|l| l.step).collect::<Vec<_>>(), vec![2, 3]);
+    // An LDR run refuses an HDR model, and another preset is refused.
+    let ldr = TrainConfig { warm_start: Some(file.display().to_string()), ldr_input: true, ..cfg.clone() };
+    let e = run::start(ldr, &RunOptions::new(dir.path().join("c"), tch::Device::Cpu, false)).err().unwrap();
+    assert!(format!("{e:#}").contains("LDR"), "{e:#}");
+    assert!(!dir.path().join("c").exists(), "a refused start leaves no run folder");
+    let other = TrainConfig { warm_start: Some(file.display().to_string()), model: ModelConfig::compact(), ..cfg };
+    assert!(run::start(other, &RunOptions::new(dir.path().join("d"), tch::Device::Cpu, false)).is_err());
+}

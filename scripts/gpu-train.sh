@@ -1,0 +1,276 @@
+#!/usr/bin/env bash
+# The GPU training campaign in time-boxed chunks (docs/GPU.md has the
+# sequence). Each GPU job gets a copy of the repository, runs one command
+# for at most 10 minutes and returns only the files under $OUT; its disk may
+# be gone before the next job. So:
+#
+#   here:   bash scripts/gpu-train.sh stage
+#             builds the release binary and copies it, with the model to
+#             resume from (when there is one), into .gpu/ (git-ignored;
+#             the job carries it)
+#   GPU:    bash scripts/gpu-train.sh chunk [MINUTES]
+#             first chunk on a machine: CUDA smoke test (stops the campaign
+#             with one line if it fails); then trains for MINUTES (default
+#             8.5), resuming from the machine's checkpoint when the disk is
+#             still there, else warm-starting from .gpu/resume.safetensors,
+#             else from scratch; writes model.safetensors (f16 export),
+#             log.jsonl, losses.png and chunk.md (recipe, steps/s,
+#             samples/s, GPU busy fraction, losses) to $OUT
+#   here:   cp <files_at>/model.safetensors .gpu/resume.safetensors
+#   GPU:    bash scripts/gpu-train.sh verdict
+#             scores the newest model (the machine's run, else
+#             .gpu/resume.safetensors) against the bundled one on the 50
+#             held-out materials (128 configurations); writes
+#             verdict/verdict.md, verdict/summary.md and the two methods'
+#             CSVs to $OUT (and candidate.safetensors when run alone)
+#   GPU:    bash scripts/gpu-train.sh final [MINUTES]
+#             a last chunk, then the verdict: 8 files, a job's limit
+#
+#   bash scripts/gpu-train.sh --cpu-dry-run
+#             the same steps on the CPU with the tiny preset (smoke test,
+#             chunks with a resume from the export and from the checkpoint,
+#             verdict), in a temporary folder; part of the test command
+#
+# The recipe is set by environment variables (defaults: the GPU recipe).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT="$PWD"
+
+PRESET="${FLASHMAT_GPU_PRESET:-compact}"
+CROP="${FLASHMAT_GPU_CROP:-128}"
+BATCH="${FLASHMAT_GPU_BATCH:-8}"
+OUTPUTS="${FLASHMAT_GPU_OUTPUTS:-8}"
+LR="${FLASHMAT_GPU_LR:-3e-4}"
+WARMUP="${FLASHMAT_GPU_WARMUP:-200}"
+BANK="${FLASHMAT_GPU_BANK:-4000}"
+SEED="${FLASHMAT_GPU_SEED:-1}"
+CONFIGS="${FLASHMAT_GPU_CONFIGS:-128}"
+DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
+# The machine's disk, where a chunk's run folder outlives the job while the
+# machine stays warm.
+WORK="${FLASHMAT_GPU_WORK:-/tmp/flashmat-gpu}"
+BIN="${FLASHMAT_GPU_BIN:-$ROOT/.gpu/flashmat}"
+RESUME_MODEL="${FLASHMAT_GPU_RESUME:-$ROOT/.gpu/resume.safetensors}"
+EVAL_EXTRA=()
+
+die() { echo "gpu-train: $*" >&2; exit 1; }
+
+# The binary built here runs against the GPU machine's own libtorch.
+use_machine_libtorch() {
+  export FLASHMAT_ROOT="$ROOT"
+  local torch_lib="${FLASHMAT_TORCH_LIB:-}"
+  if [ -z "$torch_lib" ]; then
+    local py
+    for py in /opt/torch/.venv/bin/python python3; do
+      torch_lib="$("$py" -c 'import torch,os; print(os.path.join(os.path.dirname(torch.__file__),"lib"))' 2>/dev/null)" && break
+    done
+  fi
+  [ -n "$torch_lib" ] && [ -d "$torch_lib" ] || die "no libtorch found (set FLASHMAT_TORCH_LIB to a torch/lib folder)"
+  export LD_LIBRARY_PATH="$torch_lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+  [ -x "$BIN" ] || die "no flashmat binary at $BIN (run 'bash scripts/gpu-train.sh stage' before the job and carry .gpu)"
+}
+
+recipe() {
+  local ldr=(--ldr)
+  echo --preset "$PRESET" "${ldr[@]}" --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --lr "$LR" \
+    --warmup-steps "$WARMUP" --straight-through-output --bank "$BANK" --seed "$SEED" \
+    --steps 100000000 --checkpoint-every 500 --preview-every 1000
+}
+
+gpu_info() {
+  if command -v nvidia-smi >/dev/null 2>&1; then
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || true
+  else
+    echo "no nvidia-smi (CPU run)"
+  fi
+}
+
+smoke() {
+  if [ -f "$WORK/smoke-passed" ]; then
+    echo "gpu-train: smoke test already passed on this machine"
+    return 0
+  fi
+  echo "gpu-train: smoke test on $DEVICE ($(gpu_info))"
+  local smoke_preset="$PRESET"
+  "$BIN" bench smoke --device "$DEVICE" --preset "$smoke_preset" --crop 64 --steps 2 \
+    || die "smoke test failed on $DEVICE: no training time spent (see the lines above)"
+  mkdir -p "$WORK" && touch "$WORK/smoke-passed"
+}
+
+# Samples the GPU's busy fraction once a second until killed.
+start_util_sampler() {
+  UTIL_PID=""
+  if command -v nvidia-smi >/dev/null 2>&1; then
+    nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader,nounits -l 1 >"$1" 2>/dev/null &
+    UTIL_PID=$!
+  fi
+}
+
+chunk() {
+  local minutes="${1:-8.5}" out="${OUT:?set OUT to the folder that comes back}"
+  use_machine_libtorch
+  mkdir -p "$WORK" "$out"
+  smoke
+  local run="$WORK/run" how
+  local args=(--minutes "$minutes" --export-dir "$out" --device "$DEVICE")
+  local first_step=0
+  start_util_sampler "$WORK/gpu-util.csv"
+  local t0; t0=$(date +%s)
+  if [ -f "$run/checkpoint.safetensors" ]; then
+    how="resumed from the machine's checkpoint"
+    first_step=$(tail -n 1 "$run/log.jsonl" 2>/dev/null | sed -n 's/.*"step":\([0-9]*\).*/\1/p')
+    "$BIN" train --resume "$run" "${args[@]}"
+  elif [ -f "$RESUME_MODEL" ]; then
+    how="warm start from $(basename "$RESUME_MODEL") (the last chunk's export; the machine's disk was gone)"
+    rm -rf "$run"
+    # shellcheck disable=SC2046
+    "$BIN" train --out "$run" --warm-start "$RESUME_MODEL" $(recipe) "${args[@]}"
+  else
+    how="fresh start"
+    rm -rf "$run"
+    # shellcheck disable=SC2046
+    "$BIN" train --out "$run" $(recipe) "${args[@]}"
+  fi
+  local t1; t1=$(date +%s)
+  [ -n "$UTIL_PID" ] && kill "$UTIL_PID" 2>/dev/null || true
+  cp "$run/log.jsonl" "$out/"
+  [ -f "$run/losses.png" ] && cp "$run/losses.png" "$out/"
+  chunk_summary "$how" "$((t1 - t0))" "$run/log.jsonl" "$WORK/gpu-util.csv" "${first_step:-0}" >"$out/chunk.md"
+  echo "- recipe: \`flashmat train $(recipe)\`" >>"$out/chunk.md"
+  cat "$out/chunk.md"
+}
+
+# chunk.md: steps of this chunk, throughput, GPU busy fraction, losses.
+chunk_summary() {
+  python3 - "$@" "$BATCH" "$OUTPUTS" "$CROP" "$(gpu_info)" <<'EOF'
+import json, sys
+how, wall, log, util, first, batch, outputs, crop, gpu = sys.argv[1:]
+steps = [json.loads(l) for l in open(log) if l.strip()]
+mine = [s for s in steps if s["step"] > int(first or 0)]
+train_s = sum(s["seconds"] for s in mine)
+n = len(mine)
+busy = []
+try:
+    for line in open(util):
+        parts = [p.strip() for p in line.split(",")]
+        if parts and parts[0].isdigit():
+            busy.append(float(parts[0]))
+except FileNotFoundError:
+    pass
+last = mine[-100:] or steps[-100:]
+mean = lambda k: sum(s[k] for s in last) / max(1, len(last))
+print(f"# Chunk ({how})\n")
+print(f"- GPU: {gpu}")
+print(f"- steps {mine[0]['step'] if mine else '-'} to {mine[-1]['step'] if mine else '-'} ({n} steps), {wall} s of wall time, {train_s:.0f} s inside steps")
+if n and train_s > 0:
+    print(f"- {n / train_s:.2f} steps/s, {n * int(batch) / train_s:.1f} materials/s, {n * int(batch) * (1 + int(outputs)) / train_s:.0f} renders/s at {crop}x{crop}")
+print(f"- GPU busy: {sum(busy) / len(busy):.0f}% (mean of {len(busy)} one-second samples)" if busy else "- GPU busy: not sampled (no nvidia-smi)")
+print(f"- last 100 steps: L1 {mean('l1'):.4f}, LPIPS {mean('lpips'):.3f}, renderer L1 {mean('l1_render'):.4f}, skipped {sum(1 for s in last if s['skipped'])}")
+EOF
+}
+
+verdict() {
+  local out="${OUT:?set OUT to the folder that comes back}" keep_model="${1:-yes}"
+  use_machine_libtorch
+  mkdir -p "$WORK" "$out"
+  local candidate="$WORK/candidate.safetensors"
+  if [ -f "$WORK/run/checkpoint.safetensors" ]; then
+    "$BIN" export --run "$WORK/run" -o "$candidate"
+  elif [ -f "$RESUME_MODEL" ]; then
+    cp "$RESUME_MODEL" "$candidate"
+  else
+    die "no model to judge: neither a run on this machine nor $RESUME_MODEL"
+  fi
+  local bundled="$ROOT/models/flashmat.safetensors"
+  rm -rf "$WORK/eval"
+  "$BIN" eval --model "$candidate" --model "$bundled" --dataset procedural-test --configs "$CONFIGS" \
+    --device "$DEVICE" -o "$WORK/eval" "${EVAL_EXTRA[@]}" >/dev/null
+  mkdir -p "$out/verdict"
+  cp "$WORK/eval/summary.md" "$WORK/eval/candidate.csv" "$WORK/eval/flashmat.csv" "$out/verdict/"
+  [ "$keep_model" = yes ] && cp "$candidate" "$out/candidate.safetensors"
+  python3 - "$WORK/eval/candidate.csv" "$WORK/eval/flashmat.csv" >"$out/verdict/verdict.md" <<'EOF'
+import csv, sys
+def load(p):
+    rows = {}
+    for r in csv.DictReader(open(p)):
+        rows.setdefault(r["case"], {})[r["material"]] = float(r["lpips"])
+    return rows
+new, old = load(sys.argv[1]), load(sys.argv[2])
+print("# Verdict: candidate against the bundled model (LPIPS, lower is better)\n")
+print("| case | candidate | bundled | paired difference | candidate better on |")
+print("|---|---|---|---|---|")
+better = True
+for case in ["reflect", "identity", "hemisphere"]:
+    mats = sorted(set(new.get(case, {})) & set(old.get(case, {})))
+    if not mats:
+        better = False
+        continue
+    a = sum(new[case][m] for m in mats) / len(mats)
+    b = sum(old[case][m] for m in mats) / len(mats)
+    wins = sum(new[case][m] < old[case][m] for m in mats)
+    print(f"| {case} | {a:.3f} | {b:.3f} | {a - b:+.3f} | {wins} of {len(mats)} materials |")
+    better &= a < b
+print()
+print("VERDICT: the candidate is better in all three cases: bundle it (docs/GPU.md, step 5)." if better
+      else "VERDICT: the candidate is not better in all three cases: keep the bundled model.")
+EOF
+  cat "$out/verdict/verdict.md"
+}
+
+stage() {
+  source scripts/env.sh
+  cargo build --release --bin flashmat
+  mkdir -p .gpu
+  cp target/release/flashmat .gpu/flashmat
+  local size; size=$(git ls-files -z | xargs -0 du -cb | tail -n 1 | cut -f1)
+  local extra; extra=$(du -cb .gpu | tail -n 1 | cut -f1)
+  echo "staged .gpu/ ($((extra / 1048576)) MiB; tracked tree $((size / 1048576)) MiB; a job takes at most 64 MiB)"
+  [ -f "$RESUME_MODEL" ] && echo "chunks will warm-start from $RESUME_MODEL when the machine's disk is gone" || true
+}
+
+# The whole campaign on the CPU with the tiny preset, in a temporary folder.
+cpu_dry_run() {
+  DRY_RUN_DIR=$(mktemp -d)
+  trap 'rm -rf "$DRY_RUN_DIR"' EXIT
+  local tmp="$DRY_RUN_DIR"
+  source scripts/env.sh
+  [ -x target/release/flashmat ] || cargo build --release --bin flashmat
+  export FLASHMAT_GPU_DEVICE=cpu FLASHMAT_GPU_PRESET=tiny FLASHMAT_GPU_CROP=32 FLASHMAT_GPU_BATCH=2 \
+    FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
+    FLASHMAT_GPU_WORK="$tmp/machine" FLASHMAT_GPU_BIN="$ROOT/target/release/flashmat" \
+    FLASHMAT_GPU_RESUME="$tmp/resume.safetensors" FLASHMAT_TORCH_LIB="$FLASHMAT_TORCH_LIB"
+  local self="$ROOT/scripts/gpu-train.sh"
+  echo "== chunk 1 (fresh start)"
+  OUT="$tmp/out1" bash "$self" chunk 0.15
+  [ -f "$tmp/out1/model.safetensors" ] || die "dry run: chunk 1 brought back no model"
+  local steps1; steps1=$(tail -n 1 "$tmp/out1/log.jsonl" | sed -n 's/.*"step":\([0-9]*\).*/\1/p')
+  echo "== chunk 2 (the machine's disk is gone: warm start from chunk 1's export, step $steps1)"
+  cp "$tmp/out1/model.safetensors" "$tmp/resume.safetensors"
+  rm -rf "$tmp/machine/run"
+  OUT="$tmp/out2" bash "$self" chunk 0.15
+  local first2; first2=$(head -n 1 "$tmp/out2/log.jsonl" | sed -n 's/.*"step":\([0-9]*\).*/\1/p')
+  [ "$first2" = "$((steps1 + 1))" ] || die "dry run: chunk 2 started at step $first2, expected $((steps1 + 1))"
+  echo "== final (the disk is still there: resume from the checkpoint; verdict on 2 materials, 2 configurations, 64x64)"
+  FLASHMAT_GPU_EVAL_EXTRA="--limit 2 --size 64" OUT="$tmp/out3" bash "$self" final 0.05
+  grep -q "resumed from the machine's checkpoint" "$tmp/out3/chunk.md" || die "dry run: the final chunk did not resume from the checkpoint"
+  grep -q "^VERDICT: " "$tmp/out3/verdict/verdict.md" || die "dry run: no verdict"
+  for f in model.safetensors log.jsonl losses.png chunk.md; do
+    [ -f "$tmp/out2/$f" ] || die "dry run: chunk 2 brought back no $f"
+  done
+  local n; n=$(find "$tmp/out3" -type f | wc -l)
+  [ "$n" -le 8 ] || die "dry run: the final job brings back $n files (a job returns at most 8)"
+  echo "gpu-train: CPU dry run passed"
+}
+
+if [ -n "${FLASHMAT_GPU_EVAL_EXTRA:-}" ]; then
+  read -r -a EVAL_EXTRA <<<"$FLASHMAT_GPU_EVAL_EXTRA"
+fi
+
+case "${1:-}" in
+  stage) stage ;;
+  chunk) shift; chunk "$@" ;;
+  verdict) verdict yes ;;
+  final) shift; chunk "$@"; verdict no ;;
+  --cpu-dry-run) cpu_dry_run ;;
+  *) die "usage: gpu-train.sh stage | chunk [MINUTES] | verdict | final [MINUTES] | --cpu-dry-run" ;;
+esac
