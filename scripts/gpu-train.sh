@@ -137,6 +137,7 @@ chunk() {
   [ -f "$run/losses.png" ] && cp "$run/losses.png" "$out/"
   chunk_summary "$how" "$((t1 - t0))" "$run/log.jsonl" "$WORK/gpu-util.csv" "${first_step:-0}" >"$out/chunk.md"
   echo "- recipe: \`flashmat train $(recipe)\`" >>"$out/chunk.md"
+  [ -f "$run/colour.jsonl" ] && echo "- uniform-colour check at the last checkpoint (targets: chromaticity error below 0.03, near-black highlight within 2x): \`$(tail -n 1 "$run/colour.jsonl")\`" >>"$out/chunk.md"
   cat "$out/chunk.md"
 }
 

@@ -1,8 +1,12 @@
 #!/usr/bin/env bash
-# Regenerates the evaluation reports in reports/ from the committed model
-# files (models/): the paper's table with the baselines and the LDR vs HDR
+# Regenerates the evaluation reports in reports/ from the model files of
+# models/MODEL.md: the paper's table with the baselines and the LDR vs HDR
 # ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
-# Deterministic: the same models give the same numbers.
+# Deterministic: the same models give the same numbers. Only the bundled
+# model (models/flashmat.safetensors, the run once committed as
+# compact-ldr-4000) is in the tree; the others left it to keep the tree
+# shippable to GPU jobs: retrain them with MODEL.md's commands (check the
+# SHA-256 listed there) or take them from commit 6447422.
 # Usage: scripts/reports.sh [CONFIGS]   (configurations per material for
 #        Reflect and Hemisphere; the committed reports use 16, the paper 128)
 set -euo pipefail
@@ -12,6 +16,12 @@ cargo build --release --quiet
 FLASHMAT=target/release/flashmat
 CONFIGS=${1:-16}
 M=models
+# The bundled model under its evaluation name.
+[ -f $M/compact-ldr-4000.safetensors ] || cp $M/flashmat.safetensors $M/compact-ldr-4000.safetensors
+for f in compact-hdr compact-ldr compact-hdr-4000 baseline-analytic baseline-relight-unet \
+         experiments/shadow-overfit-test38 experiments/shadow-distribution; do
+    [ -f "$M/$f.safetensors" ] || { echo "reports.sh: $M/$f.safetensors is missing: retrain it (models/MODEL.md) or run: git show 6447422:models/$f.safetensors > $M/$f.safetensors" >&2; exit 1; }
+done
 
 # The table: every method on HDR photos of the 50 held-out materials.
 $FLASHMAT eval --model $M/compact-hdr.safetensors --model $M/compact-ldr.safetensors \

@@ -51,7 +51,7 @@ struct RoundTrip {
 
 /// Photo of held-out material `index` -> estimate with the bundled model ->
 /// identity and side-lit renders, compared with the true renders. `ldr`:
-/// an 8-bit PNG photo (LDR model) rather than an EXR (HDR model).
+/// an 8-bit PNG photo (compared up to 1) rather than an EXR.
 fn round_trip(dir: &Path, index: usize, ldr: bool) -> RoundTrip {
     let seed = flashmat::data::procedural::test_seeds()[index];
     let material = flashmat::data::procedural::generate(seed, &flashmat::data::procedural::ProceduralConfig::with_size(256));
@@ -86,7 +86,7 @@ fn check(ldr: bool, identity_max: f64, relit_max: f64) {
     let mean = |f: fn(&RoundTrip) -> f64| trips.iter().map(f).sum::<f64>() / trips.len() as f64;
     let (id, id_base) = (mean(|t| t.identity_error), mean(|t| t.identity_baseline));
     let (relit, relit_base) = (mean(|t| t.relit_error), mean(|t| t.relit_baseline));
-    eprintln!("{}: identity {id:.4} (flat baseline {id_base:.4}), side light {relit:.4} (flat baseline {relit_base:.4})", if ldr { "LDR" } else { "HDR" });
+    eprintln!("{}: identity {id:.4} (flat baseline {id_base:.4}), side light {relit:.4} (flat baseline {relit_base:.4})", if ldr { "8-bit photos" } else { "EXR photos" });
     assert!(id < identity_max, "identity round-trip log error {id:.4} >= {identity_max}");
     assert!(relit < relit_max, "relit log error {relit:.4} >= {relit_max}");
     assert!(id < FLAT_RATIO_MAX * id_base, "identity {id:.4} is more than {FLAT_RATIO_MAX} x the flat image's ({id_base:.4})");
@@ -94,14 +94,16 @@ fn check(ldr: bool, identity_max: f64, relit_max: f64) {
 }
 
 #[test]
-fn bundled_hdr_model_round_trips_held_out_materials() {
-    // Measured (4,000 steps): identity 0.0743, side light 0.0616
-    // (flat image 0.0917, 0.0588). At 1,875 steps: 0.0923, 0.0719.
+fn bundled_model_round_trips_exr_photos_of_held_out_materials() {
+    // Measured with the bundled (LDR-trained, 4,000 steps) model, which
+    // clamps the EXR photo: identity 0.0722, side light 0.0531 (flat image
+    // 0.0917, 0.0588). The HDR-trained model of the same budget, bundled
+    // for EXR photos until 2026-11-23, measured 0.0743, 0.0616.
     check(false, 0.09, 0.075);
 }
 
 #[test]
-fn bundled_ldr_model_round_trips_held_out_materials() {
+fn bundled_model_round_trips_8_bit_photos_of_held_out_materials() {
     // Measured (4,000 steps): identity 0.0626, side light 0.0500
     // (flat image 0.0607, 0.0437). At 1,785 steps: 0.1065, 0.0841.
     check(true, 0.08, 0.065);

@@ -6,7 +6,7 @@ use crate::eval::shadows::ShadowEvalOptions;
 use crate::eval::{self, EvalOptions, DEFAULT_CONFIGS, PROCEDURAL_TEST};
 use crate::svbrdf::shadow::ShadowOptions;
 use crate::geometry::Sampling;
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 
@@ -24,6 +24,10 @@ pub struct EvalArgs {
     /// Estimates from the photo nearest overhead, re-renders the others (1/r^2 fall-off compensated), LPIPS on display images.
     #[arg(long, value_name = "DIR", conflicts_with_all = ["dataset", "cases", "seed", "limit", "configs", "ldr_input"])]
     pub captures: Option<PathBuf>,
+    /// Run the uniform-colour check instead: 9 flat colours, matte and glossy, estimated from their flash photo
+    /// and re-rendered (identity, side light); writes uniform.md and uniform.json (flashmat models only).
+    #[arg(long, conflicts_with_all = ["captures", "dataset", "cases", "seed", "limit", "configs", "ldr_input"])]
+    pub uniform: bool,
     /// Cases of the paper's table, comma-separated.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "reflect,identity,hemisphere")]
     pub cases: Vec<Sampling>,
@@ -52,6 +56,9 @@ pub struct EvalArgs {
 }
 
 pub fn eval(args: &EvalArgs) -> Result<()> {
+    if args.uniform {
+        return uniform_check(args);
+    }
     if let Some(dir) = &args.captures {
         let opts = CaptureEvalOptions {
             models: args.models.clone(),
@@ -79,6 +86,28 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     };
     eval::run(&opts)?;
     print_summary(&args.output)
+}
+
+/// `eval --uniform`: the uniform-colour check of every flashmat model given.
+fn uniform_check(args: &EvalArgs) -> Result<()> {
+    let device = super::train::parse_device(&args.device)?;
+    anyhow::ensure!(args.size % 8 == 0 && args.size >= 16, "--size must be a multiple of 8 and at least 16 (got {})", args.size);
+    let mut text = String::from("# Uniform-colour check\n\n");
+    let mut all = serde_json::Map::new();
+    for path in &args.models {
+        anyhow::ensure!(path != crate::eval::PRINTOUT, "--uniform scores flashmat models (the print-out reproduces its photo exactly)");
+        let loaded = crate::infer::load_model(Some(std::path::Path::new(path)), device)?;
+        let rows = crate::eval::uniform::colour_check(&loaded.model, &loaded.info, args.size)?;
+        let name = std::path::Path::new(path).file_stem().map_or(path.clone(), |s| s.to_string_lossy().into_owned());
+        text.push_str(&crate::eval::uniform::markdown(&name, &rows));
+        text.push('\n');
+        all.insert(name, serde_json::json!({ "summary": crate::eval::uniform::summarize(&rows), "rows": rows }));
+    }
+    std::fs::create_dir_all(&args.output).with_context(|| format!("cannot create {}", args.output.display()))?;
+    crate::io::atomic_write_bytes(&args.output.join("uniform.md"), text.as_bytes())?;
+    crate::io::atomic_write_bytes(&args.output.join("uniform.json"), serde_json::to_string_pretty(&all)?.as_bytes())?;
+    println!("{text}wrote {}", args.output.display());
+    Ok(())
 }
 
 /// Prints the `summary.md` an evaluation wrote into `out`, then where it went.

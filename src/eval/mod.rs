@@ -16,6 +16,7 @@ pub mod methods;
 pub mod metrics;
 pub mod report;
 pub mod shadows;
+pub mod uniform;
 
 pub use methods::{open_methods, open_model_file, AnalyticMethod, Method, ModelMethod, PrintoutMethod, RelightMethod, PRINTOUT};
 pub use metrics::{mean_ci95, mean_scores, score_renders, score_renders_on, LpipsOn, Scores, PSNR_CAP_DB};

@@ -122,6 +122,11 @@ pub trait RunTrainer: Sized {
     /// Writes the inference weights as an exported model file (`flashmat
     /// export`; large weights as f16 when `half`).
     fn export_model(&self, path: &Path, half: bool) -> Result<()>;
+    /// The uniform-colour check's summary of the current networks (flashmat
+    /// runs; `None` for the baselines).
+    fn colour_summary(&self) -> Option<Result<crate::eval::uniform::ColourSummary>> {
+        None
+    }
     /// Fresh networks for a configuration.
     fn create(config: TrainConfig, device: Device) -> Result<Self>;
     /// Rebuilds the trainer from a checkpoint.
@@ -150,6 +155,10 @@ impl RunTrainer for Trainer {
     fn export_model(&self, path: &Path, half: bool) -> Result<()> {
         let info = crate::model::ModelInfo { ldr_input: self.config.ldr_input, steps: self.step };
         self.model.save(path, &info, half)
+    }
+    fn colour_summary(&self) -> Option<Result<crate::eval::uniform::ColourSummary>> {
+        let info = crate::model::ModelInfo { ldr_input: self.config.ldr_input, steps: self.step };
+        Some(crate::eval::uniform::colour_check(&self.model, &info, COLOUR_CHECK_SIZE).map(|rows| crate::eval::uniform::summarize(&rows)))
     }
     fn create(config: TrainConfig, device: Device) -> Result<Self> {
         let (init, warm) = (config.init_from.clone(), config.warm_start.clone());
@@ -241,6 +250,11 @@ impl RunOptions {
         Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, progress }
     }
 }
+
+/// Resolution of the uniform-colour check logged at every checkpoint
+/// (`colour.jsonl`): flat materials need few pixels, and it costs well
+/// under a second.
+const COLOUR_CHECK_SIZE: usize = 32;
 
 /// File name of the model that `RunOptions::export_dir` receives.
 pub const EXPORT_FILE: &str = "model.safetensors";
@@ -371,6 +385,12 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
         if done % cfg.checkpoint_every.max(1) == 0 || done == last || stop.load(Ordering::SeqCst) || timed_out {
             log.flush()?;
             save_all(&trainer, opts)?;
+            if let Some(summary) = trainer.colour_summary() {
+                let s = summary?;
+                let line = serde_json::json!({ "step": done, "identity_chroma_error": s.identity_chroma_error, "relit_chroma_error": s.relit_chroma_error, "near_black_highlight_ratio": s.near_black_highlight_ratio });
+                let mut f = std::fs::OpenOptions::new().create(true).append(true).open(run.join("colour.jsonl"))?;
+                writeln!(f, "{line}")?;
+            }
         }
         if stop.load(Ordering::SeqCst) {
             bar.abandon_with_message(format!("interrupted at step {done}; checkpoint saved, continue with --resume"));

@@ -165,7 +165,7 @@ fn init_from_starts_a_new_run_from_another_runs_weights() {
     assert!(!dir.path().join("missing").exists(), "a refused start must not leave a run folder");
     let baseline = TrainConfig { method: crate::baselines::TrainMethod::Analytic, init_from: Some(source), ..base };
     let e = run::start_baseline(baseline, &opts("baseline")).err().unwrap();
-    assert!(format!("{e:#}").contains("--init-from only applies"), "{e:#}");
+    assert!(format!("{e:#}").contains("only apply to --method flashmat"), "{e:#}");
 }
 
 #[test]
@@ -353,6 +353,11 @@ fn time_limit_stops_with_checkpoint_and_export_then_warm_start_continues_the_ste
     let a = run::start(cfg.clone(), &opts).unwrap();
     assert_eq!(a.step, 1);
     assert!(checkpoint_path(&opts.run_dir).is_file());
+    // The uniform-colour check ran at the checkpoint.
+    let colour = std::fs::read_to_string(opts.run_dir.join("colour.jsonl")).unwrap();
+    let line: serde_json::Value = serde_json::from_str(colour.lines().last().unwrap()).unwrap();
+    assert_eq!(line["step"], 1);
+    assert!(line["identity_chroma_error"].as_f64().unwrap().is_finite());
     let file = export.join(run::EXPORT_FILE);
     let (model, info) = crate::model::Model::load(&file, tch::Device::Cpu).unwrap();
     assert_eq!(info, crate::model::ModelInfo { ldr_input: false, steps: 1 });

@@ -1,0 +1,209 @@
+//! The uniform-colour check: a built-in set of flat materials of one
+//! colour each (saturated red, green, blue, olive, teal, wood, grey, white,
+//! near-black; and the same with a strong specular lobe), photographed
+//! with the co-located flash, estimated, and re-rendered under the input
+//! light (identity) and a side light. A model that collapses colours
+//! toward grey, or turns the flash highlight into a hole, shows it here in
+//! seconds: the cheapest progress signal during training.
+//!
+//! Per material and render: the chromaticity error (Euclidean distance of
+//! the mean colour's rgb / (r + g + b) between render and truth), the log
+//! ratio of the mean colour per channel, and the highlight ratio (the
+//! brightest 1% of pixels, render over truth).
+
+use crate::geometry::{LightView, MODEL_FOV_DEG};
+use crate::image::Image;
+use crate::infer::{self, overhead_camera, Crop, PreparedPhoto};
+use crate::model::{Model, ModelInfo};
+use crate::svbrdf::Svbrdf;
+use anyhow::Result;
+use serde::Serialize;
+use std::fmt::Write as _;
+
+/// A flat material of the check.
+#[derive(Clone, Copy, Debug)]
+pub struct UniformMaterial {
+    pub name: &'static str,
+    /// Linear diffuse albedo.
+    pub diffuse: [f32; 3],
+    /// Linear specular albedo (F0).
+    pub specular: [f32; 3],
+    pub roughness: f32,
+}
+
+/// Diffuse colours of the check (linear).
+const COLOURS: [(&str, [f32; 3]); 9] = [
+    ("red", [0.63, 0.06, 0.06]),
+    ("green", [0.08, 0.50, 0.10]),
+    ("blue", [0.07, 0.12, 0.60]),
+    ("olive", [0.35, 0.33, 0.06]),
+    ("teal", [0.05, 0.38, 0.36]),
+    ("wood", [0.45, 0.25, 0.11]),
+    ("grey", [0.20, 0.20, 0.20]),
+    ("white", [0.80, 0.80, 0.80]),
+    ("near-black", [0.02, 0.02, 0.02]),
+];
+
+/// The matte set (dielectric F0 0.04, roughness 0.7: a highlight of about
+/// 0.04) and the glossy set (F0 0.04, roughness 0.35: a co-located
+/// highlight of about F0 / (4 alpha^2) = 0.67 above the diffuse, strong but
+/// below an 8-bit photo's clipping, so LDR models can see all of it).
+pub fn uniform_materials() -> Vec<(&'static str, UniformMaterial)> {
+    let mut out = vec![];
+    for (set, specular, roughness) in [("matte", 0.04, 0.7), ("glossy", 0.04, 0.35)] {
+        for (name, diffuse) in COLOURS {
+            out.push((set, UniformMaterial { name, diffuse, specular: [specular; 3], roughness }));
+        }
+    }
+    out
+}
+
+/// The side light of the relit render (the camera stays overhead).
+pub const SIDE_LIGHT: [f64; 3] = [1.5, 1.0, 2.5];
+
+/// Scores of one material and render.
+#[derive(Clone, Debug, Serialize)]
+pub struct ColourRow {
+    pub set: &'static str,
+    pub material: &'static str,
+    /// `identity` or `relit`.
+    pub render: &'static str,
+    pub chroma_error: f64,
+    /// ln(mean render / mean truth) per channel.
+    pub log_ratio: [f64; 3],
+    /// Brightest 1% of pixels (luminance), render over truth.
+    pub highlight_ratio: f64,
+}
+
+/// Mean colour and mean luminance of the brightest 1% of pixels of a `[3, H, W]` image.
+fn colour_stats(im: &Image) -> ([f64; 3], f64) {
+    let n = im.height * im.width;
+    let plane = |c: usize| &im.data[c * n..(c + 1) * n];
+    let mean = [0, 1, 2].map(|c| plane(c).iter().map(|&v| v as f64).sum::<f64>() / n as f64);
+    let mut lum: Vec<f64> = (0..n).map(|i| (0..3).map(|c| plane(c)[i] as f64).sum::<f64>() / 3.0).collect();
+    lum.sort_by(|a, b| b.total_cmp(a));
+    let top = (n / 100).max(1);
+    (mean, lum[..top].iter().sum::<f64>() / top as f64)
+}
+
+/// Compares a render with the truth.
+fn score(set: &'static str, material: &'static str, render: &'static str, pred: &Image, truth: &Image) -> ColourRow {
+    let ((mp, hp), (mt, ht)) = (colour_stats(pred), colour_stats(truth));
+    let chroma = |m: [f64; 3]| {
+        let s = (m[0] + m[1] + m[2]).max(1e-12);
+        m.map(|v| v / s)
+    };
+    let (cp, ct) = (chroma(mp), chroma(mt));
+    let chroma_error = (0..3).map(|c| (cp[c] - ct[c]).powi(2)).sum::<f64>().sqrt();
+    let log_ratio = [0, 1, 2].map(|c| (mp[c].max(1e-6) / mt[c].max(1e-6)).ln());
+    ColourRow { set, material, render, chroma_error, log_ratio, highlight_ratio: hp.max(1e-9) / ht.max(1e-9) }
+}
+
+/// Runs the check on a model at `size` x `size` pixels (a multiple of 8).
+/// LDR-input models see the photo clamped to [0, 1], as in training.
+pub fn colour_check(model: &Model, info: &ModelInfo, size: usize) -> Result<Vec<ColourRow>> {
+    tch::no_grad(|| colour_rows(model, info, size))
+}
+
+fn colour_rows(model: &Model, info: &ModelInfo, size: usize) -> Result<Vec<ColourRow>> {
+    let identity = LightView::colocated(MODEL_FOV_DEG);
+    let side = LightView { light: SIDE_LIGHT, view: overhead_camera() };
+    let mut rows = vec![];
+    for (set, u) in uniform_materials() {
+        let material = Svbrdf::uniform(size, size, u.diffuse, u.specular, u.roughness);
+        let truth = crate::svbrdf::render::render_material(&material, &[identity, side])?;
+        let photo = PreparedPhoto {
+            linear: truth[0].clone(),
+            ldr: info.ldr_input,
+            fov_deg: MODEL_FOV_DEG,
+            crop: Crop { x0: 0, y0: 0, side: size, source_width: size, source_height: size },
+            source: "uniform-colour check".into(),
+        };
+        let estimated = infer::estimate(model, info, &photo)?;
+        for (name, config, reference) in [("identity", identity, &truth[0]), ("relit", side, &truth[1])] {
+            let pred = estimated.render_image(&config)?;
+            // An LDR model is judged on what its photo shows: values up to 1.
+            let clamp = |im: &Image| if info.ldr_input && name == "identity" { im.map(|v| v.min(1.0)) } else { im.clone() };
+            rows.push(score(set, u.name, name, &clamp(&pred), &clamp(reference)));
+        }
+    }
+    Ok(rows)
+}
+
+/// Summary numbers of a check: mean chromaticity error of the identity
+/// and relit renders, and the near-black glossy material's highlight ratio.
+#[derive(Clone, Debug, Serialize)]
+pub struct ColourSummary {
+    pub identity_chroma_error: f64,
+    pub relit_chroma_error: f64,
+    pub near_black_highlight_ratio: f64,
+}
+
+pub fn summarize(rows: &[ColourRow]) -> ColourSummary {
+    let mean = |render: &str| {
+        let v: Vec<f64> = rows.iter().filter(|r| r.render == render).map(|r| r.chroma_error).collect();
+        v.iter().sum::<f64>() / v.len().max(1) as f64
+    };
+    let near_black = rows.iter().find(|r| r.set == "glossy" && r.material == "near-black" && r.render == "identity").map_or(f64::NAN, |r| r.highlight_ratio);
+    ColourSummary { identity_chroma_error: mean("identity"), relit_chroma_error: mean("relit"), near_black_highlight_ratio: near_black }
+}
+
+/// A markdown table of the rows and the summary line.
+pub fn markdown(model_name: &str, rows: &[ColourRow]) -> String {
+    let s = summarize(rows);
+    let mut out = format!(
+        "## Uniform-colour check: {model_name}\n\nMean chromaticity error: identity {:.4}, relit {:.4}. Near-black glossy highlight: {:.2}x the truth.\n\n",
+        s.identity_chroma_error, s.relit_chroma_error, s.near_black_highlight_ratio
+    );
+    out.push_str("| set | material | render | chromaticity error | ln ratio R / G / B | highlight ratio |\n|---|---|---|---|---|---|\n");
+    for r in rows {
+        let _ = writeln!(
+            out,
+            "| {} | {} | {} | {:.4} | {:+.2} / {:+.2} / {:+.2} | {:.2} |",
+            r.set, r.material, r.render, r.chroma_error, r.log_ratio[0], r.log_ratio[1], r.log_ratio[2], r.highlight_ratio
+        );
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scores_of_a_known_colour_shift() {
+        let truth = Image::from_fn(3, 10, 10, |c, _, _| [0.6, 0.1, 0.1][c]);
+        // Identical: no error, ratios 1.
+        let same = score("matte", "red", "identity", &truth, &truth);
+        assert!(same.chroma_error < 1e-12 && same.log_ratio.iter().all(|v| v.abs() < 1e-9) && (same.highlight_ratio - 1.0).abs() < 1e-9);
+        // Twice as bright: same chromaticity, ln 2 in every channel.
+        let bright = truth.map(|v| 2.0 * v);
+        let r = score("matte", "red", "identity", &bright, &truth);
+        assert!(r.chroma_error < 1e-9 && r.log_ratio.iter().all(|v| (v - 2f64.ln()).abs() < 1e-6));
+        assert!((r.highlight_ratio - 2.0).abs() < 1e-6);
+        // Grey instead of red: chromaticity (0.75, 0.125, 0.125) against (1/3, 1/3, 1/3).
+        let grey = Image::filled(3, 10, 10, 0.2667);
+        let r = score("matte", "red", "identity", &grey, &truth);
+        let expected = ((0.75f64 - 1.0 / 3.0).powi(2) + 2.0 * (0.125f64 - 1.0 / 3.0).powi(2)).sqrt();
+        assert!((r.chroma_error - expected).abs() < 1e-4, "{} vs {expected}", r.chroma_error);
+        // A highlight: one bright pixel in 100 is the top 1%.
+        let mut spot = truth.clone();
+        spot.set(0, 5, 5, 6.0);
+        spot.set(1, 5, 5, 6.0);
+        spot.set(2, 5, 5, 6.0);
+        let r = score("glossy", "red", "identity", &truth, &spot);
+        assert!((r.highlight_ratio - (0.8 / 3.0) / 6.0).abs() < 1e-6, "{}", r.highlight_ratio);
+    }
+
+    #[test]
+    fn check_runs_on_a_tiny_model_and_summarizes_every_material() {
+        let model = Model::new(&crate::model::ModelConfig::tiny(), tch::Device::Cpu).unwrap();
+        let rows = colour_check(&model, &ModelInfo { ldr_input: true, steps: 0 }, 16).unwrap();
+        assert_eq!(rows.len(), 2 * 9 * 2);
+        assert!(rows.iter().all(|r| r.chroma_error.is_finite() && r.highlight_ratio > 0.0));
+        let s = summarize(&rows);
+        assert!(s.near_black_highlight_ratio.is_finite());
+        let md = markdown("tiny", &rows);
+        assert!(md.contains("| glossy | near-black | identity |") && md.lines().count() == 6 + rows.len());
+    }
+}
