@@ -45,12 +45,20 @@ WARMUP="${FLASHMAT_GPU_WARMUP:-200}"
 BANK="${FLASHMAT_GPU_BANK:-4000}"
 SEED="${FLASHMAT_GPU_SEED:-1}"
 CONFIGS="${FLASHMAT_GPU_CONFIGS:-128}"
+# Curriculum (docs/TRAINING.md): teacher steps before a fresh start (0: none),
+# then the teacher-code term's weight and the step where it has faded out.
+TEACHER_STEPS="${FLASHMAT_GPU_TEACHER_STEPS:-0}"
+TEACHER_PIXELS="${FLASHMAT_GPU_TEACHER_PIXELS:-65536}"
+CODE_WEIGHT="${FLASHMAT_GPU_CODE_WEIGHT:-1}"
+CODE_UNTIL="${FLASHMAT_GPU_CODE_UNTIL:-20000}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
 # The machine's disk, where a chunk's run folder outlives the job while the
 # machine stays warm.
 WORK="${FLASHMAT_GPU_WORK:-/tmp/flashmat-gpu}"
 BIN="${FLASHMAT_GPU_BIN:-$ROOT/.gpu/flashmat}"
 RESUME_MODEL="${FLASHMAT_GPU_RESUME:-$ROOT/.gpu/resume.safetensors}"
+# The teacher a warm start needs (brought back by the chunk that trained it).
+CARRIED_TEACHER="${FLASHMAT_GPU_CARRIED_TEACHER:-$ROOT/.gpu/teacher.safetensors}"
 EVAL_EXTRA=()
 
 die() { echo "gpu-train: $*" >&2; exit 1; }
@@ -70,11 +78,13 @@ use_machine_libtorch() {
   [ -x "$BIN" ] || die "no flashmat binary at $BIN (run 'bash scripts/gpu-train.sh stage' before the job and carry .gpu)"
 }
 
+# The training options; $1: a teacher file for the curriculum's code term, or empty.
 recipe() {
-  local ldr=(--ldr)
-  echo --preset "$PRESET" "${ldr[@]}" --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --lr "$LR" \
+  local teacher=()
+  [ -n "${1:-}" ] && teacher=(--teacher "$1" --code-weight "$CODE_WEIGHT" --code-until "$CODE_UNTIL")
+  echo --preset "$PRESET" --ldr --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --lr "$LR" \
     --warmup-steps "$WARMUP" --straight-through-output --bank "$BANK" --seed "$SEED" \
-    --steps 100000000 --checkpoint-every 500 --preview-every 1000
+    --steps 100000000 --checkpoint-every 500 --preview-every 1000 "${teacher[@]}"
 }
 
 gpu_info() {
@@ -111,7 +121,7 @@ chunk() {
   use_machine_libtorch
   mkdir -p "$WORK" "$out"
   smoke
-  local run="$WORK/run" how
+  local run="$WORK/run" how teacher=""
   local args=(--minutes "$minutes" --export-dir "$out" --device "$DEVICE")
   local first_step=0
   start_util_sampler "$WORK/gpu-util.csv"
@@ -119,24 +129,37 @@ chunk() {
   if [ -f "$run/checkpoint.safetensors" ]; then
     how="resumed from the machine's checkpoint"
     first_step=$(tail -n 1 "$run/log.jsonl" 2>/dev/null | sed -n 's/.*"step":\([0-9]*\).*/\1/p')
+    teacher=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1])).get("teacher", ""))' "$run/config.json")
     "$BIN" train --resume "$run" "${args[@]}"
   elif [ -f "$RESUME_MODEL" ]; then
     how="warm start from $(basename "$RESUME_MODEL") (the last chunk's export; the machine's disk was gone)"
     rm -rf "$run"
+    if [ "$TEACHER_STEPS" -gt 0 ]; then
+      [ -f "$CARRIED_TEACHER" ] || die "the curriculum's warm start needs the teacher: copy the first chunk's teacher.safetensors to $CARRIED_TEACHER"
+      teacher="$CARRIED_TEACHER"
+    fi
     # shellcheck disable=SC2046
-    "$BIN" train --out "$run" --warm-start "$RESUME_MODEL" $(recipe) "${args[@]}"
+    "$BIN" train --out "$run" --warm-start "$RESUME_MODEL" $(recipe "$teacher") "${args[@]}"
   else
     how="fresh start"
-    rm -rf "$run"
+    rm -rf "$run" "$WORK/teacher"
+    if [ "$TEACHER_STEPS" -gt 0 ]; then
+      how="fresh start after $TEACHER_STEPS teacher steps"
+      "$BIN" train-teacher --preset "$PRESET" --out "$WORK/teacher" --steps "$TEACHER_STEPS" \
+        --pixels "$TEACHER_PIXELS" --seed "$SEED" --device "$DEVICE"
+      teacher="$WORK/teacher/teacher.safetensors"
+      cp "$teacher" "$out/teacher.safetensors"
+    fi
     # shellcheck disable=SC2046
-    "$BIN" train --out "$run" $(recipe) "${args[@]}"
+    "$BIN" train --out "$run" $(recipe "$teacher") "${args[@]}"
   fi
   local t1; t1=$(date +%s)
   [ -n "$UTIL_PID" ] && kill "$UTIL_PID" 2>/dev/null || true
   cp "$run/log.jsonl" "$out/"
   [ -f "$run/losses.png" ] && cp "$run/losses.png" "$out/"
   chunk_summary "$how" "$((t1 - t0))" "$run/log.jsonl" "$WORK/gpu-util.csv" "${first_step:-0}" >"$out/chunk.md"
-  echo "- recipe: \`flashmat train $(recipe)\`" >>"$out/chunk.md"
+  echo "- recipe: \`flashmat train $(recipe "${teacher:-}")\`" >>"$out/chunk.md"
+  [ -f "$WORK/teacher/log.jsonl" ] && echo "- teacher (curriculum stage 1): \`$(grep held_out "$WORK/teacher/log.jsonl" | tail -n 1)\`" >>"$out/chunk.md"
   [ -f "$run/colour.jsonl" ] && echo "- uniform-colour check at the last checkpoint (targets: chromaticity error below 0.03, near-black highlight within 2x): \`$(tail -n 1 "$run/colour.jsonl")\`" >>"$out/chunk.md"
   cat "$out/chunk.md"
 }
@@ -239,15 +262,18 @@ cpu_dry_run() {
   export FLASHMAT_GPU_DEVICE=cpu FLASHMAT_GPU_PRESET=tiny FLASHMAT_GPU_CROP=32 FLASHMAT_GPU_BATCH=2 \
     FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
     FLASHMAT_GPU_WORK="$tmp/machine" FLASHMAT_GPU_BIN="$ROOT/target/release/flashmat" \
-    FLASHMAT_GPU_RESUME="$tmp/resume.safetensors" FLASHMAT_TORCH_LIB="$FLASHMAT_TORCH_LIB"
+    FLASHMAT_GPU_RESUME="$tmp/resume.safetensors" FLASHMAT_TORCH_LIB="$FLASHMAT_TORCH_LIB" \
+    FLASHMAT_GPU_TEACHER_STEPS=20 FLASHMAT_GPU_TEACHER_PIXELS=1024 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/teacher.safetensors"
   local self="$ROOT/scripts/gpu-train.sh"
-  echo "== chunk 1 (fresh start)"
+  echo "== chunk 1 (fresh start: teacher, then flashmat with the teacher's codes)"
   OUT="$tmp/out1" bash "$self" chunk 0.15
   [ -f "$tmp/out1/model.safetensors" ] || die "dry run: chunk 1 brought back no model"
+  [ -f "$tmp/out1/teacher.safetensors" ] || die "dry run: chunk 1 brought back no teacher"
+  cp "$tmp/out1/teacher.safetensors" "$tmp/teacher.safetensors"
   local steps1; steps1=$(tail -n 1 "$tmp/out1/log.jsonl" | sed -n 's/.*"step":\([0-9]*\).*/\1/p')
   echo "== chunk 2 (the machine's disk is gone: warm start from chunk 1's export, step $steps1)"
   cp "$tmp/out1/model.safetensors" "$tmp/resume.safetensors"
-  rm -rf "$tmp/machine/run"
+  rm -rf "$tmp/machine"
   OUT="$tmp/out2" bash "$self" chunk 0.15
   local first2; first2=$(head -n 1 "$tmp/out2/log.jsonl" | sed -n 's/.*"step":\([0-9]*\).*/\1/p')
   [ "$first2" = "$((steps1 + 1))" ] || die "dry run: chunk 2 started at step $first2, expected $((steps1 + 1))"

@@ -30,6 +30,8 @@ pub enum Command {
     Svbrdf(SvbrdfCommand),
     /// Train M_est, ND_enc + M_render (and the discriminator) on SVBRDF renders, or a baseline (--method).
     Train(train::TrainArgs),
+    /// Curriculum stage 1: train a per-pixel teacher (GGX values -> neural code) with ND_enc + M_render on random pixels.
+    TrainTeacher(train::TeacherArgs),
     /// Write a run's inference weights (M_est, ND_enc, M_render, or the baseline's network), method and configuration to one file.
     Export(train::ExportArgs),
     /// Estimate a neural material (.nmat) from one flash photo.
@@ -221,6 +223,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Show(a) => infer::show(&a),
         Command::NmatRows(a) => nmat_rows::nmat_rows(&a),
         Command::Train(a) => train::train(&a),
+        Command::TrainTeacher(a) => train::train_teacher(&a),
         Command::Export(a) => train::export(&a),
         Command::Eval(a) => eval::eval(&a),
         Command::ShadowEval(a) => eval::shadow_eval(&a),

@@ -49,6 +49,16 @@ pub struct TrainArgs {
     /// step count, fresh optimizers and discriminator. A new run (--out) with the same model and recipe.
     #[arg(long, value_name = "MODEL_FILE", conflicts_with_all = ["resume", "init_from"])]
     pub warm_start: Option<PathBuf>,
+    /// Curriculum stage 2: a teacher file (`flashmat train-teacher`). A new run starts from its renderer, and M_est
+    /// learns the teacher's codes of the true maps (--code-weight) beside the paper's losses.
+    #[arg(long, value_name = "FILE", conflicts_with = "resume")]
+    pub teacher: Option<PathBuf>,
+    /// Weight of the teacher-code term (relative L1 of the neural map against the teacher's codes).
+    #[arg(long, default_value_t = 1.0, requires = "teacher")]
+    pub code_weight: f64,
+    /// The code term fades linearly to zero at step N (0: constant).
+    #[arg(long, default_value_t = 0, value_name = "N", requires = "teacher")]
+    pub code_until: u64,
     /// Procedural data from a bank of N materials generated once at the start on all cores, drawn with random
     /// crops and the 8 symmetries of the square (0: a fresh material every draw). Keeps a GPU fed.
     #[arg(long, default_value_t = 0, value_name = "N", conflicts_with = "resume")]
@@ -115,6 +125,58 @@ pub struct TrainArgs {
 }
 
 #[derive(Args, Debug)]
+pub struct TeacherArgs {
+    /// Model size preset (the teacher's codes have its neural-map width).
+    #[arg(long, default_value = "compact")]
+    pub preset: String,
+    /// Folder: teacher.safetensors (weights, optimizer, step) and log.jsonl. A folder that holds one continues it.
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    /// Total steps (a continued teacher goes on to this count).
+    #[arg(long, default_value_t = 5000)]
+    pub steps: u64,
+    /// Stop cleanly after M minutes.
+    #[arg(long, value_name = "M")]
+    pub minutes: Option<f64>,
+    /// Random pixels (material, light, view) per step.
+    #[arg(long, default_value_t = 16_384)]
+    pub pixels: usize,
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f64,
+    #[arg(long, default_value_t = 250)]
+    pub checkpoint_every: u64,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// cpu or cuda.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Number of CPU threads for libtorch (default: all cores).
+    #[arg(long)]
+    pub threads: Option<i32>,
+}
+
+pub fn train_teacher(a: &TeacherArgs) -> Result<()> {
+    let device = training_setup(a.threads, &a.device, a.minutes)?;
+    let config = crate::train::teacher::TeacherConfig {
+        model: ModelConfig::preset(&a.preset)?,
+        pixels: a.pixels,
+        lr: a.lr,
+        steps: a.steps,
+        checkpoint_every: a.checkpoint_every,
+        seed: a.seed,
+    };
+    let t = crate::train::teacher::run(config, &a.out, device, a.minutes, true)?;
+    eprintln!(
+        "teacher {} at step {} of {}: held-out L1 of ln(1 + R) {:.4}",
+        crate::train::teacher::teacher_file(&a.out).display(),
+        t.step,
+        t.config.steps,
+        t.held_out_l1()?
+    );
+    Ok(())
+}
+
+#[derive(Args, Debug)]
 pub struct ExportArgs {
     /// Run folder to export from.
     #[arg(long, value_name = "DIR")]
@@ -146,14 +208,19 @@ pub fn parse_device(s: &str) -> Result<Device> {
     }
 }
 
-pub fn train(a: &TrainArgs) -> Result<()> {
-    if let Some(t) = a.threads {
+/// The options every training command shares: threads, device, time limit.
+fn training_setup(threads: Option<i32>, device: &str, minutes: Option<f64>) -> Result<Device> {
+    if let Some(t) = threads {
         tch::set_num_threads(t);
     }
-    let device = parse_device(&a.device)?;
-    if let Some(m) = a.minutes {
+    if let Some(m) = minutes {
         anyhow::ensure!(m.is_finite() && m >= 0.0, "--minutes must be a number of minutes >= 0 (got {m})");
     }
+    parse_device(device)
+}
+
+pub fn train(a: &TrainArgs) -> Result<()> {
+    let device = training_setup(a.threads, &a.device, a.minutes)?;
     let options = |dir: &PathBuf| RunOptions {
         max_steps_this_run: a.max_steps_now,
         max_minutes: a.minutes,
@@ -190,6 +257,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         height_scale: a.height_scale,
         init_from: a.init_from.as_ref().map(|p| p.display().to_string()),
         warm_start: a.warm_start.as_ref().map(|p| p.display().to_string()),
+        teacher: a.teacher.as_ref().map(|p| p.display().to_string()),
+        weight_code: if a.teacher.is_some() { a.code_weight } else { 0.0 },
+        code_until: a.code_until,
         bank: a.bank,
         lr: a.lr,
         pixel_sampling: a.pixel_sampling.unwrap_or(PixelSampling::InverseNorm),

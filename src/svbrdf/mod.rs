@@ -120,17 +120,9 @@ impl Svbrdf {
         let (xs, rest) = normal.data.split_at_mut(n);
         let ys = &mut rest[..n];
         for (x, y) in xs.iter_mut().zip(ys.iter_mut()) {
-            let (mut nx, mut ny) = (*x, *y);
-            if code & 1 != 0 {
-                nx = -nx;
-            }
-            if code & 2 != 0 {
-                ny = -ny;
-            }
-            if code & 4 != 0 {
-                (nx, ny) = (-ny, -nx);
-            }
-            (*x, *y) = (nx, ny);
+            // Sign flips and swaps only: exact in f32 through f64.
+            let [nx, ny, _] = dihedral_point(code, [*x as f64, *y as f64, 0.0]);
+            (*x, *y) = (nx as f32, ny as f32);
         }
         Self {
             diffuse: self.diffuse.dihedral(code),

@@ -66,6 +66,18 @@ pub struct TrainConfig {
     /// from the file's step count.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub warm_start: Option<String>,
+    /// Teacher file (`flashmat train-teacher`): a fresh run starts from its
+    /// renderer, and M_est's loss gains `weight_code` times the relative L1
+    /// between its neural map and the teacher's codes of the true maps.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub teacher: Option<String>,
+    /// Weight of the teacher-code term (0: none).
+    #[serde(default)]
+    pub weight_code: f64,
+    /// The code term fades linearly to 0 at this step (0: constant weight),
+    /// leaving the paper's losses alone for the rest of the run.
+    #[serde(default)]
+    pub code_until: u64,
     pub lr: f64,
     /// Multiplicative learning-rate decay applied every `lr_decay_every` steps (paper: 1.5% per 20,000).
     pub lr_decay: f64,
@@ -119,6 +131,9 @@ impl Default for TrainConfig {
             height_scale: 1.0,
             init_from: None,
             warm_start: None,
+            teacher: None,
+            weight_code: 0.0,
+            code_until: 0,
             lr: 1e-4,
             lr_decay: 0.985,
             lr_decay_every: 20_000,
@@ -147,6 +162,17 @@ impl TrainConfig {
         warmup * self.lr * self.lr_decay.powi((step / self.lr_decay_every.max(1)) as i32)
     }
 
+    /// Weight of the teacher-code term at a step (fades to 0 at `code_until`).
+    pub fn code_weight_at(&self, step: u64) -> f64 {
+        if self.code_until == 0 {
+            self.weight_code
+        } else if step >= self.code_until {
+            0.0
+        } else {
+            self.weight_code * (1.0 - step as f64 / self.code_until as f64)
+        }
+    }
+
     /// Weight of the adversarial term at a step (0 before `adv_start`).
     pub fn adv_weight_at(&self, step: u64) -> f64 {
         if step < self.adv_start {
@@ -164,6 +190,8 @@ impl TrainConfig {
         anyhow::ensure!(self.pixel_fraction > 0.0 && self.pixel_fraction <= 1.0, "pixel fraction must be in (0, 1]");
         anyhow::ensure!(self.lr > 0.0 && self.lr.is_finite(), "learning rate must be positive");
         anyhow::ensure!(self.init_from.is_none() || self.warm_start.is_none(), "--init-from and --warm-start exclude each other");
+        anyhow::ensure!(self.weight_code >= 0.0 && self.weight_code.is_finite(), "--code-weight must be a finite number >= 0 (got {})", self.weight_code);
+        anyhow::ensure!(self.weight_code == 0.0 || self.teacher.is_some(), "--code-weight needs --teacher FILE");
         anyhow::ensure!(self.bank == 0 || self.data == "procedural", "--bank applies to procedural data only (got --data {})", self.data);
         anyhow::ensure!(self.height_scale >= 0.0 && self.height_scale.is_finite(), "height scale must be a finite number >= 0 (got {})", self.height_scale);
         Ok(())
@@ -223,6 +251,8 @@ mod tests {
         obj.remove("adv_start");
         obj.remove("straight_through_output");
         obj.remove("bank");
+        obj.remove("weight_code");
+        obj.remove("code_until");
         let c: TrainConfig = serde_json::from_value(v).unwrap();
         assert_eq!(c, TrainConfig::default());
     }

@@ -62,6 +62,13 @@ pub fn discriminator_loss(disc: &Discriminator, pred_log: &Tensor, target_log: &
 }
 
 /// Mean L2 norm of the neural parameter vectors. neural: `[N, C, H, W]`.
+/// The curriculum's dense code target: mean |neural - target| over the
+/// mean |target|, so the term's scale does not depend on how large the
+/// teacher's codes came out. neural, target: `[N, C, H, W]`.
+pub fn code_l1(neural: &Tensor, target: &Tensor) -> Tensor {
+    (neural - target).abs().mean(tch::Kind::Float) / target.abs().mean(tch::Kind::Float).clamp_min(1e-6)
+}
+
 pub fn mean_param_norm(neural: &Tensor) -> f64 {
     neural.detach().square().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).sqrt().mean(Kind::Float).double_value(&[])
 }

@@ -12,6 +12,7 @@ pub mod config;
 pub mod losses;
 pub mod run;
 pub mod smoke;
+pub mod teacher;
 
 pub use baseline::BaselineTrainer;
 pub use config::{PixelSampling, TrainConfig, UpdateScheme};
@@ -41,6 +42,10 @@ pub struct StepLosses {
     pub loss_render: f64,
     /// Discriminator least-squares loss.
     pub loss_disc: f64,
+    /// Relative L1 between M_est's neural map and the teacher's codes (0
+    /// without a teacher).
+    #[serde(default)]
+    pub code: f64,
     /// Mean L2 norm of the neural parameters (watch for "garbage" vectors).
     pub param_norm: f64,
     /// True when the step was skipped because a loss or gradient was NaN/Inf.
@@ -58,6 +63,8 @@ pub struct Trainer {
     pub opt_render: Adam,
     pub opt_disc: Adam,
     pub lpips: Option<Lpips>,
+    /// The frozen per-pixel teacher of the curriculum's second stage.
+    pub teacher: Option<teacher::Teacher>,
     /// Steps completed.
     pub step: u64,
 }
@@ -105,7 +112,13 @@ impl Trainer {
         let opt_render = Adam::new(trainable(&model.renderer_vs));
         let opt_disc = Adam::new(trainable(&disc_vs));
         let lpips = if config.weight_lpips > 0.0 { Some(Lpips::new(device)?) } else { None };
-        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, step: 0 })
+        // The teacher's renderer replaces the fresh one (a checkpoint being
+        // resumed overwrites it again with its own).
+        let teacher = match &config.teacher {
+            Some(file) => Some(teacher::Teacher::load(std::path::Path::new(file), &config.model, device, Some(&model.renderer_vs))?),
+            None => None,
+        };
+        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, step: 0 })
     }
 
     pub fn device(&self) -> Device {
@@ -155,7 +168,13 @@ impl Trainer {
         let l1 = (&pred - &target_log).abs().mean(tch::Kind::Float);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
         let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
-        let loss_est = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
+        let mut loss_est = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
+        let weight_code = cfg.code_weight_at(self.step);
+        if let (Some(t), true) = (&self.teacher, weight_code > 0.0) {
+            let code = losses::code_l1(&neural, &tch::no_grad(|| t.encoder.forward_maps(&b.maps)));
+            out.code = code.double_value(&[]);
+            loss_est = loss_est + code * weight_code;
+        }
         out.l1 = l1.double_value(&[]);
         out.lpips = lp.double_value(&[]);
         out.adv = adv.double_value(&[]);

@@ -388,3 +388,35 @@ fn time_limit_stops_with_checkpoint_and_export_then_warm_start_continues_the_ste
     let other = TrainConfig { warm_start: Some(file.display().to_string()), model: ModelConfig::compact(), ..cfg };
     assert!(run::start(other, &RunOptions::new(dir.path().join("d"), tch::Device::Cpu, false)).is_err());
 }
+
+#[test]
+fn teacher_codes_supervise_m_est_and_fade_out() {
+    use super::teacher::{self, teacher_file, TeacherConfig};
+    let dir = tempfile::tempdir().unwrap();
+    let tcfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 512, steps: 5, checkpoint_every: 5, lr: 1e-3, seed: 3 };
+    let trained_teacher = teacher::run(tcfg, &dir.path().join("t"), tch::Device::Cpu, None, false).unwrap();
+    let file = teacher_file(&dir.path().join("t")).display().to_string();
+    let cfg = TrainConfig { teacher: Some(file.clone()), weight_code: 1.0, code_until: 4, weight_lpips: 0.0, ..tiny_config() };
+    assert_eq!((cfg.code_weight_at(0), cfg.code_weight_at(2), cfg.code_weight_at(4)), (1.0, 0.5, 0.0));
+    // A fresh run starts from the teacher's renderer.
+    let fresh = Trainer::new(cfg.clone(), tch::Device::Cpu).unwrap();
+    let theirs = trained_teacher.model.renderer_vs.variables();
+    for (name, v) in fresh.model.renderer_vs.variables() {
+        assert!(v.equal(&theirs[&name]), "{name}");
+    }
+    // The code term is logged while it applies and is 0 once faded.
+    run::start(cfg.clone(), &RunOptions::new(dir.path().join("r"), tch::Device::Cpu, false)).unwrap();
+    let codes: Vec<f64> = run::read_log(&dir.path().join("r")).iter().map(|l| l.code).collect();
+    assert_eq!(codes.len(), 6);
+    assert!(codes[..4].iter().all(|&c| c > 0.0) && codes[4..].iter().all(|&c| c == 0.0), "{codes:?}");
+    // Its gradient reaches M_est: on one batch, the code error falls.
+    let mut t = Trainer::new(TrainConfig { code_until: 0, weight_l1: 0.0, weight_adv: 0.0, lr: 3e-3, ..cfg.clone() }, tch::Device::Cpu).unwrap();
+    let m = procedural::generate_family(Family::Tiles, 3, 32);
+    let sample = SampleConfig { outputs_per_material: 2, ..Default::default() };
+    let batch = make_batch(&[m.clone(), m], &sample, &mut Pcg64::seed_from_u64(1), tch::Device::Cpu).unwrap();
+    let first = t.train_step(&batch).unwrap().code;
+    let last = (0..60).map(|_| t.train_step(&batch).unwrap().code).last().unwrap();
+    assert!(last < 0.5 * first, "code error {first} -> {last}");
+    // A code weight without a teacher is refused.
+    assert!(TrainConfig { weight_code: 1.0, ..tiny_config() }.validate().is_err());
+}

@@ -1,0 +1,359 @@
+//! The per-pixel teacher: the first stage of a training curriculum (after
+//! the encoder of Zeltner et al. 2023, *Real-Time Neural Appearance
+//! Models*). A small MLP maps a pixel's GGX parameters (kd, ks, roughness,
+//! normal: the 10 values of REFERENCE section 2) to a neural-map code, and
+//! is trained together with ND_enc + M_render on random per-pixel
+//! materials and directions against ln(1 + R) of the GGX renderer. With
+//! dense per-pixel supervision and no U-Net the renderer learns GGX,
+//! colours included, in minutes on a CPU (../shared/EXPERIMENTS.md).
+//!
+//! The second stage trains M_est with the teacher's codes of the true maps
+//! as a dense 64-channel target (`TrainConfig::teacher`, `weight_code`)
+//! beside the paper's losses, starting from the teacher's renderer. The
+//! shipped architecture stays the paper's: the encoder is training-only.
+
+use super::adam::Adam;
+use crate::archive::{restore_vars, Archive};
+use crate::model::layers::leaky;
+use crate::model::{Model, ModelConfig};
+use crate::svbrdf::render::render_directions;
+use anyhow::{ensure, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::{Deserialize, Serialize};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use tch::{nn, nn::Module, Device, Kind, Tensor};
+
+pub const FORMAT: &str = "flashmat-teacher";
+pub const VERSION: u32 = 1;
+
+/// GGX values per pixel: kd (3), ks (3), roughness (1), normal (3).
+pub const GGX_CHANNELS: i64 = 10;
+
+/// Hidden width of the teacher encoder.
+const HIDDEN: i64 = 128;
+
+/// Teacher-stage hyper-parameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TeacherConfig {
+    pub model: ModelConfig,
+    /// Random pixels (material, light, view) per step.
+    pub pixels: usize,
+    pub lr: f64,
+    pub steps: u64,
+    pub checkpoint_every: u64,
+    pub seed: u64,
+}
+
+impl Default for TeacherConfig {
+    fn default() -> Self {
+        Self { model: ModelConfig::compact(), pixels: 16_384, lr: 1e-3, steps: 5_000, checkpoint_every: 250, seed: 1 }
+    }
+}
+
+/// The encoder: 10 GGX values -> 128 -> 128 -> C, LeakyReLU(0.01), no biases.
+#[derive(Debug)]
+pub struct TeacherEncoder {
+    layers: Vec<nn::Linear>,
+}
+
+impl TeacherEncoder {
+    pub fn new(p: &nn::Path, channels: i64) -> Self {
+        let cfg = nn::LinearConfig { bias: false, ..Default::default() };
+        let dims = [GGX_CHANNELS, HIDDEN, HIDDEN, channels];
+        let layers = dims.windows(2).enumerate().map(|(i, d)| nn::linear(p / format!("l{i}"), d[0], d[1], cfg)).collect();
+        Self { layers }
+    }
+
+    /// rows: `[R, 10]` -> codes `[R, C]`.
+    pub fn forward_rows(&self, rows: &Tensor) -> Tensor {
+        let last = self.layers.len() - 1;
+        self.layers.iter().enumerate().fold(rows.shallow_clone(), |x, (i, l)| {
+            let y = l.forward(&x);
+            if i < last {
+                leaky(&y, 0.01)
+            } else {
+                y
+            }
+        })
+    }
+
+    /// maps: `[N, 10, H, W]` -> codes `[N, C, H, W]`.
+    pub fn forward_maps(&self, maps: &Tensor) -> Tensor {
+        let s = maps.size();
+        let rows = maps.permute([0, 2, 3, 1]).reshape([-1, s[1]]);
+        let codes = self.forward_rows(&rows);
+        let c = codes.size()[1];
+        codes.view([s[0], s[2], s[3], c]).permute([0, 3, 1, 2]).contiguous()
+    }
+}
+
+/// A trained teacher loaded for the second stage (frozen).
+pub struct Teacher {
+    pub vs: nn::VarStore,
+    pub encoder: TeacherEncoder,
+}
+
+impl Teacher {
+    /// Loads the encoder of a teacher file, for a model of `model_id`, and
+    /// copies the teacher's renderer into `renderer_vs` when given.
+    pub fn load(path: &Path, model: &ModelConfig, device: Device, renderer_vs: Option<&nn::VarStore>) -> Result<Self> {
+        let a = Archive::load(path, FORMAT, VERSION)?;
+        let theirs = a.meta("model_id")?;
+        ensure!(theirs == model.model_id(), "{}: a teacher of model '{theirs}' cannot train a '{}' model", path.display(), model.model_id());
+        let mut vs = nn::VarStore::new(device);
+        let encoder = TeacherEncoder::new(&(vs.root() / "teacher"), model.neural_channels as i64);
+        restore_vars(&vs.variables(), &a.with_prefix("teacher/"), &format!("{}: teacher encoder", path.display()))?;
+        vs.freeze();
+        if let Some(r) = renderer_vs {
+            restore_vars(&r.variables(), &a.with_prefix("renderer/"), &format!("{}: renderer", path.display()))?;
+        }
+        Ok(Self { vs, encoder })
+    }
+}
+
+/// Random per-pixel samples: GGX values `[R, 10]`, light and view
+/// directions `[R, 3]` each, and the target ln(1 + R) `[R, 3]`.
+/// Diffuse ~ U(0,1)^2.2 per channel; specular 0.04 for 70% of pixels, else
+/// U(0,1)^2.2 per channel; roughness U(0.05, 1); normals tilted by N(0,
+/// 0.25); light and view cosine-distributed over the hemisphere, with a
+/// quarter of the views near the light (the flash configuration).
+pub fn pixel_samples(n: i64, device: Device) -> (Tensor, Tensor, Tensor, Tensor) {
+    let opts = (Kind::Float, device);
+    let kd = Tensor::rand([n, 3], opts).pow_tensor_scalar(2.2);
+    let coloured = Tensor::rand([n, 1], opts).lt(0.3).to_kind(Kind::Float);
+    let ks = &coloured * Tensor::rand([n, 3], opts).pow_tensor_scalar(2.2) + (1.0 - &coloured) * 0.04;
+    let rough = Tensor::rand([n, 1], opts) * 0.95 + 0.05;
+    let tilt = Tensor::randn([n, 2], opts) * 0.25;
+    let normal = normalize_rows(&Tensor::cat(&[tilt, Tensor::ones([n, 1], opts)], 1));
+    let cosine = |n: i64| {
+        let u1 = Tensor::rand([n, 1], opts);
+        let phi = Tensor::rand([n, 1], opts) * (2.0 * std::f64::consts::PI);
+        let r = u1.sqrt();
+        Tensor::cat(&[&r * phi.cos(), &r * phi.sin(), (1.0f64 - &u1).clamp_min(1e-4).sqrt()], 1)
+    };
+    let wi = cosine(n);
+    let near = normalize_rows(&(&wi + Tensor::randn([n, 3], opts) * 0.05));
+    let near = Tensor::cat(&[near.narrow(1, 0, 2), near.narrow(1, 2, 1).clamp_min(0.05)], 1);
+    let near = normalize_rows(&near);
+    let colocated = Tensor::rand([n, 1], opts).lt(0.25).to_kind(Kind::Float);
+    let wo = normalize_rows(&(&colocated * near + (1.0 - &colocated) * cosine(n)));
+    let maps = Tensor::cat(&[kd, ks, rough, normal], 1);
+    let target = ggx_log_rows(&maps, &wi, &wo);
+    (maps, wi, wo, target)
+}
+
+fn normalize_rows(v: &Tensor) -> Tensor {
+    v / v.square().sum_dim_intlist([1i64].as_slice(), true, Kind::Float).sqrt().clamp_min(1e-12)
+}
+
+/// ln(1 + R) of the GGX renderer for rows. maps `[R, 10]`, wi, wo `[R, 3]` -> `[R, 3]`.
+pub fn ggx_log_rows(maps: &Tensor, wi: &Tensor, wo: &Tensor) -> Tensor {
+    let n = maps.size()[0];
+    let as_image = |t: &Tensor| t.transpose(0, 1).reshape([1, -1, n, 1]);
+    let dirs = |t: &Tensor| as_image(t).unsqueeze(1); // [1, 1, 3, R, 1]
+    let r = render_directions(&as_image(maps), &dirs(wi), &dirs(wo)); // [1, 1, 3, R, 1]
+    r.reshape([3, n]).transpose(0, 1).clamp_min(0.0).log1p()
+}
+
+/// The teacher's training state.
+pub struct TeacherTrainer {
+    pub config: TeacherConfig,
+    pub model: Model,
+    pub teacher_vs: nn::VarStore,
+    pub encoder: TeacherEncoder,
+    pub opt: Adam,
+    pub step: u64,
+}
+
+/// One logged step.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TeacherStep {
+    pub step: u64,
+    pub l1: f64,
+    /// L1 on the fixed held-out samples (checkpoint steps only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out_l1: Option<f64>,
+    pub seconds: f64,
+}
+
+/// Held-out samples: fixed, never trained on (a seed of their own).
+const HELD_OUT_SEED: i64 = 0x7e57;
+const HELD_OUT_PIXELS: i64 = 50_000;
+
+impl TeacherTrainer {
+    pub fn new(config: TeacherConfig, device: Device) -> Result<Self> {
+        ensure!(config.pixels >= 16, "--pixels must be at least 16");
+        ensure!(config.lr > 0.0 && config.lr.is_finite(), "learning rate must be positive");
+        tch::manual_seed(config.seed as i64);
+        let model = Model::new(&config.model, device)?;
+        model.renderer.m_render.straight_through_output.store(true, std::sync::atomic::Ordering::Relaxed);
+        let teacher_vs = nn::VarStore::new(device);
+        let encoder = TeacherEncoder::new(&(teacher_vs.root() / "teacher"), config.model.neural_channels as i64);
+        let mut params = super::trainable(&model.renderer_vs);
+        params.extend(super::trainable(&teacher_vs));
+        Ok(Self { config, model, teacher_vs, encoder, opt: Adam::new(params), step: 0 })
+    }
+
+    /// One Adam step on fresh random samples (drawn from (seed, step)).
+    pub fn train_step(&mut self) -> Result<f64> {
+        let device = self.model.device();
+        tch::manual_seed((self.config.seed ^ self.step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) as i64);
+        let (maps, wi, wo, target) = tch::no_grad(|| pixel_samples(self.config.pixels as i64, device));
+        self.opt.zero_grad();
+        let pred = self.model.renderer.forward_rows(&self.encoder.forward_rows(&maps), &wi, &wo)?;
+        let loss = (pred - target).abs().mean(Kind::Float);
+        let l1 = loss.double_value(&[]);
+        ensure!(l1.is_finite(), "teacher step {}: the loss is {l1}", self.step + 1);
+        loss.backward();
+        self.opt.step(self.config.lr, None);
+        self.opt.zero_grad();
+        self.step += 1;
+        Ok(l1)
+    }
+
+    /// L1 of ln(1 + R) on the fixed held-out samples.
+    pub fn held_out_l1(&self) -> Result<f64> {
+        let device = self.model.device();
+        tch::no_grad(|| {
+            tch::manual_seed(HELD_OUT_SEED);
+            let (maps, wi, wo, target) = pixel_samples(HELD_OUT_PIXELS, device);
+            let pred = self.model.renderer.forward_rows(&self.encoder.forward_rows(&maps), &wi, &wo)?;
+            Ok((pred - target).abs().mean(Kind::Float).double_value(&[]))
+        })
+    }
+
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let mut a = Archive::new();
+        a.insert_all("renderer/", &self.model.renderer_vs.variables());
+        a.insert_all("teacher/", &self.teacher_vs.variables());
+        self.opt.save_into(&mut a, "opt/");
+        a.set_meta("step", self.step.to_string());
+        a.set_meta("model_id", self.model.model_id());
+        a.set_meta("teacher_config", serde_json::to_string(&self.config)?);
+        a.save(path, FORMAT, VERSION)
+    }
+
+    pub fn resume(path: &Path, device: Device) -> Result<Self> {
+        let a = Archive::load(path, FORMAT, VERSION)?;
+        let config: TeacherConfig = serde_json::from_str(a.meta("teacher_config")?).with_context(|| format!("{}: unreadable configuration", path.display()))?;
+        let mut t = Self::new(config, device)?;
+        let ctx = |what: &str| format!("{}: {what}", path.display());
+        restore_vars(&t.model.renderer_vs.variables(), &a.with_prefix("renderer/"), &ctx("renderer"))?;
+        restore_vars(&t.teacher_vs.variables(), &a.with_prefix("teacher/"), &ctx("teacher encoder"))?;
+        t.opt.load_from(&a, "opt/")?;
+        t.step = a.meta("step")?.parse().with_context(|| ctx("step"))?;
+        Ok(t)
+    }
+}
+
+/// File of a teacher run folder (weights, optimizer, step: checkpoint and
+/// the file the second stage reads).
+pub fn teacher_file(dir: &Path) -> PathBuf {
+    dir.join("teacher.safetensors")
+}
+
+/// Trains (or continues) the teacher in `dir` to `config.steps`, stopping
+/// early after `minutes`. Logs `log.jsonl` with the held-out L1 at every
+/// checkpoint. A folder that holds a teacher continues it (to `steps` when given).
+pub fn run(config: TeacherConfig, dir: &Path, device: Device, minutes: Option<f64>, progress: bool) -> Result<TeacherTrainer> {
+    let file = teacher_file(dir);
+    let mut t = if file.exists() {
+        let mut t = TeacherTrainer::resume(&file, device)?;
+        ensure!(t.config.model == config.model, "{} holds a teacher of another model; use another folder", dir.display());
+        t.config.steps = config.steps;
+        t
+    } else {
+        let t = TeacherTrainer::new(config, device)?;
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        t
+    };
+    let started = Instant::now();
+    let bar = if progress { ProgressBar::new(t.config.steps) } else { ProgressBar::hidden() };
+    bar.set_style(ProgressStyle::with_template("teacher {bar:30} {pos}/{len} steps  {per_sec}  ETA {eta}  {msg}")?);
+    bar.set_position(t.step);
+    let mut log = std::fs::OpenOptions::new().create(true).append(true).open(dir.join("log.jsonl"))?;
+    while t.step < t.config.steps {
+        let t0 = Instant::now();
+        let l1 = t.train_step()?;
+        let out_of_time = minutes.is_some_and(|m| started.elapsed().as_secs_f64() >= m * 60.0);
+        let checkpoint = t.step % t.config.checkpoint_every.max(1) == 0 || t.step == t.config.steps || out_of_time;
+        let held_out_l1 = if checkpoint { Some(t.held_out_l1()?) } else { None };
+        writeln!(log, "{}", serde_json::to_string(&TeacherStep { step: t.step, l1, held_out_l1, seconds: t0.elapsed().as_secs_f64() })?)?;
+        if let Some(h) = held_out_l1 {
+            log.flush()?;
+            t.save(&file)?;
+            bar.set_message(format!("held-out L1 {h:.4}"));
+        }
+        bar.set_position(t.step);
+        if out_of_time {
+            break;
+        }
+    }
+    bar.finish_with_message(format!("step {}", t.step));
+    Ok(t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn samples_match_the_scalar_ggx_oracle() {
+        tch::manual_seed(3);
+        let (maps, wi, wo, target) = pixel_samples(64, Device::Cpu);
+        assert_eq!(maps.size(), [64, 10]);
+        for r in [0i64, 17, 63] {
+            let v = |t: &Tensor, i: i64| t.double_value(&[r, i]);
+            let pm = crate::svbrdf::scalar::PixelMaterial {
+                kd: [v(&maps, 0), v(&maps, 1), v(&maps, 2)],
+                ks: [v(&maps, 3), v(&maps, 4), v(&maps, 5)],
+                roughness: v(&maps, 6),
+                normal: [v(&maps, 7), v(&maps, 8), v(&maps, 9)],
+            };
+            // Far-away point light and camera along the sampled directions.
+            let far = |d: &Tensor| [1e6 * v(d, 0), 1e6 * v(d, 1), 1e6 * v(d, 2)];
+            let expected = crate::svbrdf::scalar::radiance_at(&pm, [0.0, 0.0, 0.0], far(&wi), far(&wo));
+            for c in 0..3 {
+                let want = (1.0 + expected[c].max(0.0)).ln();
+                assert!((v(&target, c as i64) - want).abs() < 1e-3 * (1.0 + want), "row {r} channel {c}: {} vs {want}", v(&target, c as i64));
+            }
+        }
+        // Unit directions in the upper hemisphere; a quarter of views near the light.
+        let z = |t: &Tensor| t.narrow(1, 2, 1).min().double_value(&[]);
+        assert!(z(&wi) > 0.0 && z(&wo) > 0.0);
+        tch::manual_seed(4);
+        let (_, wi, wo, _) = pixel_samples(20_000, Device::Cpu);
+        let near = (&wi * &wo).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).gt(0.99).to_kind(Kind::Float).mean(Kind::Float).double_value(&[]);
+        assert!((0.2..0.32).contains(&near), "fraction of near-co-located pairs {near}");
+    }
+
+    #[test]
+    fn teacher_learns_and_resumes_exactly() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 2048, steps: 60, checkpoint_every: 30, lr: 3e-3, seed: 2 };
+        let fresh = TeacherTrainer::new(cfg.clone(), Device::Cpu).unwrap();
+        let before = fresh.held_out_l1().unwrap();
+        let full = run(cfg.clone(), &dir.path().join("a"), Device::Cpu, None, false).unwrap();
+        let after = full.held_out_l1().unwrap();
+        assert!(after < 0.7 * before, "held-out L1 {before} -> {after}");
+        // Stopped at step 30 and continued: the same weights.
+        run(TeacherConfig { steps: 30, ..cfg.clone() }, &dir.path().join("b"), Device::Cpu, None, false).unwrap();
+        let resumed = run(cfg.clone(), &dir.path().join("b"), Device::Cpu, None, false).unwrap();
+        assert_eq!(resumed.step, 60);
+        let theirs = resumed.model.renderer_vs.variables();
+        for (name, a) in full.model.renderer_vs.variables() {
+            assert!(a.allclose(&theirs[&name], 1e-6, 1e-7, false), "{name}");
+        }
+        // The second stage loads it: encoder frozen, renderer copied.
+        let model = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+        let teacher = Teacher::load(&teacher_file(&dir.path().join("a")), &ModelConfig::tiny(), Device::Cpu, Some(&model.renderer_vs)).unwrap();
+        assert!(teacher.vs.trainable_variables().is_empty());
+        let codes = teacher.encoder.forward_maps(&Tensor::rand([2, 10, 4, 4], (Kind::Float, Device::Cpu)));
+        assert_eq!(codes.size(), [2, ModelConfig::tiny().neural_channels as i64, 4, 4]);
+        // Another model is refused.
+        let e = Teacher::load(&teacher_file(&dir.path().join("a")), &ModelConfig::compact(), Device::Cpu, None).err().unwrap();
+        assert!(format!("{e:#}").contains("cannot train"), "{e:#}");
+    }
+}
