@@ -13,7 +13,7 @@ use rand::SeedableRng;
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
 use std::time::Instant;
-use tch::Device;
+use tch::{Device, Tensor};
 
 #[derive(Subcommand, Debug)]
 pub enum BenchCommand {
@@ -162,8 +162,98 @@ fn bench_train(args: &TrainBenchArgs) -> Result<()> {
         results.push(ms);
     }
     println!("combined / alternating: {:.2}x the time per step", results[1] / results[0]);
+    step_breakdown(args, &model, device)?;
     if let Some(gib) = peak_memory_gib() {
         println!("peak resident memory: {gib:.2} GiB");
+    }
+    Ok(())
+}
+
+/// Median milliseconds of `f` over `runs` calls, after one warm-up call.
+fn median_ms(device: Device, runs: usize, mut f: impl FnMut() -> Result<()>) -> Result<f64> {
+    f()?;
+    let mut times = Vec::with_capacity(runs);
+    for _ in 0..runs.max(1) {
+        let t = Instant::now();
+        f()?;
+        if let Device::Cuda(i) = device {
+            tch::Cuda::synchronize(i as i64);
+        }
+        times.push(t.elapsed().as_secs_f64() * 1000.0);
+    }
+    times.sort_by(f64::total_cmp);
+    Ok(times[times.len() / 2])
+}
+
+/// Where one alternating step's time goes: each part run on its own
+/// (forward + backward where the step has both) with its analytic FLOPs
+/// and the GFLOP/s it reaches against this machine's fp32 matmul rate,
+/// measured in the same run.
+fn step_breakdown(args: &TrainBenchArgs, model: &crate::model::ModelConfig, device: Device) -> Result<()> {
+    use crate::train::{batches::batch_for_step, losses, TrainConfig, Trainer};
+    use tch::Kind;
+    let cfg = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), outputs_per_material: args.outputs, ..Default::default() };
+    let runs = args.steps.max(1);
+    let opts = (Kind::Float, device);
+    let n = 1024;
+    let (a, b) = (Tensor::randn([n, n], opts), Tensor::randn([n, n], opts));
+    let peak_ms = median_ms(device, 5, || {
+        let _ = a.matmul(&b);
+        Ok(())
+    })?;
+    let peak = 2.0 * (n as f64).powi(3) / (peak_ms * 1e6);
+    println!("\nstep breakdown (alternating scheme; parts timed on their own, median of {runs}); fp32 1024x1024 matmul: {peak:.1} GFLOP/s");
+
+    let trainer = Trainer::new(cfg.clone(), device)?;
+    let stream = crate::train::batches::MaterialStream::open(&cfg)?;
+    let mut rows: Vec<(&str, f64, f64)> = vec![];
+    let mut materials = stream.materials(&cfg, 0)?;
+    rows.push(("data: procedural materials + crops", median_ms(device, runs, || {
+        materials = stream.materials(&cfg, 1)?;
+        Ok(())
+    })?, 0.0));
+    let mut batch = batch_for_step(&cfg, &materials, 0, device)?;
+    rows.push(("data: GGX renders (1 input + K outputs)", median_ms(device, runs, || {
+        batch = batch_for_step(&cfg, &materials, 1, device)?;
+        Ok(())
+    })?, 0.0));
+    let (nb, k) = (cfg.materials_per_batch as f64, cfg.outputs_per_material as f64);
+    let px = (args.crop * args.crop) as f64;
+    let est_flops = 3.0 * nb * crate::model::est_flops(model, args.crop as i64, args.crop as i64);
+    rows.push(("M_est forward + backward", median_ms(device, runs, || {
+        trainer.model.est.forward_t(&batch.est_input, true)?.square().mean(Kind::Float).backward();
+        Ok(())
+    })?, est_flops));
+    let neural = tch::no_grad(|| trainer.model.est.forward_t(&batch.est_input, false))?;
+    let render_flops = 3.0 * nb * k * px * crate::model::renderer_flops_per_row(model);
+    let mut pred = Tensor::zeros([1], opts);
+    rows.push(("ND_enc + M_render forward + backward", median_ms(device, runs, || {
+        let leaf = neural.detach().set_requires_grad(true);
+        pred = trainer.model.renderer.forward_maps(&leaf, &batch.out_wi, &batch.out_wo)?;
+        pred.mean(Kind::Float).backward();
+        Ok(())
+    })?, render_flops));
+    let target_log = crate::spaces::to_log(&batch.targets);
+    let photo_log = batch.est_input.narrow(1, 0, 3);
+    let pred = pred.detach();
+    rows.push(("LPIPS forward + backward", median_ms(device, runs, || {
+        losses::perceptual(trainer.lpips.as_ref(), &pred.set_requires_grad(true), &target_log)?.backward();
+        Ok(())
+    })?, 0.0));
+    rows.push(("discriminator: generator term + its 3-pair loss, forward + backward", median_ms(device, runs, || {
+        losses::adversarial(&trainer.disc, &pred.set_requires_grad(true), &photo_log, cfg.weight_adv)?.backward();
+        losses::discriminator_loss(&trainer.disc, &pred, &target_log, &photo_log, cfg.weight_adv)?.backward();
+        Ok(())
+    })?, 0.0));
+    let mut t = Trainer::new(cfg.clone(), device)?;
+    rows.push(("whole train_step (both halves, optimizers)", median_ms(device, runs, || t.train_step(&batch).map(|_| ()))?, 0.0));
+    println!("{:<66} {:>10} {:>12} {:>10}", "part", "ms", "GFLOP", "GFLOP/s");
+    for (name, ms, flops) in &rows {
+        if *flops > 0.0 {
+            println!("{name:<66} {ms:>10.1} {:>12.2} {:>10.1} ({:.0}% of the matmul rate)", flops / 1e9, flops / (ms * 1e6), 100.0 * flops / (ms * 1e6) / peak);
+        } else {
+            println!("{name:<66} {ms:>10.1} {:>12} {:>10}", "-", "-");
+        }
     }
     Ok(())
 }
