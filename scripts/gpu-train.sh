@@ -45,8 +45,11 @@ WARMUP="${FLASHMAT_GPU_WARMUP:-200}"
 BANK="${FLASHMAT_GPU_BANK:-4000}"
 SEED="${FLASHMAT_GPU_SEED:-1}"
 CONFIGS="${FLASHMAT_GPU_CONFIGS:-128}"
-# Curriculum (docs/TRAINING.md): teacher steps before a fresh start (0: none),
-# then the teacher-code term's weight and the step where it has faded out.
+# Curriculum (docs/TRAINING.md): the committed teacher (trained on the CPU,
+# models/MODEL.md; FLASHMAT_GPU_TEACHER= turns the curriculum off), or
+# teacher steps on the device before a fresh start; then the teacher-code
+# term's weight and the step where it has faded out.
+TEACHER_FILE="${FLASHMAT_GPU_TEACHER-$ROOT/models/teacher-$PRESET.safetensors}"
 TEACHER_STEPS="${FLASHMAT_GPU_TEACHER_STEPS:-0}"
 TEACHER_PIXELS="${FLASHMAT_GPU_TEACHER_PIXELS:-65536}"
 CODE_WEIGHT="${FLASHMAT_GPU_CODE_WEIGHT:-1}"
@@ -137,6 +140,8 @@ chunk() {
     if [ "$TEACHER_STEPS" -gt 0 ]; then
       [ -f "$CARRIED_TEACHER" ] || die "the curriculum's warm start needs the teacher: copy the first chunk's teacher.safetensors to $CARRIED_TEACHER"
       teacher="$CARRIED_TEACHER"
+    elif [ -n "$TEACHER_FILE" ] && [ -f "$TEACHER_FILE" ]; then
+      teacher="$TEACHER_FILE"
     fi
     # shellcheck disable=SC2046
     "$BIN" train --out "$run" --warm-start "$RESUME_MODEL" $(recipe "$teacher") "${args[@]}"
@@ -149,6 +154,9 @@ chunk() {
         --pixels "$TEACHER_PIXELS" --seed "$SEED" --device "$DEVICE"
       teacher="$WORK/teacher/teacher.safetensors"
       cp "$teacher" "$out/teacher.safetensors"
+    elif [ -n "$TEACHER_FILE" ] && [ -f "$TEACHER_FILE" ]; then
+      how="fresh start with the teacher $(basename "$TEACHER_FILE")"
+      teacher="$TEACHER_FILE"
     fi
     # shellcheck disable=SC2046
     "$BIN" train --out "$run" $(recipe "$teacher") "${args[@]}"
