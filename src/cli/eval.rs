@@ -53,6 +53,22 @@ pub struct EvalArgs {
     /// cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// Also score every flashmat model with its estimates refined on the photo for STEPS steps (rows NAME+refineSTEPS;
+    /// 200 when no number is given; comma-separated for several).
+    #[arg(long, value_name = "STEPS", num_args = 0..=1, value_delimiter = ',', default_missing_value = "200")]
+    pub refine: Option<Vec<usize>>,
+    #[command(flatten)]
+    pub refine_weights: super::infer::RefineWeights,
+}
+
+impl EvalArgs {
+    /// The refined variants asked for, checked (0 steps: none).
+    fn refine_configs(&self) -> Result<Vec<crate::infer::refine::RefineConfig>> {
+        let steps = self.refine.clone().unwrap_or_default();
+        let configs: Vec<_> = steps.into_iter().filter(|&s| s > 0).map(|s| self.refine_weights.config(s)).collect();
+        configs.iter().try_for_each(|c| c.validate())?;
+        Ok(configs)
+    }
 }
 
 pub fn eval(args: &EvalArgs) -> Result<()> {
@@ -67,6 +83,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             size: args.size,
             device: super::train::parse_device(&args.device)?,
             progress: true,
+            refine: args.refine_configs()?,
         };
         eval::captures::run(&opts)?;
         return print_summary(&args.output);
@@ -83,6 +100,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         ldr_input: args.ldr_input,
         device: super::train::parse_device(&args.device)?,
         progress: true,
+        refine: args.refine_configs()?,
     };
     eval::run(&opts)?;
     print_summary(&args.output)

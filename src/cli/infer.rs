@@ -3,6 +3,7 @@
 
 use super::materials::{to_display, write_render};
 use super::{above_surface, prepare_output, Vec3Arg};
+use crate::infer::refine::{refine, RefineConfig};
 use crate::infer::{self, NeuralMaterial};
 use anyhow::{bail, Result};
 use clap::Args;
@@ -28,6 +29,62 @@ pub struct EstimateOptions {
     /// cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// After M_est, optimise the neural map for STEPS steps (200 when no number is given) so that its identity
+    /// render matches the photo, with the neural BRDF frozen. On a .nmat, refines on its stored input photo.
+    #[arg(long, value_name = "STEPS", num_args = 0..=1, default_missing_value = "200")]
+    pub refine: Option<usize>,
+    #[command(flatten)]
+    pub refine_weights: RefineWeights,
+}
+
+/// Settings of the refinement on the photo (`--refine`), except its steps.
+#[derive(Args, Debug, Clone)]
+pub struct RefineWeights {
+    /// Refinement: Adam step size, in units of the estimate's RMS value.
+    #[arg(long, value_name = "LR", default_value_t = RefineConfig::default().learning_rate)]
+    pub refine_lr: f64,
+    /// Refinement: weight of the squared pull toward the network's estimate.
+    #[arg(long, value_name = "W", default_value_t = RefineConfig::default().pull_weight)]
+    pub refine_pull: f64,
+    /// Refinement: weight of the edge-aware smoothness of the change.
+    #[arg(long, value_name = "W", default_value_t = RefineConfig::default().smooth_weight)]
+    pub refine_smooth: f64,
+    /// Refinement: weight keeping each pixel's code norm within the estimate's largest.
+    #[arg(long, value_name = "W", default_value_t = RefineConfig::default().range_weight)]
+    pub refine_range: f64,
+}
+
+impl RefineWeights {
+    /// The refinement of `steps` steps with these settings.
+    pub fn config(&self, steps: usize) -> RefineConfig {
+        RefineConfig {
+            steps,
+            learning_rate: self.refine_lr,
+            pull_weight: self.refine_pull,
+            smooth_weight: self.refine_smooth,
+            range_weight: self.refine_range,
+        }
+    }
+}
+
+impl EstimateOptions {
+    /// The requested refinement, checked; None without `--refine` or with `--refine 0`.
+    fn refine_config(&self) -> Result<Option<RefineConfig>> {
+        let Some(steps) = self.refine.filter(|&s| s > 0) else { return Ok(None) };
+        let cfg = self.refine_weights.config(steps);
+        cfg.validate()?;
+        Ok(Some(cfg))
+    }
+}
+
+/// Refines a material on `photo` (`[3, H, W]` linear) with a progress bar;
+/// returns the report line. A refinement stopped by a non-finite loss keeps
+/// the unrefined material and says so in the line.
+fn refine_with_progress(material: &mut NeuralMaterial, photo: &tch::Tensor, clipped: bool, cfg: &RefineConfig) -> Result<String> {
+    let bar = ProgressBar::new(cfg.steps as u64).with_style(ProgressStyle::with_template("refining {bar:40} {pos}/{len} steps {per_sec} ETA {eta}")?);
+    let report = refine(material, photo, clipped, cfg, |_| bar.inc(1))?;
+    bar.finish_and_clear();
+    Ok(report.summary())
 }
 
 #[derive(Args, Debug)]
@@ -91,6 +148,7 @@ fn require_extension(path: &Path, allowed: &[&str], what: &str) -> Result<()> {
 /// output is written (so a failed write stays a single error line).
 pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMaterial, String)> {
     let device = super::train::parse_device(&opts.device)?;
+    let refine_cfg = opts.refine_config()?;
     let t0 = Instant::now();
     let prepared = infer::load_photo(photo, opts.fov, opts.size)?;
     let t_photo = t0.elapsed().as_secs_f64();
@@ -100,7 +158,7 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
         eprintln!("{w}");
     }
     let t1 = Instant::now();
-    let material = infer::estimate(&loaded.model, &loaded.info, &prepared)?;
+    let mut material = infer::estimate(&loaded.model, &loaded.info, &prepared)?;
     if let Device::Cuda(i) = device {
         tch::Cuda::synchronize(i as i64);
     }
@@ -121,6 +179,10 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
         prepared.fov_deg,
         loaded.model.model_id()
     );
+    let summary = match &refine_cfg {
+        Some(cfg) => format!("{summary}\n{}", refine_with_progress(&mut material, &prepared.linear.to_tensor(), prepared.ldr, cfg)?),
+        None => summary,
+    };
     Ok((material, summary))
 }
 
@@ -128,10 +190,20 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
 /// PNG/JPEG/EXR signature); see [`estimate_photo`] for the returned line.
 pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMaterial, Option<String>)> {
     if looks_like_image(path) {
-        estimate_photo(path, opts).map(|(m, line)| (m, Some(line)))
-    } else {
-        Ok((NeuralMaterial::load(path, super::train::parse_device(&opts.device)?)?, None))
+        return estimate_photo(path, opts).map(|(m, line)| (m, Some(line)));
     }
+    let refine_cfg = opts.refine_config()?;
+    let mut material = NeuralMaterial::load(path, super::train::parse_device(&opts.device)?)?;
+    let line = match &refine_cfg {
+        Some(cfg) => {
+            // The stored photo is what M_est saw: clamped to [0, 1] for 8-bit photos and LDR-input models.
+            let clipped = material.meta.ldr_input || material.meta.model_info.ldr_input;
+            let photo = material.input_photo.shallow_clone();
+            Some(refine_with_progress(&mut material, &photo, clipped, cfg)?)
+        }
+        None => None,
+    };
+    Ok((material, line))
 }
 
 fn looks_like_image(path: &Path) -> bool {

@@ -7,6 +7,7 @@ use crate::baselines::{read_header_metadata, Baseline, BaselineNet, RelightEncod
 use crate::data::samples::{est_input, input_directions};
 use crate::geometry::{config_tensors, LightView, MODEL_FOV_DEG};
 use crate::image::Image;
+use crate::infer::refine::{refine, RefineConfig};
 use crate::infer::{self, Crop, NeuralMaterial, PreparedPhoto};
 use crate::model::{FoldedMEst, Model, ModelInfo};
 use crate::svbrdf::render::half_vector_z;
@@ -39,6 +40,8 @@ pub struct ModelMethod {
     model: Model,
     info: ModelInfo,
     ldr_photo: bool,
+    /// Refinement on the photo after M_est (`flashmat eval --refine`).
+    refine: Option<RefineConfig>,
     material: Option<NeuralMaterial>,
 }
 
@@ -47,7 +50,17 @@ impl ModelMethod {
     /// (recorded in the neural material's metadata).
     pub fn load(path: &Path, name: String, ldr_photo: bool, device: Device) -> Result<Self> {
         let loaded = infer::load_model(Some(path), device)?;
-        Ok(Self { name, model: loaded.model, info: loaded.info, ldr_photo, material: None })
+        Ok(Self { name, model: loaded.model, info: loaded.info, ldr_photo, refine: None, material: None })
+    }
+
+    /// The same method with every estimate refined on its photo.
+    pub fn with_refine(self, refine: RefineConfig) -> Self {
+        Self { refine: Some(refine), ..self }
+    }
+
+    /// The prepared material (after any refinement).
+    pub fn material(&self) -> Option<&NeuralMaterial> {
+        self.material.as_ref()
     }
 }
 
@@ -66,7 +79,12 @@ impl Method for ModelMethod {
             crop: Crop { x0: 0, y0: 0, side, source_width: side, source_height: side },
             source: "evaluation render".into(),
         };
-        self.material = Some(infer::estimate(&self.model, &self.info, &photo)?);
+        let mut material = infer::estimate(&self.model, &self.info, &photo)?;
+        if let Some(cfg) = &self.refine {
+            let report = refine(&mut material, &photo.linear.to_tensor(), self.ldr_photo, cfg, |_| {})?;
+            ensure!(report.stopped.is_none(), "{}: {}", self.name, report.summary());
+        }
+        self.material = Some(material);
         Ok(())
     }
 
@@ -249,20 +267,24 @@ impl Method for RelightMethod {
     }
 }
 
-/// Opens a model file as the method its metadata records: flashmat
-/// ([`ModelMethod`]), analytic ([`AnalyticMethod`]) or relight-unet
-/// ([`RelightMethod`]).
-pub fn open_model_file(path: &Path, name: String, ldr_photo: bool, device: Device) -> Result<Box<dyn Method>> {
-    // Files that are not readable model files go to the flashmat loader,
-    // whose errors name the problem.
-    let method = match read_header_metadata(path) {
+/// The method a model file's metadata records; files that are not
+/// readable model files count as flashmat files (whose loader's errors
+/// name the problem).
+fn recorded_method(path: &Path) -> Result<TrainMethod> {
+    Ok(match read_header_metadata(path) {
         Ok(meta) if meta.get("flashmat.format").map(String::as_str) == Some(crate::model::MODEL_FORMAT) => match meta.get(METHOD_KEY) {
             Some(m) => TrainMethod::from_name(m).with_context(|| format!("model file {}", path.display()))?,
             None => TrainMethod::Flashmat,
         },
         _ => TrainMethod::Flashmat,
-    };
-    Ok(match method {
+    })
+}
+
+/// Opens a model file as the method its metadata records: flashmat
+/// ([`ModelMethod`]), analytic ([`AnalyticMethod`]) or relight-unet
+/// ([`RelightMethod`]).
+pub fn open_model_file(path: &Path, name: String, ldr_photo: bool, device: Device) -> Result<Box<dyn Method>> {
+    Ok(match recorded_method(path)? {
         TrainMethod::Flashmat => Box::new(ModelMethod::load(path, name, ldr_photo, device)?),
         TrainMethod::Analytic => {
             let (b, info) = Baseline::load(path, device)?;
@@ -276,8 +298,10 @@ pub fn open_model_file(path: &Path, name: String, ldr_photo: bool, device: Devic
 }
 
 /// Opens `--model` values: `printout` or a model file of any method (named
-/// by its file stem; repeated names get `-2`, `-3` ...).
-pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device) -> Result<Vec<Box<dyn Method>>> {
+/// by its file stem; repeated names get `-2`, `-3` ...). Each flashmat
+/// model is followed by one refined variant per `refine` setting, named
+/// `NAME+refineSTEPS`.
+pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &[RefineConfig]) -> Result<Vec<Box<dyn Method>>> {
     ensure!(!specs.is_empty(), "give at least one --model (a model file or `printout`)");
     let mut out: Vec<Box<dyn Method>> = Vec::new();
     let mut names: Vec<String> = Vec::new();
@@ -296,8 +320,16 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device) -> Result
         names.push(name.clone());
         if spec == PRINTOUT {
             out.push(Box::new(PrintoutMethod::default()));
-        } else {
-            out.push(open_model_file(Path::new(spec), name, ldr_photo, device)?);
+            continue;
+        }
+        let path = Path::new(spec);
+        out.push(open_model_file(path, name.clone(), ldr_photo, device)?);
+        if recorded_method(path)? == TrainMethod::Flashmat {
+            for cfg in refine {
+                let refined = format!("{name}+refine{}", cfg.steps);
+                names.push(refined.clone());
+                out.push(Box::new(ModelMethod::load(path, refined, ldr_photo, device)?.with_refine(cfg.clone())));
+            }
         }
     }
     Ok(out)

@@ -24,6 +24,7 @@ pub use metrics::{mean_ci95, mean_scores, score_renders, score_renders_on, Lpips
 use crate::data::loaders::{center_crop, open_dataset};
 use crate::data::procedural;
 use crate::geometry::{sample_hemisphere, sample_reflect, fov_to_distance, LightView, Sampling, HEMISPHERE_RADIUS, MODEL_FOV_DEG};
+use crate::infer::refine::RefineConfig;
 use crate::lpips::Lpips;
 use crate::svbrdf::Svbrdf;
 use anyhow::{anyhow, ensure, Result};
@@ -105,6 +106,8 @@ pub struct EvalOptions {
     pub ldr_input: bool,
     pub device: Device,
     pub progress: bool,
+    /// Refined variants of every flashmat model (`--refine`), one per setting.
+    pub refine: Vec<RefineConfig>,
 }
 
 /// One line of a method's CSV.
@@ -229,7 +232,7 @@ pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     let mut cases = opts.cases.clone();
     cases.dedup();
     let opts = EvalOptions { cases, ..opts.clone() };
-    let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device)?;
+    let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device, &opts.refine)?;
     let materials = load_materials(&opts.dataset, opts.size, opts.limit)?;
     let lpips = Lpips::new(opts.device)?;
     std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;

@@ -17,6 +17,7 @@ fn small_eval(models: Vec<String>, out: &std::path::Path) -> EvalOptions {
         ldr_input: false,
         device: Device::Cpu,
         progress: false,
+        refine: vec![],
     }
 }
 

@@ -16,6 +16,7 @@
 
 pub mod nmat;
 pub mod photo;
+pub mod refine;
 pub mod show;
 
 pub use nmat::{NeuralMaterial, NmatMeta, NMAT_FORMAT, NMAT_VERSION};
@@ -130,6 +131,7 @@ pub fn estimate(model: &Model, info: &ModelInfo, photo: &PreparedPhoto) -> Resul
         source: photo.source.clone(),
         ldr_input: photo.ldr,
         model_info: info.clone(),
+        refine: None,
     };
     NeuralMaterial::from_parts(map.get(0), linear.get(0), &model.config, &model.renderer_vs.variables(), meta)
 }

@@ -43,6 +43,8 @@ pub struct NmatMeta {
     pub ldr_input: bool,
     /// What the estimating model's file recorded.
     pub model_info: ModelInfo,
+    /// The refinement on the photo applied after M_est, if any.
+    pub refine: Option<super::refine::RefineReport>,
 }
 
 /// A relightable neural material: per-pixel parameters and the neural BRDF
@@ -120,6 +122,9 @@ impl NeuralMaterial {
         a.set_meta("ldr_input", m.ldr_input.to_string());
         a.set_meta("model_info", serde_json::to_string(&m.model_info)?);
         a.set_meta("resolution", serde_json::to_string(&[h, w])?);
+        if let Some(r) = &m.refine {
+            a.set_meta("refine", serde_json::to_string(r)?);
+        }
         a.save(path, NMAT_FORMAT, NMAT_VERSION)
     }
 
@@ -150,6 +155,7 @@ impl NeuralMaterial {
             source: a.meta("source")?.to_string(),
             ldr_input: parse_bool("ldr_input")?,
             model_info: serde_json::from_str(a.meta("model_info")?).context("metadata field 'model_info'")?,
+            refine: a.metadata.get("refine").map(|r| serde_json::from_str(r)).transpose().context("metadata field 'refine'")?,
         };
         let neural_map = a.tensor("neural_map")?.to_device(device);
         let input_photo = a.tensor("input_photo")?.shallow_clone();
@@ -211,6 +217,7 @@ pub(crate) mod tests {
             source: "photo é.png".into(),
             ldr_input: true,
             model_info: ModelInfo { ldr_input: true, steps: 7 },
+            refine: None,
         };
         let map = Tensor::randn([cfg.neural_channels, size, size], (tch::Kind::Float, Device::Cpu));
         let photo = Tensor::rand([3, size, size], (tch::Kind::Float, Device::Cpu));
