@@ -279,3 +279,40 @@ fn bad_inputs_give_one_clear_line_and_no_output() {
     assert_eq!(files_in(&out), Vec::<String>::new());
     no_temp_files(d);
 }
+
+#[test]
+fn refine_on_estimate_and_on_a_nmat_is_recorded_and_checked() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let model = tiny_model(&d.join("tiny-ldr.safetensors"), true, 5);
+    let photo = png_photo(&d.join("photo.png"), 32, 32);
+    let plain = d.join("plain.nmat");
+    assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--fov", "28", "--size", "32", "-o", s(&plain)]));
+    let refined = d.join("refined.nmat");
+    let err = assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--fov", "28", "--size", "32", "--refine", "20", "--refine-pull", "0.5", "-o", s(&refined)]));
+    let line = err.lines().find(|l| l.starts_with("refined in 20 steps")).unwrap_or_else(|| panic!("no refinement line: {err}"));
+    assert!(line.contains("identity L1 (log radiance)") && line.contains(" -> "), "{line}");
+    let (p, r) = (NeuralMaterial::load(&plain, Device::Cpu).unwrap(), NeuralMaterial::load(&refined, Device::Cpu).unwrap());
+    assert!(p.meta.refine.is_none());
+    let report = r.meta.refine.clone().expect("refinement recorded");
+    assert_eq!((report.steps_done, report.config.steps, report.config.pull_weight), (20, 20, 0.5));
+    assert!(report.identity_l1_after < report.identity_l1_before, "{report:?}");
+    assert!(!r.neural_map.equal(&p.neural_map));
+
+    // `--refine` without a number on a .nmat: the default steps, on the stored photo; `--refine 0` changes nothing.
+    let grid = d.join("grid.png");
+    let err = assert_ok(&flashmat(&["show", s(&plain), "--refine", "-o", s(&grid)]));
+    assert!(err.contains("refined in 200 steps"), "{err}");
+    let id = d.join("id.png");
+    let err = assert_ok(&flashmat(&["relight", s(&plain), "--identity", "--refine", "0", "-o", s(&id)]));
+    assert!(!err.contains("refined"), "{err}");
+
+    // Bad step counts: one clear line, no output.
+    let out = d.join("bad.nmat");
+    assert_error(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--refine", "1000000", "-o", s(&out)]), &["--refine", "at most"]);
+    assert_error(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--refine", "2", "--refine-lr", "nan", "-o", s(&out)]), &["learning rate"]);
+    let e = flashmat(&["estimate", s(&photo), "--model", s(&model), "--refine", "-3", "-o", s(&out)]);
+    assert_eq!(e.status.code(), Some(2), "{}", stderr(&e));
+    assert!(!out.exists());
+    no_temp_files(d);
+}
