@@ -26,6 +26,24 @@ pub enum BenchCommand {
     /// Device smoke test: a few training steps on the CPU and on --device from the same weights and batches;
     /// fails (exit 1, one line) when a loss term differs by more than 2%.
     Smoke(SmokeArgs),
+    /// Milliseconds per step of the refinement on the photo (`--refine`), against one identity render of the same material.
+    Refine(RefineBenchArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct RefineBenchArgs {
+    /// Model preset (paper, compact, tiny); randomly initialised weights (the cost does not depend on them).
+    #[arg(long, default_value = "compact")]
+    pub preset: String,
+    /// Photo resolution.
+    #[arg(long, default_value_t = 256)]
+    pub size: usize,
+    /// Timed refinement steps.
+    #[arg(long, default_value_t = 20)]
+    pub steps: usize,
+    /// cpu or cuda.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
 }
 
 #[derive(Args, Debug)]
@@ -94,6 +112,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Data(a) => bench_data(a),
         BenchCommand::Train(a) => bench_train(a),
         BenchCommand::Smoke(a) => smoke(a),
+        BenchCommand::Refine(a) => bench_refine(a),
         BenchCommand::Infer(a) => {
             let device = super::train::parse_device(&a.device)?;
             let t = crate::model::bench_infer_runs(&crate::model::ModelConfig::preset(&a.preset)?, a.size, device, a.runs)?;
@@ -102,6 +121,46 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
             Ok(())
         }
     }
+}
+
+/// Refinement cost: ms per step (M_render forward + backward to the map,
+/// priors, Adam) against one identity render (ND_enc + M_render forward,
+/// no autograd) of the same material, measured in the same run.
+fn bench_refine(args: &RefineBenchArgs) -> Result<()> {
+    use crate::infer::refine::{refine, RefineConfig};
+    use crate::infer::{Crop, NeuralMaterial, PreparedPhoto};
+    let device = super::train::parse_device(&args.device)?;
+    crate::infer::photo::check_size(args.size)?;
+    anyhow::ensure!(args.steps > 0, "--steps must be at least 1");
+    tch::manual_seed(0);
+    let config = crate::model::ModelConfig::preset(&args.preset)?;
+    let model = crate::model::Model::new(&config, device)?;
+    let material = procedural::test_material(0, args.size);
+    let linear = crate::svbrdf::render::render_material(&material, &[NeuralMaterial::identity_config()])?.remove(0);
+    let photo = PreparedPhoto {
+        linear: linear.clone(),
+        ldr: true,
+        fov_deg: crate::geometry::MODEL_FOV_DEG,
+        crop: Crop { x0: 0, y0: 0, side: args.size, source_width: args.size, source_height: args.size },
+        source: "bench".into(),
+    };
+    let info = crate::model::ModelInfo { ldr_input: true, steps: 0 };
+    let mut neural = crate::infer::estimate(&model, &info, &photo)?;
+    let render_ms = median_ms(device, 3, || neural.render(&[NeuralMaterial::identity_config()]).map(|_| ()))?;
+    let photo_t = linear.to_tensor().clamp(0.0, 1.0);
+    let report = refine(&mut neural, &photo_t, true, &RefineConfig::with_steps(args.steps), |_| {})?;
+    let step_ms = report.seconds * 1000.0 / args.steps as f64;
+    let default_steps = crate::infer::refine::DEFAULT_REFINE_STEPS;
+    println!(
+        "refine {} {}x{} on {:?}: {step_ms:.1} ms/step ({:.2}x one identity render of {render_ms:.1} ms); the default {default_steps} steps: {:.1} s",
+        args.preset,
+        args.size,
+        args.size,
+        device,
+        step_ms / render_ms,
+        step_ms * default_steps as f64 / 1000.0
+    );
+    Ok(())
 }
 
 /// Peak resident memory of this process (VmHWM), in GiB.

@@ -42,10 +42,10 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Evaluate only the first N materials.
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = super::count)]
     pub limit: Option<usize>,
     /// Configurations per material for Reflect and Hemisphere (the paper: 128).
-    #[arg(long, value_name = "N", default_value_t = DEFAULT_CONFIGS)]
+    #[arg(long, value_name = "N", default_value_t = DEFAULT_CONFIGS, value_parser = super::count)]
     pub configs: usize,
     /// Give the methods LDR photos (renders clamped to [0, 1]) instead of HDR ones.
     #[arg(long)]
@@ -53,8 +53,8 @@ pub struct EvalArgs {
     /// cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     pub device: String,
-    /// Also score every flashmat model with its estimates refined on the photo for STEPS steps (rows NAME+refineSTEPS;
-    /// 200 when no number is given; comma-separated for several).
+    /// Score every flashmat model with its estimates refined on the photo for STEPS steps (rows NAME+refineSTEPS;
+    /// 200 when no number is given; comma-separated for several, 0 = the unrefined model, e.g. 0,100).
     #[arg(long, value_name = "STEPS", num_args = 0..=1, value_delimiter = ',', default_missing_value = "200")]
     pub refine: Option<Vec<usize>>,
     #[command(flatten)]
@@ -62,10 +62,11 @@ pub struct EvalArgs {
 }
 
 impl EvalArgs {
-    /// The refined variants asked for, checked (0 steps: none).
+    /// The variants asked for, checked (0 steps: the unrefined model).
     fn refine_configs(&self) -> Result<Vec<crate::infer::refine::RefineConfig>> {
-        let steps = self.refine.clone().unwrap_or_default();
-        let configs: Vec<_> = steps.into_iter().filter(|&s| s > 0).map(|s| self.refine_weights.config(s)).collect();
+        let mut steps = self.refine.clone().unwrap_or_default();
+        steps.dedup();
+        let configs: Vec<_> = steps.into_iter().map(|s| self.refine_weights.config(s)).collect();
         configs.iter().try_for_each(|c| c.validate())?;
         Ok(configs)
     }
@@ -151,10 +152,10 @@ pub struct ShadowEvalArgs {
     #[arg(long, default_value_t = 256)]
     pub size: usize,
     /// Evaluate only the first N materials.
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = super::count)]
     pub limit: Option<usize>,
     /// Lights per material (elevations 20/30/45/60 degrees in turn, spread in azimuth).
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 8, value_parser = super::count)]
     pub lights: usize,
     /// Multiplies the height fields (use the value the model was trained with).
     #[arg(long, default_value_t = 1.0)]

@@ -298,9 +298,10 @@ pub fn open_model_file(path: &Path, name: String, ldr_photo: bool, device: Devic
 }
 
 /// Opens `--model` values: `printout` or a model file of any method (named
-/// by its file stem; repeated names get `-2`, `-3` ...). Each flashmat
-/// model is followed by one refined variant per `refine` setting, named
-/// `NAME+refineSTEPS`.
+/// by its file stem; repeated names get `-2`, `-3` ...). With `refine`
+/// settings, each flashmat model becomes one method per setting, named
+/// `NAME+refineSTEPS`, and a setting of 0 steps is the unrefined `NAME`
+/// (so `--refine 0,100` scores both, `--refine 100` only the refined one).
 pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &[RefineConfig]) -> Result<Vec<Box<dyn Method>>> {
     ensure!(!specs.is_empty(), "give at least one --model (a model file or `printout`)");
     let mut out: Vec<Box<dyn Method>> = Vec::new();
@@ -323,9 +324,14 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &
             continue;
         }
         let path = Path::new(spec);
-        out.push(open_model_file(path, name.clone(), ldr_photo, device)?);
-        if recorded_method(path)? == TrainMethod::Flashmat {
-            for cfg in refine {
+        if refine.is_empty() || recorded_method(path)? != TrainMethod::Flashmat {
+            out.push(open_model_file(path, name, ldr_photo, device)?);
+            continue;
+        }
+        for cfg in refine {
+            if cfg.steps == 0 {
+                out.push(Box::new(ModelMethod::load(path, name.clone(), ldr_photo, device)?));
+            } else {
                 let refined = format!("{name}+refine{}", cfg.steps);
                 names.push(refined.clone());
                 out.push(Box::new(ModelMethod::load(path, refined, ldr_photo, device)?.with_refine(cfg.clone())));

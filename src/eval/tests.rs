@@ -1,4 +1,5 @@
 use super::*;
+use crate::infer::refine::RefineConfig;
 use crate::data::procedural::{generate_family, Family};
 use crate::model::{Model, ModelConfig, ModelInfo};
 use crate::svbrdf::scalar::{add, normalize, sub};
@@ -122,6 +123,32 @@ fn eval_end_to_end_on_two_materials() {
     assert_eq!(csv, std::fs::read_to_string(t.path().join("again/printout.csv")).unwrap());
     assert_eq!(tiny, std::fs::read_to_string(t.path().join("again/tiny.csv")).unwrap());
     assert_eq!(again[0].rows.len(), 6);
+}
+
+#[test]
+fn refine_variants_are_scored_as_their_own_rows() {
+    let t = tempfile::tempdir().unwrap();
+    tch::manual_seed(2);
+    let model_path = t.path().join("tiny.safetensors");
+    Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(&model_path, &ModelInfo::default(), false).unwrap();
+    let model = model_path.to_string_lossy().into_owned();
+    let out = t.path().join("refined");
+    let opts = EvalOptions {
+        cases: vec![Sampling::Identity],
+        refine: vec![RefineConfig::with_steps(0), RefineConfig::with_steps(40)],
+        ..small_eval(vec![model.clone(), PRINTOUT.into()], &out)
+    };
+    let results = run(&opts).unwrap();
+    let names: Vec<&str> = results.iter().map(|r| r.name.as_str()).collect();
+    assert_eq!(names, ["tiny", "tiny+refine40", "printout"]);
+    // The refinement fits the identity render: lower log error on every material.
+    for (plain, refined) in results[0].rows.iter().zip(&results[1].rows) {
+        assert!(refined.scores.rmse_log < 0.7 * plain.scores.rmse_log, "{plain:?} -> {refined:?}");
+    }
+    assert!(out.join("tiny+refine40.csv").is_file());
+    // Without 0 in the list only the refined variant is scored.
+    let only = run(&EvalOptions { refine: vec![RefineConfig::with_steps(5)], out: t.path().join("only"), ..small_eval(vec![model], &out) }).unwrap();
+    assert_eq!(only.iter().map(|r| r.name.as_str()).collect::<Vec<_>>(), ["tiny+refine5"]);
 }
 
 // ---------------------------------------------------------------------------
