@@ -1,8 +1,10 @@
 //! Named f32 tensors plus string metadata in one safetensors file, with a
-//! format tag, a version and a CRC-32 of the tensor bytes so that truncated,
-//! damaged or foreign files are refused with a clear message. Used by
-//! training checkpoints, exported models and `.nmat` neural materials.
-//! Writes are atomic (temporary file, then rename).
+//! format tag, a version, a CRC-32 of the tensor bytes and a CRC-32 of the
+//! header (tensor names, dtypes and shapes, and the metadata), so that
+//! truncated, damaged or foreign files are refused with a clear message.
+//! Non-finite values are refused both ways: a diverged network is never
+//! written, nor read. Used by training checkpoints, exported models and
+//! `.nmat` neural materials. Writes are atomic (temporary file, then rename).
 
 use anyhow::{bail, Context, Result};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
@@ -13,6 +15,10 @@ use tch::{Device, Kind, Tensor};
 const KEY_FORMAT: &str = "flashmat.format";
 const KEY_VERSION: &str = "flashmat.version";
 const KEY_CRC: &str = "flashmat.crc32";
+/// CRC-32 of the header (see [`header_crc`]). Files written before it
+/// existed (the bundled models among them) lack it and are read with the
+/// tensor CRC alone.
+const KEY_META_CRC: &str = "flashmat.meta_crc32";
 
 /// Tensors (CPU copies) and metadata read from or to be written to an archive.
 #[derive(Default)]
@@ -68,6 +74,8 @@ impl Archive {
     }
 
     /// Writes the archive atomically with the given format tag and version.
+    /// Tensors holding NaN or Inf (or, stored as f16, values beyond its
+    /// range) are refused and nothing is written.
     pub fn save(&self, path: &Path, format: &str, version: u32) -> Result<()> {
         let buffers: Vec<(String, Dtype, Vec<u8>, Vec<usize>)> = self
             .tensors
@@ -76,40 +84,50 @@ impl Archive {
                 let numel = t.numel();
                 let mut values = vec![0f32; numel];
                 t.copy_data(&mut values, numel);
+                if let Some(v) = values.iter().find(|v| !v.is_finite()) {
+                    bail!("cannot write {}: tensor '{name}' holds a non-finite value ({v})", path.display());
+                }
                 let (dtype, bytes): (Dtype, Vec<u8>) = if self.store_half && numel >= HALF_MIN_NUMEL {
-                    (Dtype::F16, values.iter().flat_map(|v| half::f16::from_f32(*v).to_le_bytes()).collect())
+                    let halves: Vec<half::f16> = values.iter().map(|v| half::f16::from_f32(*v)).collect();
+                    if let Some(i) = halves.iter().position(|h| !h.is_finite()) {
+                        bail!("cannot write {}: tensor '{name}' holds {}, beyond the f16 range (store it as f32)", path.display(), values[i]);
+                    }
+                    (Dtype::F16, halves.iter().flat_map(|h| h.to_le_bytes()).collect())
                 } else {
                     (Dtype::F32, values.iter().flat_map(|v| v.to_le_bytes()).collect())
                 };
-                (name.clone(), dtype, bytes, t.size().iter().map(|&d| d as usize).collect())
+                Ok((name.clone(), dtype, bytes, t.size().iter().map(|&d| d as usize).collect()))
             })
-            .collect();
+            .collect::<Result<_>>()?;
         let mut crc = crc32fast::Hasher::new();
         for (name, _, bytes, _) in &buffers {
             crc.update(name.as_bytes());
             crc.update(bytes);
         }
-        let mut metadata: HashMap<String, String> = self.metadata.clone().into_iter().collect();
+        let mut metadata: BTreeMap<String, String> = self.metadata.clone();
         metadata.insert(KEY_FORMAT.into(), format.into());
         metadata.insert(KEY_VERSION.into(), version.to_string());
         metadata.insert(KEY_CRC.into(), format!("{:08x}", crc.finalize()));
+        let layout: Vec<(&str, Dtype, &[usize])> = buffers.iter().map(|(n, d, _, s)| (n.as_str(), *d, s.as_slice())).collect();
+        metadata.insert(KEY_META_CRC.into(), format!("{:08x}", header_crc(&layout, &metadata)));
         let views: Vec<(String, TensorView)> = buffers
             .iter()
             .map(|(name, dtype, bytes, shape)| Ok((name.clone(), TensorView::new(*dtype, shape.clone(), bytes)?)))
             .collect::<Result<_>>()?;
-        let data = safetensors::tensor::serialize(views, Some(metadata)).context("serializing tensors")?;
+        let data = safetensors::tensor::serialize(views, Some(metadata.into_iter().collect())).context("serializing tensors")?;
         crate::io::atomic_write_bytes(path, &data)
     }
 
     /// Reads and verifies an archive of the given format; versions other than
     /// `version` are refused. Errors name the file.
     pub fn load(path: &Path, format: &str, version: u32) -> Result<Self> {
-        Self::load_inner(path, format, version).with_context(|| format!("{}", path.display()))
+        let data = crate::io::read_input(path).with_context(|| format!("{}: cannot read file", path.display()))?;
+        Self::from_bytes(&data, format, version).with_context(|| format!("{}", path.display()))
     }
 
-    fn load_inner(path: &Path, format: &str, version: u32) -> Result<Self> {
-        let data = std::fs::read(path).context("cannot read file")?;
-        let (_, header) = SafeTensors::read_metadata(&data).map_err(|e| anyhow::anyhow!("not a valid {format} file (damaged or truncated: {e})"))?;
+    /// [`Archive::load`] of a file's bytes (errors do not name it).
+    pub fn from_bytes(data: &[u8], format: &str, version: u32) -> Result<Self> {
+        let (_, header) = SafeTensors::read_metadata(data).map_err(|e| anyhow::anyhow!("not a valid {format} file (damaged or truncated: {e})"))?;
         let meta: BTreeMap<String, String> = header.metadata().clone().unwrap_or_default().into_iter().collect();
         match meta.get(KEY_FORMAT) {
             Some(f) if f == format => {}
@@ -120,30 +138,72 @@ impl Archive {
         if found != version {
             bail!("{format} version {found} is not supported (this flashmat reads version {version})");
         }
-        let st = SafeTensors::deserialize(&data).map_err(|e| anyhow::anyhow!("damaged {format} file: {e}"))?;
+        // A damaged key name must not switch a check off.
+        if let Some(k) = meta.keys().find(|k| k.starts_with("flashmat.") && ![KEY_FORMAT, KEY_VERSION, KEY_CRC, KEY_META_CRC].contains(&k.as_str())) {
+            bail!("unknown integrity field '{k}': the {format} file is damaged");
+        }
+        let st = SafeTensors::deserialize(data).map_err(|e| anyhow::anyhow!("damaged {format} file: {e}"))?;
         let mut names: Vec<String> = st.names().into_iter().map(|s| s.to_string()).collect();
         names.sort();
+        let views: Vec<(String, TensorView)> = names.into_iter().map(|n| Ok((n.clone(), st.tensor(&n)?))).collect::<Result<_>>()?;
+        if let Some(expect) = meta.get(KEY_META_CRC) {
+            let layout: Vec<(&str, Dtype, &[usize])> = views.iter().map(|(n, v)| (n.as_str(), v.dtype(), v.shape())).collect();
+            if *expect != format!("{:08x}", header_crc(&layout, &meta)) {
+                bail!("header checksum mismatch: the {format} file is damaged");
+            }
+        }
         let mut crc = crc32fast::Hasher::new();
-        let mut tensors = BTreeMap::new();
-        for name in names {
-            let view = st.tensor(&name)?;
+        for (name, view) in &views {
             crc.update(name.as_bytes());
             crc.update(view.data());
-            let values: Vec<f32> = match view.dtype() {
-                Dtype::F32 => view.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect(),
-                Dtype::F16 => view.data().chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
-                other => bail!("tensor '{name}' has dtype {other:?}, expected F32 or F16"),
-            };
-            let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
-            tensors.insert(name, Tensor::from_slice(&values).view(shape.as_slice()));
         }
         let expect = meta.get(KEY_CRC).context("missing checksum")?;
         if *expect != format!("{:08x}", crc.finalize()) {
             bail!("checksum mismatch: the {format} file is damaged");
         }
+        let mut tensors = BTreeMap::new();
+        for (name, view) in views {
+            let values: Vec<f32> = match view.dtype() {
+                Dtype::F32 => view.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect(),
+                Dtype::F16 => view.data().chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
+                other => bail!("tensor '{name}' has dtype {other:?}, expected F32 or F16"),
+            };
+            if let Some(v) = values.iter().find(|v| !v.is_finite()) {
+                bail!("tensor '{name}' holds a non-finite value ({v}): the file was written from diverged values");
+            }
+            let shape: Vec<i64> = view.shape().iter().map(|&d| i64::try_from(d)).collect::<Result<_, _>>().with_context(|| format!("tensor '{name}' has an impossible shape"))?;
+            let t = Tensor::from_slice(&values).f_view(shape.as_slice()).with_context(|| format!("tensor '{name}' has an impossible shape {shape:?}"))?;
+            tensors.insert(name, t);
+        }
         let metadata = meta.into_iter().filter(|(k, _)| !k.starts_with("flashmat.")).collect();
         Ok(Self { tensors, metadata, store_half: false })
     }
+}
+
+/// CRC-32 of an archive's header: for each tensor in byte-wise name order
+/// its name, dtype (`F32`, `F16`) and shape (decimal dimensions joined by
+/// `,`), then each metadata entry in byte-wise key order (except
+/// `flashmat.meta_crc32` itself) as key and value; every string followed
+/// by a NUL byte. The tensor CRC covers names and data; this one the
+/// shapes and metadata that give the data its meaning.
+fn header_crc(layout: &[(&str, Dtype, &[usize])], metadata: &BTreeMap<String, String>) -> u32 {
+    let mut crc = crc32fast::Hasher::new();
+    let mut field = |s: &str| {
+        crc.update(s.as_bytes());
+        crc.update(&[0]);
+    };
+    let mut sorted: Vec<&(&str, Dtype, &[usize])> = layout.iter().collect();
+    sorted.sort_by(|a, b| a.0.cmp(b.0));
+    for (name, dtype, shape) in sorted {
+        field(name);
+        field(&format!("{dtype:?}"));
+        field(&shape.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(","));
+    }
+    for (k, v) in metadata.iter().filter(|(k, _)| *k != KEY_META_CRC) {
+        field(k);
+        field(v);
+    }
+    crc.finalize()
 }
 
 /// Copies archived values into existing variables (same names and shapes).
@@ -209,6 +269,104 @@ mod tests {
         std::fs::write(&p, b"garbage").unwrap();
         assert!(Archive::load(&p, "test", 3).is_err());
         assert!(Archive::load(&dir.path().join("missing"), "test", 3).is_err());
+    }
+
+    /// Serialises tensors and metadata as given (no keys added): files
+    /// from older writers, or crafted ones.
+    fn raw_file(path: &Path, tensors: &[(&str, Vec<f32>, Vec<usize>)], metadata: &BTreeMap<String, String>) {
+        let bytes: Vec<Vec<u8>> = tensors.iter().map(|(_, v, _)| v.iter().flat_map(|x| x.to_le_bytes()).collect()).collect();
+        let views: Vec<(String, TensorView)> =
+            tensors.iter().zip(&bytes).map(|((n, _, s), b)| (n.to_string(), TensorView::new(Dtype::F32, s.clone(), b).unwrap())).collect();
+        let meta: HashMap<String, String> = metadata.clone().into_iter().collect();
+        std::fs::write(path, safetensors::tensor::serialize(views, Some(meta)).unwrap()).unwrap();
+    }
+
+    /// The tensor CRC as documented (names and data, sorted by name).
+    fn payload_crc(tensors: &[(&str, Vec<f32>, Vec<usize>)]) -> String {
+        let mut sorted: Vec<_> = tensors.iter().collect();
+        sorted.sort_by(|a, b| a.0.cmp(b.0));
+        let mut crc = crc32fast::Hasher::new();
+        for (n, v, _) in sorted {
+            crc.update(n.as_bytes());
+            v.iter().for_each(|x| crc.update(&x.to_le_bytes()));
+        }
+        format!("{:08x}", crc.finalize())
+    }
+
+    #[test]
+    fn the_header_checksum_covers_shapes_and_metadata_and_old_files_still_load() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.safetensors");
+        sample().save(&p, "test", 3).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        // Swapped dimensions: the tensor bytes (and their CRC) are unchanged.
+        let at = bytes.windows(5).position(|w| w == b"[2,3]").unwrap();
+        let mut swapped = bytes.clone();
+        swapped[at..at + 5].copy_from_slice(b"[3,2]");
+        std::fs::write(&p, &swapped).unwrap();
+        let e = format!("{:#}", Archive::load(&p, "test", 3).err().unwrap());
+        assert!(e.contains("header checksum mismatch"), "{e}");
+        // An edited metadata value.
+        // (the JSON header escapes the quotes of the stored `{"x":1}`)
+        let at = bytes.windows(8).position(|w| w == br#"\"x\":1}"#).unwrap();
+        let mut edited = bytes.clone();
+        edited[at + 6] = b'2';
+        std::fs::write(&p, &edited).unwrap();
+        assert!(format!("{:#}", Archive::load(&p, "test", 3).err().unwrap()).contains("header checksum mismatch"));
+        // A damaged integrity key name is not an absent one.
+        let at = bytes.windows(10).position(|w| w == b"meta_crc32").unwrap();
+        let mut renamed = bytes.clone();
+        renamed[at] = b'n';
+        std::fs::write(&p, &renamed).unwrap();
+        assert!(format!("{:#}", Archive::load(&p, "test", 3).err().unwrap()).contains("unknown integrity field"));
+
+        // A file written before the header checksum (the bundled models): the tensor CRC alone.
+        let tensors = [("net.b", vec![-0.5f32], vec![1]), ("net.w", vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0], vec![2, 3])];
+        let mut meta: BTreeMap<String, String> =
+            [("flashmat.format", "test"), ("flashmat.version", "3"), ("config", "{\"x\":1}")].iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
+        meta.insert("flashmat.crc32".into(), payload_crc(&tensors));
+        raw_file(&p, &tensors, &meta);
+        let old = Archive::load(&p, "test", 3).unwrap();
+        assert_eq!(old.tensor("net.w").unwrap().double_value(&[1, 2]), 6.0);
+        assert_eq!(old.meta("config").unwrap(), "{\"x\":1}");
+    }
+
+    #[test]
+    fn non_finite_values_are_neither_written_nor_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.safetensors");
+        for bad in [f32::NAN, f32::INFINITY] {
+            let mut a = sample();
+            a.insert("net.w", &Tensor::from_slice(&[1.0f32, bad]));
+            let e = format!("{:#}", a.save(&p, "test", 3).unwrap_err());
+            assert!(e.contains("a.safetensors") && e.contains("'net.w'") && e.contains("non-finite"), "{e}");
+            assert!(!p.exists());
+        }
+        // Finite in f32, infinite in f16.
+        let mut a = Archive { store_half: true, ..sample() };
+        a.insert("big", &Tensor::full([HALF_MIN_NUMEL as i64], 1e5, (Kind::Float, Device::Cpu)));
+        let e = format!("{:#}", a.save(&p, "test", 3).unwrap_err());
+        assert!(e.contains("'big'") && e.contains("f16 range"), "{e}");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "nothing written, no temporary left");
+        // Crafted with valid checksums (no header checksum needed): refused on reading.
+        let tensors = [("net.w", vec![1.0f32, f32::INFINITY], vec![2])];
+        let mut meta: BTreeMap<String, String> = [("flashmat.format", "test"), ("flashmat.version", "3")].iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
+        meta.insert("flashmat.crc32".into(), payload_crc(&tensors));
+        raw_file(&p, &tensors, &meta);
+        let e = format!("{:#}", Archive::load(&p, "test", 3).err().unwrap());
+        assert!(e.contains("a.safetensors") && e.contains("'net.w'") && e.contains("non-finite"), "{e}");
+    }
+
+    #[test]
+    fn special_files_are_refused_without_blocking() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("pipe.safetensors");
+        assert!(std::process::Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+        let e = format!("{:#}", Archive::load(&fifo, "test", 3).err().unwrap());
+        assert!(e.contains("pipe.safetensors") && e.contains("FIFO"), "{e}");
+        let e = format!("{:#}", Archive::load(Path::new("/dev/zero"), "test", 3).err().unwrap());
+        assert!(e.contains("character device"), "{e}");
+        assert!(format!("{:#}", Archive::load(dir.path(), "test", 3).err().unwrap()).contains("directory"));
     }
 
     #[test]

@@ -16,6 +16,12 @@ pub struct Image {
     pub data: Vec<f32>,
 }
 
+/// Whether every value of a float tensor (any shape, kind or device) is
+/// finite: the check before anything computed is written.
+pub fn all_finite(t: &tch::Tensor) -> bool {
+    t.numel() == 0 || t.isfinite().all().int64_value(&[]) != 0
+}
+
 impl Image {
     pub fn new(channels: usize, height: usize, width: usize) -> Self {
         Self { channels, height, width, data: vec![0.0; channels * height * width] }

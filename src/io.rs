@@ -12,6 +12,7 @@
 //! corrupt, makes these functions panic.
 
 use crate::image::Image;
+use crate::limits;
 use anyhow::{anyhow, Result};
 use std::io::{BufWriter, Cursor, Write};
 use std::path::{Path, PathBuf};
@@ -72,9 +73,66 @@ pub fn read_image(path: &Path) -> Result<Image> {
     Ok(read_image_with_format(path)?.0)
 }
 
+/// Checks that `path` can be read whole: a regular file (a FIFO would
+/// block forever, a device never ends) of at most [`limits::FILE_BYTES`].
+/// Returns its length. Errors say why without the path (callers name it).
+pub fn check_input_file(path: &Path) -> Result<u64> {
+    use std::os::unix::fs::FileTypeExt;
+    let meta = std::fs::metadata(path)?;
+    let t = meta.file_type();
+    let kind = if t.is_file() {
+        None
+    } else if t.is_dir() {
+        Some("a directory")
+    } else if t.is_fifo() {
+        Some("a FIFO (named pipe)")
+    } else if t.is_char_device() {
+        Some("a character device")
+    } else if t.is_block_device() {
+        Some("a block device")
+    } else if t.is_socket() {
+        Some("a socket")
+    } else {
+        Some("a special file")
+    };
+    if let Some(kind) = kind {
+        return Err(anyhow!("it is {kind}, not a regular file"));
+    }
+    limits::FILE_BYTES.check("the file", meta.len())?;
+    Ok(meta.len())
+}
+
+/// Reads a whole input file after [`check_input_file`]. Errors say why
+/// without the path (callers name it).
+pub fn read_input(path: &Path) -> Result<Vec<u8>> {
+    check_input_file(path)?;
+    Ok(std::fs::read(path)?)
+}
+
+/// Why a decoder gave up: a damaged file, or one refused by a limit
+/// before its pixels were allocated.
+enum DecodeError {
+    Corrupt(String),
+    TooLarge(String),
+}
+
+impl<E: std::fmt::Display> From<E> for DecodeError {
+    fn from(e: E) -> Self {
+        DecodeError::Corrupt(e.to_string())
+    }
+}
+
+/// Refuses dimensions from a file header above [`limits::IMAGE_PIXELS`]
+/// (checked before the decoder allocates the pixels).
+fn check_dimensions(width: u64, height: u64) -> std::result::Result<(), DecodeError> {
+    limits::IMAGE_PIXELS
+        .check_product(format_args!("the image ({width}x{height})"), &[width, height])
+        .map_err(|e| DecodeError::TooLarge(e.to_string()))
+}
+
 /// [`read_image`] that also says which container the file was.
 pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)> {
-    let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
+    let bytes = read_input(path).map_err(|e| read_error(path, format!("{e:#}")))?;
     if bytes.is_empty() {
         return Err(read_error(path, "the file is empty"));
     }
@@ -95,18 +153,21 @@ pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)>
     // The decoders are third-party code fed arbitrary bytes; turn any panic
     // on a hostile file into an ordinary error.
     let decoded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match format {
-        FileFormat::Png => decode_8_16(&bytes, image::ImageFormat::Png),
-        FileFormat::Jpeg => decode_8_16(&bytes, image::ImageFormat::Jpeg),
+        FileFormat::Png => decode_png(&bytes),
+        FileFormat::Jpeg => decode_jpeg(&bytes),
         FileFormat::Exr => decode_exr(&bytes),
     }))
-    .unwrap_or_else(|_| Err("the decoder crashed (corrupt file?)".to_string()));
-    let image = decoded.map_err(|reason| {
+    .unwrap_or_else(|_| Err(DecodeError::Corrupt("the decoder crashed (corrupt file?)".to_string())));
+    let image = decoded.map_err(|e| {
         let kind = match format {
             FileFormat::Png => "PNG",
             FileFormat::Jpeg => "JPEG",
             FileFormat::Exr => "OpenEXR",
         };
-        read_error(path, format!("corrupt or truncated {kind} file: {reason}"))
+        match e {
+            DecodeError::Corrupt(reason) => read_error(path, format!("corrupt or truncated {kind} file: {reason}")),
+            DecodeError::TooLarge(reason) => read_error(path, reason),
+        }
     })?;
     if image.height == 0 || image.width == 0 {
         return Err(read_error(path, "the image has no pixels"));
@@ -129,10 +190,21 @@ fn planar<T: Copy>(samples: &[T], channels: usize, height: usize, width: usize, 
     image
 }
 
-/// PNG or JPEG bytes to an image in [0, 1].
-fn decode_8_16(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<Image, String> {
-    use image::DynamicImage as D;
-    let img = image::load_from_memory_with_format(bytes, format).map_err(|e| e.to_string())?;
+/// PNG bytes to an image in [0, 1]. The header's size is checked before
+/// the decoder allocates, and the decoder's own allocation limit is set to
+/// what an image of that size needs.
+fn decode_png(bytes: &[u8]) -> std::result::Result<Image, DecodeError> {
+    use image::{DynamicImage as D, ImageDecoder};
+    // The largest sample layout: 16-bit RGBA, 8 bytes per pixel (and the
+    // row filters' working copy).
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(limits::IMAGE_PIXELS.get().saturating_mul(16));
+    let mut decoder = image::codecs::png::PngDecoder::with_limits(Cursor::new(bytes), limits.clone())?;
+    let (w, h) = decoder.dimensions();
+    check_dimensions(w as u64, h as u64)?;
+    limits.max_alloc = Some((w as u64 * h as u64).saturating_mul(16).max(1 << 20));
+    decoder.set_limits(limits)?;
+    let img = D::from_decoder(decoder)?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let s8 = |v: u8| v as f32 / 255.0;
     let s16 = |v: u16| v as f32 / 65535.0;
@@ -145,15 +217,72 @@ fn decode_8_16(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<
         D::ImageLumaA16(b) => planar(b.as_raw(), 2, h, w, s16),
         D::ImageRgb16(b) => planar(b.as_raw(), 3, h, w, s16),
         D::ImageRgba16(b) => planar(b.as_raw(), 4, h, w, s16),
-        D::ImageRgb32F(b) => planar(b.as_raw(), 3, h, w, |v| v),
-        D::ImageRgba32F(b) => planar(b.as_raw(), 4, h, w, |v| v),
-        other => return Err(format!("unsupported pixel layout {:?}", other.color())),
+        other => return Err(DecodeError::Corrupt(format!("unsupported pixel layout {:?}", other.color()))),
     })
 }
 
+/// Whether the end-of-image marker (FF D9) follows the first scan of the
+/// main image. Strict decoding misses a file cut within its last row of
+/// blocks; the marker is its last two bytes. Segments before the first
+/// scan are skipped by their lengths: an EXIF thumbnail inside one has an
+/// end marker of its own. (Inside scan data an FF byte is always followed
+/// by 00 or a restart marker, so FF D9 there is the real end; data after
+/// it, such as a motion photo's video, is allowed.)
+fn jpeg_has_end(bytes: &[u8]) -> bool {
+    let mut i = 2; // after SOI
+    while i + 1 < bytes.len() {
+        if bytes[i] != 0xFF {
+            return false;
+        }
+        let marker = bytes[i + 1];
+        match marker {
+            0xFF => i += 1, // fill byte
+            0xDA => return bytes[i..].windows(2).any(|w| w == [0xFF, 0xD9]),
+            0x01 | 0xD0..=0xD7 => i += 2,
+            _ => {
+                let Some(len) = bytes.get(i + 2..i + 4).map(|b| u16::from_be_bytes([b[0], b[1]]) as usize) else { return false };
+                i += 2 + len;
+            }
+        }
+    }
+    false
+}
+
+/// JPEG bytes to an image in [0, 1], with zune-jpeg (the `image` crate's
+/// decoder) in strict mode: without it a truncated file decodes with its
+/// missing part filled grey, and markers in the wrong place are skipped.
+/// Gray stays 1 channel; every other colour space becomes RGB.
+fn decode_jpeg(bytes: &[u8]) -> std::result::Result<Image, DecodeError> {
+    use zune_core::colorspace::ColorSpace;
+    let options = zune_core::options::DecoderOptions::default().set_strict_mode(true).set_max_width(usize::MAX).set_max_height(usize::MAX);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(zune_core::bytestream::ZCursor::new(bytes), options);
+    decoder.decode_headers()?;
+    if !jpeg_has_end(bytes) {
+        return Err(DecodeError::Corrupt("no end-of-image marker after the image data (truncated file)".into()));
+    }
+    let (w, h) = decoder.dimensions().ok_or("no image dimensions")?;
+    check_dimensions(w as u64, h as u64)?;
+    let (out, channels) = match decoder.input_colorspace() {
+        Some(ColorSpace::Luma) => (ColorSpace::Luma, 1),
+        _ => (ColorSpace::RGB, 3),
+    };
+    decoder.set_options(options.jpeg_set_out_colorspace(out));
+    let pixels = decoder.decode()?;
+    if pixels.len() != w * h * channels {
+        return Err(DecodeError::Corrupt(format!("decoded {} samples, expected {}", pixels.len(), w * h * channels)));
+    }
+    Ok(planar(&pixels, channels, h, w, |v: u8| v as f32 / 255.0))
+}
+
 /// OpenEXR bytes to an image; see [`read_image`] for the channel rules.
-fn decode_exr(bytes: &[u8]) -> std::result::Result<Image, String> {
+fn decode_exr(bytes: &[u8]) -> std::result::Result<Image, DecodeError> {
     use exr::prelude::{read, FlatSamples, ReadChannels, ReadLayers, Vec2};
+    // The headers first: every layer's size is checked before any pixel
+    // block is allocated.
+    let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), true)?;
+    for header in &meta.headers {
+        check_dimensions(header.layer_size.width() as u64, header.layer_size.height() as u64)?;
+    }
     // Pedantic: a truncated file is an error rather than missing blocks.
     // Sequential: callers already load many files in parallel.
     let exr_image = read()
@@ -164,8 +293,7 @@ fn decode_exr(bytes: &[u8]) -> std::result::Result<Image, String> {
         .all_attributes()
         .pedantic()
         .non_parallel()
-        .from_buffered(Cursor::new(bytes))
-        .map_err(|e| e.to_string())?;
+        .from_buffered(Cursor::new(bytes))?;
     let layer = &exr_image.layer_data;
     let (w, h) = (layer.size.width(), layer.size.height());
     let channels = &layer.channel_data.list;
@@ -175,13 +303,13 @@ fn decode_exr(bytes: &[u8]) -> std::result::Result<Image, String> {
         (Some(r), Some(g), Some(b), a, _) => [Some(r), Some(g), Some(b), a].into_iter().flatten().collect(),
         (_, _, _, a, Some(y)) => [Some(y), a].into_iter().flatten().collect(),
         _ if channels.len() == 1 => vec![0],
-        _ => return Err(format!("unsupported channels {names:?} (expected R,G,B[,A] or Y)")),
+        _ => return Err(DecodeError::Corrupt(format!("unsupported channels {names:?} (expected R,G,B[,A] or Y)"))),
     };
     let mut image = crate::image::Image::new(order.len(), h, w);
     for (c, &k) in order.iter().enumerate() {
         let ch = &channels[k];
         if ch.sampling != Vec2(1, 1) {
-            return Err(format!("channel {} is subsampled, which is not supported", ch.name));
+            return Err(DecodeError::Corrupt(format!("channel {} is subsampled, which is not supported", ch.name)));
         }
         let plane = image.plane_mut(c);
         let n = match &ch.sample_data {
@@ -190,7 +318,7 @@ fn decode_exr(bytes: &[u8]) -> std::result::Result<Image, String> {
             FlatSamples::U32(v) => v.len(),
         };
         if n != plane.len() {
-            return Err(format!("channel {} has {n} samples, expected {}", ch.name, plane.len()));
+            return Err(DecodeError::Corrupt(format!("channel {} has {n} samples, expected {}", ch.name, plane.len())));
         }
         match &ch.sample_data {
             FlatSamples::F16(v) => plane.iter_mut().zip(v).for_each(|(o, s)| *o = s.to_f32()),
@@ -407,6 +535,13 @@ pub fn atomic_write<F: FnOnce(&Path) -> Result<()>>(path: &Path, write: F) -> Re
         let why = if dir.exists() { "is not a directory" } else { "does not exist" };
         return Err(write_error(path, format!("{} {why}", dir.display())));
     }
+    // Renaming over a device or a FIFO would replace the node itself
+    // (/dev/null as root); over a folder it fails late.
+    if let Ok(m) = std::fs::symlink_metadata(path) {
+        if !m.is_file() && !m.file_type().is_symlink() {
+            return Err(write_error(path, "it exists and is not a regular file"));
+        }
+    }
     let n = TEMP_COUNTER.fetch_add(1, Ordering::Relaxed);
     let tmp = dir.join(format!(".{name}.tmp-{}-{n}", std::process::id()));
     let mut guard = TempGuard(Some(tmp.clone()));
@@ -443,6 +578,7 @@ pub(crate) fn sorted_entries(dir: &Path) -> Result<Vec<PathBuf>> {
 mod tests {
     use super::*;
     use anyhow::bail;
+    use std::os::unix::fs::FileTypeExt;
 
     fn ramp(channels: usize, h: usize, w: usize) -> Image {
         Image::from_fn(channels, h, w, |c, y, x| ((c * 37 + y * 11 + x * 5) % 97) as f32 / 96.0)
@@ -672,6 +808,79 @@ mod tests {
         assert!(m.contains("missing.png") && m.contains("No such file"), "{m}");
         let m = message(read_gray(&missing).unwrap_err());
         assert!(m.contains("missing.png"), "{m}");
+    }
+
+    #[test]
+    fn truncated_jpeg_is_an_error_not_a_grey_fill() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("full.jpg");
+        write_jpeg(&p, &ramp(3, 64, 64), 90).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        for keep in [bytes.len() / 2, bytes.len() * 3 / 4, bytes.len() - 40] {
+            let cut = dir.path().join(format!("cut{keep}.jpg"));
+            std::fs::write(&cut, &bytes[..keep]).unwrap();
+            let m = message(read_image(&cut).unwrap_err());
+            assert!(m.contains(&format!("cut{keep}.jpg")) && m.contains("corrupt or truncated JPEG"), "{m}");
+        }
+    }
+
+    /// Headers claiming 100000 x 100000 pixels (40 GB as f32 RGB) in files
+    /// of a few hundred bytes: refused before the pixels are allocated.
+    #[test]
+    fn hostile_image_headers_are_refused_before_allocating() {
+        let dir = tempfile::tempdir().unwrap();
+        let png = dir.path().join("huge.png");
+        write_png(&png, &ramp(3, 8, 8), BitDepth::Eight).unwrap();
+        let mut b = std::fs::read(&png).unwrap();
+        // IHDR: width and height at bytes 16..24, its CRC at 29..33.
+        b[16..20].copy_from_slice(&100_000u32.to_be_bytes());
+        b[20..24].copy_from_slice(&100_000u32.to_be_bytes());
+        let crc = crc32fast::hash(&b[12..29]);
+        b[29..33].copy_from_slice(&crc.to_be_bytes());
+        std::fs::write(&png, &b).unwrap();
+        let jpg = dir.path().join("huge.jpg");
+        write_jpeg(&jpg, &ramp(3, 8, 8), 90).unwrap();
+        let mut b = std::fs::read(&jpg).unwrap();
+        // SOF0: FF C0, length, precision, height, width.
+        let sof = b.windows(2).position(|w| w == [0xFF, 0xC0]).unwrap();
+        b[sof + 5..sof + 9].copy_from_slice(&[0xFF, 0xFF, 0xFF, 0xFF]);
+        std::fs::write(&jpg, &b).unwrap();
+        let exr = dir.path().join("huge.exr");
+        write_exr(&exr, &ramp(1, 4, 4)).unwrap();
+        let mut b = std::fs::read(&exr).unwrap();
+        for name in [&b"dataWindow\0box2i\0"[..], b"displayWindow\0box2i\0"] {
+            let at = b.windows(name.len()).position(|w| w == name).unwrap() + name.len() + 4;
+            b[at + 8..at + 12].copy_from_slice(&99_999i32.to_le_bytes());
+            b[at + 12..at + 16].copy_from_slice(&99_999i32.to_le_bytes());
+        }
+        std::fs::write(&exr, &b).unwrap();
+        for (p, want) in [(&png, "(100000x100000)"), (&jpg, "(65535x65535)"), (&exr, "")] {
+            let m = message(read_image(p).unwrap_err());
+            assert!(m.contains(p.to_str().unwrap()) && m.contains(want), "{m}");
+        }
+        let m = message(read_image(&png).unwrap_err());
+        assert!(m.contains("above the limit of 200000000") && m.contains("FLASHMAT_MAX_IMAGE_PIXELS"), "{m}");
+    }
+
+    #[test]
+    fn special_files_are_refused_and_never_replaced() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("pipe.png");
+        assert!(std::process::Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+        let m = message(read_image(&fifo).unwrap_err());
+        assert!(m.contains("pipe.png") && m.contains("FIFO"), "{m}");
+        assert!(message(read_image(Path::new("/dev/zero")).unwrap_err()).contains("character device"));
+        assert!(message(read_image(dir.path()).unwrap_err()).contains("directory"));
+        // Writing over the FIFO would replace the node (a device as root).
+        let m = message(write_png(&fifo, &ramp(3, 2, 2), BitDepth::Eight).unwrap_err());
+        assert!(m.contains("pipe.png") && m.contains("not a regular file"), "{m}");
+        assert!(std::fs::symlink_metadata(&fifo).unwrap().file_type().is_fifo());
+        assert!(leftovers(dir.path()).is_empty());
+        // A sparse file beyond the size limit is refused without being read.
+        let big = dir.path().join("big.png");
+        std::fs::File::create(&big).unwrap().set_len(limits::FILE_BYTES.get() + 1).unwrap();
+        let m = message(read_image(&big).unwrap_err());
+        assert!(m.contains("big.png") && m.contains("FLASHMAT_MAX_FILE_BYTES"), "{m}");
     }
 
     #[test]

@@ -10,6 +10,7 @@ pub mod geometry;
 pub mod image;
 pub mod infer;
 pub mod io;
+pub mod limits;
 pub mod lpips;
 pub mod model;
 pub mod spaces;

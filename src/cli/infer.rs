@@ -5,7 +5,7 @@ use super::materials::{to_display, write_render};
 use super::{above_surface, prepare_output, Vec3Arg};
 use crate::infer::refine::{refine, RefineConfig};
 use crate::infer::{self, NeuralMaterial};
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
@@ -158,7 +158,8 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
         eprintln!("{w}");
     }
     let t1 = Instant::now();
-    let mut material = infer::estimate(&loaded.model, &loaded.info, &prepared)?;
+    let mut material = infer::estimate(&loaded.model, &loaded.info, &prepared)
+        .with_context(|| format!("estimating {} with model {}", photo.display(), loaded.path.display()))?;
     if let Device::Cuda(i) = device {
         tch::Cuda::synchronize(i as i64);
     }
@@ -187,8 +188,10 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
 }
 
 /// Opens a `.nmat`, or estimates a material from a photo (recognised by its
-/// PNG/JPEG/EXR signature); see [`estimate_photo`] for the returned line.
+/// PNG/JPEG/EXR signature or extension); see [`estimate_photo`] for the
+/// returned line.
 pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMaterial, Option<String>)> {
+    crate::io::check_input_file(path).with_context(|| format!("cannot read {}", path.display()))?;
     if looks_like_image(path) {
         return estimate_photo(path, opts).map(|(m, line)| (m, Some(line)));
     }
@@ -206,20 +209,23 @@ pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMater
     Ok((material, line))
 }
 
+/// A photo by its signature, or by its extension: a damaged `.png` is
+/// reported as a damaged image, not as a damaged `.nmat`. (A regular file:
+/// see [`crate::io::check_input_file`].)
 fn looks_like_image(path: &Path) -> bool {
     let mut head = [0u8; 8];
     let n = std::fs::File::open(path).and_then(|mut f| std::io::Read::read(&mut f, &mut head)).unwrap_or(0);
     let head = &head[..n];
     head.starts_with(b"\x89PNG") || head.starts_with(&[0xFF, 0xD8, 0xFF]) || head.starts_with(&[0x76, 0x2F, 0x31, 0x01])
-        // Unreadable or empty files with an image extension go to the image reader for its message.
-        || (n == 0 && matches!(extension(path).as_deref(), Some("png" | "jpg" | "jpeg" | "exr")))
+        || matches!(extension(path).as_deref(), Some("png" | "jpg" | "jpeg" | "exr"))
 }
 
 pub fn estimate(a: &EstimateArgs) -> Result<()> {
     require_extension(&a.output, &["nmat"], "the output must end in .nmat")?;
-    prepare_output(&a.output)?;
+    let out_dir = prepare_output(&a.output)?;
     let (material, summary) = estimate_photo(&a.photo, &a.estimate)?;
     material.save(&a.output)?;
+    out_dir.keep();
     eprintln!("{summary}");
     let (h, w) = material.size();
     eprintln!("wrote {} ({}-channel {w}x{h} neural map)", a.output.display(), material.config.neural_channels);
@@ -245,13 +251,14 @@ pub fn relight(a: &RelightArgs) -> Result<()> {
             bail!("relight needs a light: --light X,Y,Z, --orbit N or --identity");
         }
     }
-    prepare_output(&a.output)?;
+    let out_dir = prepare_output(&a.output)?;
     let (material, summary) = open_material(&a.material, &a.estimate)?;
+    let rendering = || format!("rendering {}", a.material.display());
     let t0 = Instant::now();
     if let Some(n) = a.orbit {
         let configs = infer::orbit_configs(n, infer::ORBIT_RADIUS, infer::ORBIT_HEIGHT, camera);
         let bar = ProgressBar::new(n as u64).with_style(ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} ETA {eta}")?);
-        let frames = infer::render_frames(&material, &configs, |_| bar.inc(1))?;
+        let frames = infer::render_frames(&material, &configs, |_| bar.inc(1)).with_context(rendering)?;
         bar.finish_and_clear();
         let display: Vec<_> = frames.iter().map(to_display).collect();
         let secs = t0.elapsed().as_secs_f64();
@@ -264,22 +271,24 @@ pub fn relight(a: &RelightArgs) -> Result<()> {
         } else {
             crate::geometry::LightView { light: a.light.expect("checked above").0, view: camera }
         };
-        let image = material.render_image(&config)?;
+        let image = material.render_image(&config).with_context(rendering)?;
         let secs = t0.elapsed().as_secs_f64();
         write_render(&a.output, &image)?;
         summary.iter().for_each(|l| eprintln!("{l}"));
         eprintln!("rendered in {secs:.2} s");
     }
+    out_dir.keep();
     eprintln!("wrote {}", a.output.display());
     Ok(())
 }
 
 pub fn show(a: &ShowArgs) -> Result<()> {
     require_extension(&a.output, &["png"], "the output must end in .png")?;
-    prepare_output(&a.output)?;
+    let out_dir = prepare_output(&a.output)?;
     let (material, summary) = open_material(&a.material, &a.estimate)?;
-    let grid = infer::show::show_grid(&material)?;
+    let grid = infer::show::show_grid(&material).with_context(|| format!("rendering {}", a.material.display()))?;
     crate::io::write_png(&a.output, &grid, crate::io::BitDepth::Eight)?;
+    out_dir.keep();
     summary.iter().for_each(|l| eprintln!("{l}"));
     eprintln!(
         "wrote {} (row 1: input photo | neural map norm | neural map PCA (3 components as RGB) | identity render; row 2: light circling at 4 azimuths)",

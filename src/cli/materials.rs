@@ -16,6 +16,7 @@ use rayon::prelude::*;
 
 /// Resolves a `--svbrdf` source to a named material.
 pub fn load_material(args: &MaterialArgs) -> Result<(String, Svbrdf)> {
+    check_material_size("--size", args.size)?;
     if let Some(i) = procedural::parse_test_material(&args.source)? {
         return Ok((format!("test{i:02}"), procedural::test_material(i, args.size)));
     }
@@ -38,6 +39,13 @@ pub fn load_material(args: &MaterialArgs) -> Result<(String, Svbrdf)> {
     Ok((dataset.name(args.index), dataset.load(args.index)?))
 }
 
+/// Checks the side of a material to generate: at least 1 pixel, at most
+/// [`crate::limits::MATERIAL_SIZE`].
+fn check_material_size(option: &str, size: usize) -> Result<()> {
+    anyhow::ensure!(size >= 1, "{option} must be at least 1 pixel");
+    crate::limits::MATERIAL_SIZE.check(option, size as u64)
+}
+
 /// Display encoding of a linear render: clamp to [0,1], then ^(1/2.2).
 pub fn to_display(linear: &Image) -> Image {
     linear.map(crate::spaces::gamma_encode)
@@ -45,12 +53,14 @@ pub fn to_display(linear: &Image) -> Image {
 
 /// Writes a linear render: EXR keeps radiance, PNG gets the display transform.
 pub fn write_render(path: &std::path::Path, linear: &Image) -> Result<()> {
-    prepare_output(path)?;
+    let out_dir = prepare_output(path)?;
     match path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
-        Some("exr") => crate::io::write_exr(path, linear),
-        Some("png") => crate::io::write_png(path, &to_display(linear), crate::io::BitDepth::Eight),
+        Some("exr") => crate::io::write_exr(path, linear)?,
+        Some("png") => crate::io::write_png(path, &to_display(linear), crate::io::BitDepth::Eight)?,
         _ => bail!("{}: output must end in .png or .exr", path.display()),
     }
+    out_dir.keep();
+    Ok(())
 }
 
 pub fn render(args: &RenderArgs) -> Result<()> {
@@ -80,6 +90,8 @@ pub fn render(args: &RenderArgs) -> Result<()> {
 }
 
 pub fn generate(args: &GenerateArgs) -> Result<()> {
+    check_material_size("--size", args.size)?;
+    crate::limits::COUNT.check("--count", args.count as u64)?;
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
     let seeds: Vec<u64> = if args.test_set {
         procedural::test_seeds()
@@ -117,7 +129,10 @@ pub fn preview_row(material: &Svbrdf, size: usize) -> Result<Vec<Image>> {
 }
 
 pub fn preview(args: &PreviewArgs) -> Result<()> {
-    prepare_output(&args.output)?;
+    check_material_size("--size", args.size)?;
+    // The grid holds every cell: count x 5 cells of size^2 pixels.
+    crate::limits::IMAGE_PIXELS.check_product(format_args!("the preview grid (--count {} x 5 cells of --size {} squared)", args.count, args.size), &[args.count as u64, 5, args.size as u64, args.size as u64])?;
+    let out_dir = prepare_output(&args.output)?;
     let materials: Vec<Svbrdf> = match args.source.as_str() {
         "procedural" => {
             let seeds: Vec<u64> = (0..args.count as u64).map(procedural::training_seed).collect();
@@ -132,6 +147,7 @@ pub fn preview(args: &PreviewArgs) -> Result<()> {
     let rows: Vec<Vec<Image>> = materials.par_iter().map(|m| preview_row(m, args.size)).collect::<Result<_>>()?;
     let grid = crate::viz::grid(&rows, 4)?;
     crate::io::write_png(&args.output, &grid, crate::io::BitDepth::Eight)?;
+    out_dir.keep();
     eprintln!("wrote {} ({} materials: diffuse | specular | roughness | normals | co-located render)", args.output.display(), rows.len());
     Ok(())
 }
@@ -142,6 +158,7 @@ pub fn captures(args: &CapturesArgs) -> Result<()> {
     if args.photos < 2 {
         bail!("--photos must be at least 2 (one to estimate from, others to compare with), got {}", args.photos);
     }
+    crate::limits::COUNT.check("--photos", args.photos as u64)?;
     crate::infer::photo::check_size(args.material.size)?;
     let (name, material) = load_material(&args.material)?;
     let material = crate::eval::fit_to_size(&material, args.material.size)?;

@@ -77,6 +77,12 @@ pub struct CapturesArgs {
     pub sample_width: f64,
 }
 
+/// Largest light or camera coordinate, in units of the material's
+/// half-width. The renderers normalise directions in f32 (f64 for the
+/// tensor GGX one): far beyond this they lose all precision, and near
+/// 1e308 the squared length overflows and the render turns NaN.
+pub const MAX_POSITION: f64 = 1e6;
+
 /// A 3-vector given as `X,Y,Z`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Vec3Arg(pub [f64; 3]);
@@ -94,9 +100,33 @@ impl std::str::FromStr for Vec3Arg {
             if !v[i].is_finite() {
                 return Err(format!("'{p}' is not a finite number"));
             }
+            if v[i].abs() > MAX_POSITION {
+                return Err(format!("'{p}' is beyond +-{MAX_POSITION:e} (positions are in units of the material's half-width)"));
+            }
         }
         Ok(Self(v))
     }
+}
+
+/// clap parser of a number that must be finite and > 0 (`--grad-clip`,
+/// `--lr`): NaN, Inf, 0 and negatives have no meaning there.
+pub fn positive_number(s: &str) -> std::result::Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        Ok(v) => Err(format!("{v} is not a finite number > 0")),
+        Err(_) => Err(format!("'{s}' is not a number")),
+    }
+}
+
+/// clap parser of a count of items held in memory: 1 to
+/// [`crate::limits::COUNT`] (`--limit 0` would average nothing).
+pub fn count(s: &str) -> std::result::Result<usize, String> {
+    let n: usize = s.trim().parse().map_err(|_| format!("'{s}' is not a whole number"))?;
+    if n == 0 {
+        return Err("must be at least 1".into());
+    }
+    crate::limits::COUNT.check("it", n as u64).map_err(|e| e.to_string())?;
+    Ok(n)
 }
 
 /// Which material to use: a dataset path (with --index), or `procedural:SEED[:FAMILY]`.
@@ -204,12 +234,50 @@ pub fn light_view(light: Option<Vec3Arg>, view: Option<Vec3Arg>) -> Result<Light
     Ok(LightView { light, view })
 }
 
-/// Makes sure the folder that will hold `path` exists and is writable.
-pub fn prepare_output(path: &std::path::Path) -> Result<()> {
+/// Folders that [`prepare_output`] created for an output. Dropped without
+/// [`OutputDir::keep`] (an error on the way), it removes them again while
+/// they are empty, so a failed command leaves no folder behind.
+#[must_use = "dropping it removes the folders it created"]
+pub struct OutputDir {
+    /// Created folders, deepest first.
+    created: Vec<std::path::PathBuf>,
+}
+
+impl OutputDir {
+    /// The output was written: keep its folders.
+    pub fn keep(mut self) {
+        self.created.clear();
+    }
+}
+
+impl Drop for OutputDir {
+    fn drop(&mut self) {
+        for d in &self.created {
+            // Only empty folders go: remove_dir refuses any other.
+            let _ = std::fs::remove_dir(d);
+        }
+    }
+}
+
+/// Makes sure the folder that will hold `path` exists (creating it and
+/// its missing parents) and that `path` is not a folder or a special file.
+/// Call [`OutputDir::keep`] once the output is written.
+pub fn prepare_output(path: &std::path::Path) -> Result<OutputDir> {
+    let mut guard = OutputDir { created: Vec::new() };
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        let mut missing = Some(dir);
+        while let Some(d) = missing.filter(|d| !d.as_os_str().is_empty() && std::fs::symlink_metadata(d).is_err()) {
+            guard.created.push(d.to_path_buf());
+            missing = d.parent();
+        }
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create output folder {}", dir.display()))?;
     }
-    Ok(())
+    if let Ok(m) = std::fs::symlink_metadata(path) {
+        if !m.is_file() && !m.file_type().is_symlink() {
+            bail!("cannot write {}: it exists and is not a regular file", path.display());
+        }
+    }
+    Ok(guard)
 }
 
 pub fn run(cli: Cli) -> Result<()> {
@@ -242,6 +310,20 @@ mod tests {
         assert!("1,2".parse::<Vec3Arg>().is_err());
         assert!("1,x,3".parse::<Vec3Arg>().is_err());
         assert!("1,nan,3".parse::<Vec3Arg>().is_err());
+        assert!("1e308,0,1".parse::<Vec3Arg>().unwrap_err().contains("beyond"));
+        assert_eq!("-1e6,0,1e6".parse::<Vec3Arg>().unwrap(), Vec3Arg([-1e6, 0.0, 1e6]));
+    }
+
+    #[test]
+    fn option_parsers_refuse_meaningless_values() {
+        assert_eq!(positive_number("0.5"), Ok(0.5));
+        for bad in ["0", "-1", "nan", "inf", "x"] {
+            assert!(positive_number(bad).is_err(), "{bad}");
+        }
+        assert_eq!(count("3"), Ok(3));
+        for bad in ["0", "-1", "1000000000000", "x"] {
+            assert!(count(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

@@ -7,7 +7,7 @@
 
 use super::prepare_output;
 use crate::infer::NeuralMaterial;
-use anyhow::{ensure, Context, Result};
+use anyhow::{bail, ensure, Result};
 use clap::Args;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
@@ -85,6 +85,7 @@ fn robust_pair(rng: &mut Pcg64, quads: &[[i64; 4]]) -> ([f32; 3], [f32; 3]) {
 
 pub fn nmat_rows(a: &NmatRowsArgs) -> Result<()> {
     ensure!(a.count > 0, "--count must be positive");
+    crate::limits::COUNT.check("--count", a.count as u64)?;
     let mat = NeuralMaterial::load(&a.material, Device::Cpu)?;
     let (h, w) = mat.size();
     let c = mat.config.neural_channels as usize;
@@ -109,6 +110,10 @@ pub fn nmat_rows(a: &NmatRowsArgs) -> Result<()> {
     let wo = Tensor::from_slice(&wos).view([r, 3]);
     let out = tch::no_grad(|| mat.renderer.forward_rows(&p, &wi, &wo))?;
     let out = Vec::<f32>::try_from(out.to_kind(Kind::Float).contiguous().view([-1]))?;
+    // JSON has no NaN or Inf (serde_json would write null).
+    if let Some(k) = out.iter().position(|v| !v.is_finite()) {
+        bail!("{}: M_render's output of row {} is {} (weights out of range?)", a.material.display(), k / 3, out[k]);
+    }
     let rows: Vec<serde_json::Value> = (0..a.count)
         .map(|k| {
             serde_json::json!({
@@ -127,9 +132,9 @@ pub fn nmat_rows(a: &NmatRowsArgs) -> Result<()> {
         "note": "out = ln(1 + R) from flashmat's M_render (f32); wi towards the light, wo towards the camera, material frame; |wi + wo| is exact in f32",
         "rows": rows,
     });
-    prepare_output(&a.output)?;
-    std::fs::write(&a.output, serde_json::to_string_pretty(&doc)?)
-        .with_context(|| format!("cannot write {}", a.output.display()))?;
+    let out_dir = prepare_output(&a.output)?;
+    crate::io::atomic_write_bytes(&a.output, serde_json::to_string_pretty(&doc)?.as_bytes())?;
+    out_dir.keep();
     eprintln!("wrote {} rows to {}", a.count, a.output.display());
     Ok(())
 }

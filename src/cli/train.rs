@@ -84,8 +84,10 @@ pub struct TrainArgs {
     /// Materials per batch.
     #[arg(long, default_value_t = 2)]
     pub batch: usize,
-    #[arg(long, default_value_t = 1e-4)]
-    pub lr: f64,
+    /// Learning rate [default: 1e-4]. With --resume: a new learning rate from the resumed step on (how a diverged run
+    /// continues from its last good checkpoint).
+    #[arg(long, value_parser = super::positive_number)]
+    pub lr: Option<f64>,
     /// Pixels used by the renderer's data term (flashmat only) [default: inverse-norm].
     #[arg(long, value_enum)]
     pub pixel_sampling: Option<PixelSampling>,
@@ -93,8 +95,8 @@ pub struct TrainArgs {
     /// [default: alternating].
     #[arg(long, value_enum)]
     pub scheme: Option<UpdateScheme>,
-    /// Clip each network's global gradient norm to this value.
-    #[arg(long)]
+    /// Clip each network's global gradient norm to this value (> 0).
+    #[arg(long, value_parser = super::positive_number)]
     pub grad_clip: Option<f64>,
     /// Ramp the learning rate up linearly over the first N steps (paper: 0). Short CPU runs need it:
     /// full-size first steps push M_render's outputs below zero, where its final LeakyReLU(0.001) nearly stops learning.
@@ -120,7 +122,7 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Number of CPU threads for libtorch (default: all cores).
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=crate::limits::MAX_THREADS))]
     pub threads: Option<i32>,
 }
 
@@ -141,7 +143,7 @@ pub struct TeacherArgs {
     /// Random pixels (material, light, view) per step.
     #[arg(long, default_value_t = 16_384)]
     pub pixels: usize,
-    #[arg(long, default_value_t = 1e-3)]
+    #[arg(long, default_value_t = 1e-3, value_parser = super::positive_number)]
     pub lr: f64,
     #[arg(long, default_value_t = 250)]
     pub checkpoint_every: u64,
@@ -151,7 +153,7 @@ pub struct TeacherArgs {
     #[arg(long, default_value = "cpu")]
     pub device: String,
     /// Number of CPU threads for libtorch (default: all cores).
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=crate::limits::MAX_THREADS))]
     pub threads: Option<i32>,
 }
 
@@ -225,6 +227,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         max_steps_this_run: a.max_steps_now,
         max_minutes: a.minutes,
         export_dir: a.export_dir.clone(),
+        new_lr: a.resume.as_ref().and(a.lr),
         ..RunOptions::new(dir.clone(), device, true)
     };
     if let Some(dir) = &a.resume {
@@ -261,7 +264,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         weight_code: if a.teacher.is_some() { a.code_weight } else { 0.0 },
         code_until: a.code_until,
         bank: a.bank,
-        lr: a.lr,
+        lr: a.lr.unwrap_or(TrainConfig::default().lr),
         pixel_sampling: a.pixel_sampling.unwrap_or(PixelSampling::InverseNorm),
         scheme: a.scheme.unwrap_or(UpdateScheme::Alternating),
         grad_clip: a.grad_clip,
@@ -288,14 +291,16 @@ pub fn export(a: &ExportArgs) -> Result<()> {
     let ckpt = run::checkpoint_path(&a.run);
     if ckpt.exists() && !crate::train::Trainer::checkpoint_config(&ckpt)?.method.is_flashmat() {
         let trainer = BaselineTrainer::resume(&ckpt, Device::Cpu)?;
-        super::prepare_output(&a.output)?;
+        let out_dir = super::prepare_output(&a.output)?;
         trainer.export_model(&a.output, !a.f32)?;
+        out_dir.keep();
         eprintln!("wrote {} ({} baseline {}, step {})", a.output.display(), trainer.config.method, trainer.net.model_id(), trainer.step);
         return Ok(());
     }
     let trainer = crate::train::Trainer::resume(&ckpt, Device::Cpu, None)?;
-    super::prepare_output(&a.output)?;
+    let out_dir = super::prepare_output(&a.output)?;
     trainer.export_model(&a.output, !a.f32)?;
+    out_dir.keep();
     eprintln!("wrote {} (model {}, step {})", a.output.display(), trainer.model.model_id(), trainer.step);
     Ok(())
 }

@@ -124,6 +124,7 @@ pub fn estimate(model: &Model, info: &ModelInfo, photo: &PreparedPhoto) -> Resul
     let (wi, wo) = input_directions(h, w, MODEL_FOV_DEG, device);
     let x = est_input(&linear, &half_vector_z(&wi, &wo)); // [1, 4, H, W]
     let map = model.est.fold_batchnorm().forward(&x)?; // [1, C, H, W]
+    ensure!(crate::image::all_finite(&map), "M_est produced NaN/Inf values for this photo (the model's weights have diverged?)");
     let meta = NmatMeta {
         model_id: model.model_id(),
         fov_deg: photo.fov_deg,

@@ -186,6 +186,9 @@ impl NeuralMaterial {
         let (lights, views) = crate::geometry::config_tensors(configs, self.device());
         let (wi, wo) = crate::svbrdf::render::direction_maps_for(&lights.view([1, k, 3]), &views.view([1, k, 3]), h, w);
         let log = tch::no_grad(|| self.renderer.forward_maps(&self.neural_map.unsqueeze(0), &wi, &wo))?;
+        // Finite weights can still overflow to Inf - Inf = NaN, which the
+        // clamps below would keep (Inf itself clamps to MAX_LOG_RADIANCE).
+        ensure!(log.isnan().any().int64_value(&[]) == 0, "M_render produced NaN values for this material (weights out of range?)");
         Ok(crate::spaces::from_log(&log.get(0).clamp_max(MAX_LOG_RADIANCE)).clamp_min(0.0))
     }
 

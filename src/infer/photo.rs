@@ -61,10 +61,11 @@ pub fn default_fov(ldr: bool) -> f64 {
     }
 }
 
-/// Checks a resolution for M_est (its U-Net halves three times).
+/// Checks a resolution for M_est (its U-Net halves three times; memory
+/// grows with its square, see [`crate::limits::MODEL_SIZE`]).
 pub fn check_size(size: usize) -> Result<()> {
     ensure!(size >= 8 && size.is_multiple_of(8), "--size must be a positive multiple of 8, got {size}");
-    Ok(())
+    crate::limits::MODEL_SIZE.check("--size", size as u64)
 }
 
 /// Checks a field of view: a photo narrower than the model's camera does

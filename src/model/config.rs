@@ -138,7 +138,8 @@ impl ModelConfig {
     /// Loads a TOML configuration file (see [`ModelConfig::from_toml_str`]).
     pub fn from_toml_file(path: impl AsRef<Path>) -> Result<Self> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).with_context(|| format!("reading model config {}", path.display()))?;
+        let bytes = crate::io::read_input(path).with_context(|| format!("cannot read model config {}", path.display()))?;
+        let text = String::from_utf8(bytes).with_context(|| format!("model config {} is not UTF-8 text", path.display()))?;
         Self::from_toml_str(&text).with_context(|| format!("in model config {}", path.display()))
     }
 
@@ -147,13 +148,17 @@ impl ModelConfig {
         Ok(toml::to_string(self)?)
     }
 
-    /// Checks that the sizes describe a buildable network.
+    /// Checks that the sizes describe a buildable network, within
+    /// [`crate::limits::EST_WIDTH`] and [`crate::limits::LAYER_WIDTH`]
+    /// (checked before any weight is allocated: the sizes may come from a
+    /// file).
     pub fn validate(&self) -> Result<()> {
         ensure!(
             self.est_width >= 2 && self.est_width % 2 == 0,
             "est_width must be an even number >= 2 (HA layers split channels in halves), got {}",
             self.est_width
         );
+        crate::limits::EST_WIDTH.check("est_width", self.est_width as u64)?;
         for (name, v) in [
             ("neural_channels", self.neural_channels),
             ("enc_hidden", self.enc_hidden),
@@ -163,6 +168,7 @@ impl ModelConfig {
             ("disc_width", self.disc_width),
         ] {
             ensure!(v >= 1, "{name} must be >= 1, got {v}");
+            crate::limits::LAYER_WIDTH.check(name, v as u64)?;
         }
         ensure!(
             (0..=24).contains(&self.enc_frequencies),
@@ -246,6 +252,9 @@ mod tests {
         assert_eq!(partial.enc_hidden, 594);
         assert!(ModelConfig::from_toml_str("est_width = 7").is_err());
         assert!(ModelConfig::from_toml_str("bogus = 1").is_err());
+        let e = format!("{:#}", ModelConfig::from_toml_str("est_width = 100000").unwrap_err());
+        assert!(e.contains("est_width is 100000") && e.contains("FLASHMAT_MAX_EST_WIDTH"), "{e}");
+        assert!(ModelConfig::from_toml_str("enc_hidden = 1000000000").is_err());
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("m.toml");
         std::fs::write(&path, text).unwrap();

@@ -182,8 +182,31 @@ impl TrainConfig {
         }
     }
 
+    /// Checks the configuration, its sizes against [`crate::limits`]
+    /// before anything of those sizes is allocated (it may come from the
+    /// command line or from a checkpoint's file).
     pub fn validate(&self) -> anyhow::Result<()> {
+        use crate::limits;
         anyhow::ensure!(self.crop % 8 == 0 && self.crop >= 32, "--crop must be a multiple of 8 and at least 32 (got {})", self.crop);
+        limits::TRAIN_CROP.check("--crop", self.crop as u64)?;
+        limits::MATERIAL_SIZE.check("the material size", self.material_size as u64)?;
+        let (batch, outputs, crop) = (self.materials_per_batch as u64, self.outputs_per_material as u64, self.crop as u64);
+        limits::STEP_PIXELS.check_product(
+            format_args!("a training step (--batch {batch} x (--outputs {outputs} + 1) x --crop {crop} squared)"),
+            &[batch, outputs.saturating_add(1), crop, crop],
+        )?;
+        limits::BANK_PIXELS.check_product(
+            format_args!("the material bank (--bank {} x {} squared)", self.bank, self.material_size),
+            &[self.bank as u64, self.material_size as u64, self.material_size as u64],
+        )?;
+        anyhow::ensure!(self.materials_per_batch >= 1, "--batch must be at least 1");
+        if let Some(c) = self.grad_clip {
+            anyhow::ensure!(c.is_finite() && c > 0.0, "--grad-clip must be a finite number > 0 (got {c})");
+        }
+        anyhow::ensure!(self.lr_decay.is_finite() && self.lr_decay > 0.0, "the learning-rate decay must be a finite number > 0 (got {})", self.lr_decay);
+        for (name, w) in [("L1", self.weight_l1), ("LPIPS", self.weight_lpips), ("adversarial", self.weight_adv)] {
+            anyhow::ensure!(w.is_finite() && w >= 0.0, "the {name} weight must be a finite number >= 0 (got {w})");
+        }
         anyhow::ensure!(self.material_size >= self.crop, "material size {} is smaller than the crop {}", self.material_size, self.crop);
         anyhow::ensure!(self.materials_per_batch >= 2 || self.weight_adv == 0.0, "the discriminator needs at least 2 materials per batch");
         anyhow::ensure!(self.outputs_per_material >= 1, "at least one output render per material");
@@ -229,6 +252,15 @@ mod tests {
         assert!(TrainConfig { crop: 100, ..Default::default() }.validate().is_err());
         assert!(TrainConfig { materials_per_batch: 1, ..Default::default() }.validate().is_err());
         assert!(TrainConfig { height_scale: -1.0, ..Default::default() }.validate().is_err());
+        // Sizes beyond the limits, and clipping that would not clip.
+        assert!(TrainConfig { crop: 100_000, material_size: 100_000, ..Default::default() }.validate().is_err());
+        let e = TrainConfig { materials_per_batch: 100_000, ..Default::default() }.validate().unwrap_err().to_string();
+        assert!(e.contains("--batch 100000") && e.contains("FLASHMAT_MAX_STEP_PIXELS"), "{e}");
+        assert!(TrainConfig { bank: usize::MAX, ..Default::default() }.validate().is_err());
+        for clip in [-1.0, 0.0, f64::NAN, f64::INFINITY] {
+            assert!(TrainConfig { grad_clip: Some(clip), ..Default::default() }.validate().is_err(), "{clip}");
+        }
+        assert!(TrainConfig { grad_clip: Some(1.0), ..Default::default() }.validate().is_ok());
     }
 
     #[test]

@@ -10,14 +10,13 @@
 use super::batches::{batch_for_step, MaterialStream, Prefetcher};
 use super::{BaselineTrainer, StepLosses, TrainConfig, Trainer};
 use crate::data::samples::TrainingBatch;
-use crate::image::Image;
+use crate::image::{all_finite, Image};
 use crate::viz::{self, Series};
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
 use std::time::Instant;
 use tch::{Device, Kind, Tensor};
 
@@ -127,6 +126,11 @@ pub trait RunTrainer: Sized {
     fn colour_summary(&self) -> Option<Result<crate::eval::uniform::ColourSummary>> {
         None
     }
+    /// Whether every weight is finite and so are the networks' inference
+    /// outputs on `batch`. Checked before anything of the networks is
+    /// written: a diverging step can leave huge but finite weights whose
+    /// next forward pass overflows.
+    fn is_finite_on(&self, batch: &TrainingBatch) -> Result<bool>;
     /// Fresh networks for a configuration.
     fn create(config: TrainConfig, device: Device) -> Result<Self>;
     /// Rebuilds the trainer from a checkpoint.
@@ -159,6 +163,16 @@ impl RunTrainer for Trainer {
     fn colour_summary(&self) -> Option<Result<crate::eval::uniform::ColourSummary>> {
         let info = crate::model::ModelInfo { ldr_input: self.config.ldr_input, steps: self.step };
         Some(crate::eval::uniform::colour_check(&self.model, &info, COLOUR_CHECK_SIZE).map(|rows| crate::eval::uniform::summarize(&rows)))
+    }
+    fn is_finite_on(&self, batch: &TrainingBatch) -> Result<bool> {
+        if !stores_finite(&[&self.model.est_vs, &self.model.renderer_vs, &self.disc_vs]) {
+            return Ok(false);
+        }
+        tch::no_grad(|| {
+            let neural = self.model.est.forward_t(&batch.est_input, false)?;
+            let pred = self.model.renderer.forward_maps(&neural, &batch.out_wi, &batch.out_wo)?;
+            Ok(all_finite(&neural) && all_finite(&pred))
+        })
     }
     fn create(config: TrainConfig, device: Device) -> Result<Self> {
         let (init, warm) = (config.init_from.clone(), config.warm_start.clone());
@@ -199,6 +213,13 @@ impl RunTrainer for BaselineTrainer {
         let info = crate::model::ModelInfo { ldr_input: self.config.ldr_input, steps: self.step };
         self.net.save(path, &info, half)
     }
+    fn is_finite_on(&self, batch: &TrainingBatch) -> Result<bool> {
+        if !stores_finite(&[&self.net.vs, &self.disc_vs]) {
+            return Ok(false);
+        }
+        let pred = tch::no_grad(|| self.net.forward_t(&batch.est_input, &batch.out_wi, &batch.out_wo, false))?;
+        Ok(all_finite(&pred))
+    }
     fn create(config: TrainConfig, device: Device) -> Result<Self> {
         anyhow::ensure!(config.init_from.is_none() && config.warm_start.is_none(), "--init-from and --warm-start only apply to --method flashmat");
         BaselineTrainer::new(config, device)
@@ -206,6 +227,11 @@ impl RunTrainer for BaselineTrainer {
     fn resume_from(path: &Path, device: Device) -> Result<Self> {
         BaselineTrainer::resume(path, device)
     }
+}
+
+/// Whether every variable of the stores is finite.
+fn stores_finite(stores: &[&tch::nn::VarStore]) -> bool {
+    stores.iter().all(|vs| vs.variables().values().all(all_finite))
 }
 
 /// The trainer of either kind of run.
@@ -241,13 +267,17 @@ pub struct RunOptions {
     /// Also write `model.safetensors` (an f16 export) here at every
     /// checkpoint: what a time-limited GPU job brings back.
     pub export_dir: Option<PathBuf>,
+    /// With a resume: a new learning rate from the resumed step on (how a
+    /// diverged run continues from its last good checkpoint), recorded in
+    /// the configuration of its next checkpoints.
+    pub new_lr: Option<f64>,
     pub progress: bool,
 }
 
 impl RunOptions {
     /// Options of a plain run in `run_dir` (no step, time or export limits).
     pub fn new(run_dir: impl Into<PathBuf>, device: Device, progress: bool) -> Self {
-        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, progress }
+        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, new_lr: None, progress }
     }
 }
 
@@ -286,10 +316,20 @@ fn start_with<T: RunTrainer>(config: TrainConfig, opts: &RunOptions) -> Result<T
     // Networks first: a refused configuration (bad --init-from) leaves no run folder behind.
     let config_json = serde_json::to_string_pretty(&config)?;
     let trainer = T::create(config, opts.device)?;
-    std::fs::create_dir_all(opts.run_dir.join("previews")).with_context(|| format!("cannot create run folder {}", opts.run_dir.display()))?;
-    crate::io::atomic_write_bytes(&opts.run_dir.join("config.json"), config_json.as_bytes())?;
-    let _ = std::fs::remove_file(log_path(&opts.run_dir));
-    train_loop(trainer, opts)
+    let created = !opts.run_dir.exists();
+    let result = std::fs::create_dir_all(opts.run_dir.join("previews"))
+        .with_context(|| format!("cannot create run folder {}", opts.run_dir.display()))
+        .and_then(|_| crate::io::atomic_write_bytes(&opts.run_dir.join("config.json"), config_json.as_bytes()))
+        .and_then(|_| {
+            let _ = std::fs::remove_file(log_path(&opts.run_dir));
+            train_loop(trainer, opts)
+        });
+    // A start that failed before its first checkpoint (unreadable data, a
+    // diverging first step) leaves no run folder behind.
+    if result.is_err() && created && !ckpt.exists() {
+        let _ = std::fs::remove_dir_all(&opts.run_dir);
+    }
+    result
 }
 
 /// Continues a flashmat run from its last checkpoint, optionally to a new step total.
@@ -320,6 +360,10 @@ fn resume_with<T: RunTrainer>(opts: &RunOptions, steps: Option<u64>) -> Result<T
     if let Some(s) = steps {
         trainer.config_mut().steps = s;
     }
+    if let Some(lr) = opts.new_lr {
+        trainer.config_mut().lr = lr;
+        trainer.config().validate()?;
+    }
     truncate_log(&opts.run_dir, trainer.steps_done())?;
     train_loop(trainer, opts)
 }
@@ -336,18 +380,53 @@ fn save_all<T: RunTrainer>(trainer: &T, opts: &RunOptions) -> Result<()> {
     Ok(())
 }
 
+/// Set by SIGINT (Ctrl-C), SIGTERM and SIGHUP once [`catch_stop_signals`]
+/// ran: the training loops checkpoint and return at the end of the step.
+static STOP: AtomicBool = AtomicBool::new(false);
+
+/// Routes SIGINT, SIGTERM (a job scheduler, `kill`) and SIGHUP (a closed
+/// terminal) to [`stop_requested`] for the rest of the process, so that
+/// each ends a training run with a checkpoint instead of losing the steps
+/// since the last one.
+pub fn catch_stop_signals() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        if let Err(e) = ctrlc::set_handler(|| STOP.store(true, Ordering::SeqCst)) {
+            eprintln!("warning: cannot catch Ctrl-C/SIGTERM ({e}); an interrupted run loses the steps since its last checkpoint");
+        }
+    });
+}
+
+/// Whether a stop signal arrived (see [`catch_stop_signals`]).
+pub fn stop_requested() -> bool {
+    STOP.load(Ordering::SeqCst)
+}
+
+/// Steps in a row with a NaN/Inf loss or gradient after which a run counts
+/// as diverged: one odd batch is skipped, a diverged network makes every
+/// step non-finite.
+pub const MAX_SKIPPED_IN_A_ROW: u64 = 10;
+
+/// The one-line error of a diverged run, saying what was kept.
+fn diverged(step: u64, why: &str, run: &Path, last_good: Option<u64>) -> anyhow::Error {
+    match last_good {
+        Some(k) => anyhow::anyhow!(
+            "training diverged at step {step} ({why}); nothing was written, the last good checkpoint (step {k}) is kept: continue it with a smaller learning rate, `flashmat train --resume {} --lr LR`",
+            run.display()
+        ),
+        None => anyhow::anyhow!("training diverged at step {step} ({why}) before its first checkpoint; nothing was kept (try a smaller --lr)"),
+    }
+}
+
 fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
     let started = Instant::now();
     let out_of_time = || opts.max_minutes.is_some_and(|m| started.elapsed().as_secs_f64() >= m * 60.0);
     let cfg = trainer.config().clone();
     let run = &opts.run_dir;
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        // A second handler registration (tests, repeated runs) is harmless to ignore.
-        let _ = ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst));
-    }
+    catch_stop_signals();
     let first = trainer.steps_done();
+    // The checkpoint on disk: the one resumed from, if any.
+    let mut last_good = checkpoint_path(run).exists().then_some(first);
     let last = match opts.max_steps_this_run {
         Some(n) => cfg.steps.min(first + n),
         None => cfg.steps,
@@ -362,6 +441,7 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
     bar.set_position(first);
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(log_path(run)).with_context(|| format!("cannot write {}", log_path(run).display()))?;
     let mut skipped = 0u64;
+    let mut skipped_in_a_row = 0u64;
     while trainer.steps_done() < last {
         let step = trainer.steps_done();
         let t0 = Instant::now();
@@ -371,20 +451,36 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
         losses.seconds = t0.elapsed().as_secs_f64();
         if losses.skipped {
             skipped += 1;
+            skipped_in_a_row += 1;
             bar.println(format!("step {}: NaN/Inf loss or gradient, update skipped", losses.step));
+        } else {
+            skipped_in_a_row = 0;
         }
         writeln!(log, "{}", serde_json::to_string(&losses)?)?;
         bar.set_message(format!("L1 {:.4}  LPIPS {:.3}  skipped {skipped}", losses.l1, losses.lpips));
         bar.set_position(trainer.steps_done());
         let done = trainer.steps_done();
-        if cfg.preview_every > 0 && done % cfg.preview_every == 0 {
+        if skipped_in_a_row >= MAX_SKIPPED_IN_A_ROW {
+            log.flush()?;
+            bar.abandon();
+            return Err(diverged(done, &format!("NaN/Inf losses or gradients for {skipped_in_a_row} steps in a row"), run, last_good));
+        }
+        let preview_due = cfg.preview_every > 0 && done % cfg.preview_every == 0;
+        let timed_out = out_of_time();
+        let checkpoint_due = done % cfg.checkpoint_every.max(1) == 0 || done == last || stop_requested() || timed_out;
+        if (preview_due || checkpoint_due) && !trainer.is_finite_on(&batch)? {
+            log.flush()?;
+            bar.abandon();
+            return Err(diverged(done, "NaN/Inf weights or outputs", run, last_good));
+        }
+        if preview_due {
             let grid = trainer.preview_grid(&batch, 4)?;
             crate::io::write_png(&run.join("previews").join(format!("step-{done:07}.png")), &grid, crate::io::BitDepth::Eight)?;
         }
-        let timed_out = out_of_time();
-        if done % cfg.checkpoint_every.max(1) == 0 || done == last || stop.load(Ordering::SeqCst) || timed_out {
+        if checkpoint_due {
             log.flush()?;
             save_all(&trainer, opts)?;
+            last_good = Some(done);
             if let Some(summary) = trainer.colour_summary() {
                 let s = summary?;
                 let line = serde_json::json!({ "step": done, "identity_chroma_error": s.identity_chroma_error, "relit_chroma_error": s.relit_chroma_error, "near_black_highlight_ratio": s.near_black_highlight_ratio });
@@ -392,7 +488,7 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
                 writeln!(f, "{line}")?;
             }
         }
-        if stop.load(Ordering::SeqCst) {
+        if stop_requested() {
             bar.abandon_with_message(format!("interrupted at step {done}; checkpoint saved, continue with --resume"));
             return Ok(trainer);
         }

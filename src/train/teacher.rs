@@ -185,6 +185,7 @@ const HELD_OUT_PIXELS: i64 = 50_000;
 impl TeacherTrainer {
     pub fn new(config: TeacherConfig, device: Device) -> Result<Self> {
         ensure!(config.pixels >= 16, "--pixels must be at least 16");
+        crate::limits::STEP_PIXELS.check("--pixels", config.pixels as u64)?;
         ensure!(config.lr > 0.0 && config.lr.is_finite(), "learning rate must be positive");
         tch::manual_seed(config.seed as i64);
         let model = Model::new(&config.model, device)?;
@@ -274,10 +275,11 @@ pub fn run(config: TeacherConfig, dir: &Path, device: Device, minutes: Option<f6
     bar.set_style(ProgressStyle::with_template("teacher {bar:30} {pos}/{len} steps  {per_sec}  ETA {eta}  {msg}")?);
     bar.set_position(t.step);
     let mut log = std::fs::OpenOptions::new().create(true).append(true).open(dir.join("log.jsonl"))?;
+    super::run::catch_stop_signals();
     while t.step < t.config.steps {
         let t0 = Instant::now();
         let l1 = t.train_step()?;
-        let out_of_time = minutes.is_some_and(|m| started.elapsed().as_secs_f64() >= m * 60.0);
+        let out_of_time = minutes.is_some_and(|m| started.elapsed().as_secs_f64() >= m * 60.0) || super::run::stop_requested();
         let checkpoint = t.step % t.config.checkpoint_every.max(1) == 0 || t.step == t.config.steps || out_of_time;
         let held_out_l1 = if checkpoint { Some(t.held_out_l1()?) } else { None };
         writeln!(log, "{}", serde_json::to_string(&TeacherStep { step: t.step, l1, held_out_l1, seconds: t0.elapsed().as_secs_f64() })?)?;
