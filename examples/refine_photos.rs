@@ -2,7 +2,7 @@
 //! bundled real photos, with the bundled model:
 //!
 //! ```sh
-//! cargo run --release --example refine_photos -- [STEPS] [OUT_DIR]   # defaults: 200, reports/refine
+//! cargo run --release --example refine_photos -- [STEPS] [OUT_DIR]   # defaults: 100, reports/refine
 //! ```
 //!
 //! Writes `OUT_DIR/photos.jpg` (a row per photo: photo | identity before |
@@ -28,7 +28,7 @@ fn display(linear: &Image) -> Image {
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
-    let steps: usize = args.get(1).map_or(Ok(200), |s| s.parse()).context("STEPS must be a whole number")?;
+    let steps: usize = args.get(1).map_or(Ok(flashmat::infer::refine::DEFAULT_REFINE_STEPS), |s| s.parse()).context("STEPS must be a whole number")?;
     let out = PathBuf::from(args.get(2).map_or("reports/refine", String::as_str));
     let root = flashmat::bundled_root();
     let mut photos: Vec<PathBuf> = std::fs::read_dir(root.join("examples/photos"))?

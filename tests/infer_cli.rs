@@ -302,7 +302,7 @@ fn refine_on_estimate_and_on_a_nmat_is_recorded_and_checked() {
     // `--refine` without a number on a .nmat: the default steps, on the stored photo; `--refine 0` changes nothing.
     let grid = d.join("grid.png");
     let err = assert_ok(&flashmat(&["show", s(&plain), "--refine", "-o", s(&grid)]));
-    assert!(err.contains("refined in 200 steps"), "{err}");
+    assert!(err.contains("refined in 100 steps"), "{err}");
     let id = d.join("id.png");
     let err = assert_ok(&flashmat(&["relight", s(&plain), "--identity", "--refine", "0", "-o", s(&id)]));
     assert!(!err.contains("refined"), "{err}");

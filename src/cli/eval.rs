@@ -13,8 +13,12 @@ use std::path::PathBuf;
 #[derive(Args, Debug)]
 pub struct EvalArgs {
     /// A model file (flashmat export), or `printout` for the print-out baseline. Repeat to compare methods.
-    #[arg(long = "model", value_name = "FILE|printout", required = true)]
+    #[arg(long = "model", value_name = "FILE|printout", required_unless_present = "summarize")]
     pub models: Vec<String>,
+    /// Score nothing: re-read the NAME.csv files in the -o folder (CSVs of runs with the same dataset, seed and
+    /// configurations, e.g. the unrefined and refined rows of two runs) and rewrite summary.md (and refine.png).
+    #[arg(long, conflicts_with_all = ["models", "captures", "uniform"])]
+    pub summarize: bool,
     /// `procedural-test` (the 50 held-out procedural materials), `procedural-test:I` (one of them) or a dataset folder/strip file
     /// (materials centre-cropped to a square and resized to --size).
     #[arg(long, default_value = PROCEDURAL_TEST)]
@@ -54,8 +58,8 @@ pub struct EvalArgs {
     #[arg(long, default_value = "cpu")]
     pub device: String,
     /// Score every flashmat model with its estimates refined on the photo for STEPS steps (rows NAME+refineSTEPS;
-    /// 200 when no number is given; comma-separated for several, 0 = the unrefined model, e.g. 0,100).
-    #[arg(long, value_name = "STEPS", num_args = 0..=1, value_delimiter = ',', default_missing_value = "200")]
+    /// 100 when no number is given; comma-separated for several, 0 = the unrefined model, e.g. 0,100).
+    #[arg(long, value_name = "STEPS", num_args = 0..=1, value_delimiter = ',', default_missing_value = crate::infer::refine::DEFAULT_REFINE_STEPS_ARG)]
     pub refine: Option<Vec<usize>>,
     #[command(flatten)]
     pub refine_weights: super::infer::RefineWeights,
@@ -73,6 +77,24 @@ impl EvalArgs {
 }
 
 pub fn eval(args: &EvalArgs) -> Result<()> {
+    if args.summarize {
+        let opts = EvalOptions {
+            models: vec![],
+            dataset: args.dataset.clone(),
+            cases: args.cases.clone(),
+            out: args.output.clone(),
+            size: args.size,
+            seed: args.seed,
+            limit: args.limit,
+            configs: args.configs,
+            ldr_input: args.ldr_input,
+            device: tch::Device::Cpu,
+            progress: false,
+            refine: vec![],
+        };
+        eval::report::resummarize(&opts)?;
+        return print_summary(&args.output);
+    }
     if args.uniform {
         return uniform_check(args);
     }

@@ -29,9 +29,9 @@ pub struct EstimateOptions {
     /// cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     pub device: String,
-    /// After M_est, optimise the neural map for STEPS steps (200 when no number is given) so that its identity
+    /// After M_est, optimise the neural map for STEPS steps (100 when no number is given) so that its identity
     /// render matches the photo, with the neural BRDF frozen. On a .nmat, refines on its stored input photo.
-    #[arg(long, value_name = "STEPS", num_args = 0..=1, default_missing_value = "200")]
+    #[arg(long, value_name = "STEPS", num_args = 0..=1, default_missing_value = crate::infer::refine::DEFAULT_REFINE_STEPS_ARG)]
     pub refine: Option<usize>,
     #[command(flatten)]
     pub refine_weights: RefineWeights,

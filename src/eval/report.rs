@@ -22,6 +22,69 @@ pub fn csv_text(res: &MethodResults) -> String {
     s
 }
 
+/// Reads a CSV written by [`csv_text`] back (method named by the file stem).
+pub fn read_csv(path: &std::path::Path) -> Result<MethodResults> {
+    use anyhow::{bail, Context};
+    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let mut lines = text.lines();
+    if lines.next() != Some("material,case,lpips,rmse_log,psnr") {
+        bail!("{}: not an evaluation CSV (header material,case,lpips,rmse_log,psnr)", path.display());
+    }
+    let rows = lines
+        .enumerate()
+        .map(|(i, line)| {
+            let bad = || anyhow::anyhow!("{} line {}: expected material,case,lpips,rmse_log,psnr, got '{line}'", path.display(), i + 2);
+            let f: Vec<&str> = line.split(',').collect();
+            if f.len() != 5 {
+                return Err(bad());
+            }
+            let case = match f[1] {
+                "reflect" => crate::geometry::Sampling::Reflect,
+                "identity" => crate::geometry::Sampling::Identity,
+                "hemisphere" => crate::geometry::Sampling::Hemisphere,
+                _ => return Err(bad()),
+            };
+            let num = |s: &str| s.parse::<f64>().map_err(|_| bad());
+            Ok(super::Row { material: f[0].to_string(), case, scores: super::Scores { lpips: num(f[2])?, rmse_log: num(f[3])?, psnr: num(f[4])? } })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(MethodResults { name, rows })
+}
+
+/// Re-reads every `NAME.csv` of `opts.out` (e.g. CSVs of several runs with
+/// the same dataset, seed and configurations copied into one folder) and
+/// rewrites `summary.md` and `refine.png` from them. Methods are ordered by
+/// name, refined variants by their steps after their model.
+pub fn resummarize(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
+    use anyhow::Context;
+    let mut paths: Vec<std::path::PathBuf> = std::fs::read_dir(&opts.out)
+        .with_context(|| format!("cannot read {}", opts.out.display()))?
+        .map(|e| e.map(|e| e.path()))
+        .collect::<std::io::Result<_>>()?;
+    paths.retain(|p| p.extension().is_some_and(|e| e == "csv"));
+    anyhow::ensure!(!paths.is_empty(), "{} holds no evaluation CSV", opts.out.display());
+    let mut results = paths.iter().map(|p| read_csv(p)).collect::<Result<Vec<_>>>()?;
+    let key = |name: &str| match name.split_once("+refine") {
+        Some((base, steps)) => (base.to_string(), steps.parse::<usize>().unwrap_or(usize::MAX)),
+        None => (name.to_string(), 0),
+    };
+    results.sort_by_key(|r| key(&r.name));
+    let n = results[0].rows.len();
+    for r in &results {
+        anyhow::ensure!(r.rows.len() == n, "{}.csv has {} rows, {}.csv {n}: not the same evaluation", r.name, r.rows.len(), results[0].name);
+    }
+    let mut cases: Vec<crate::geometry::Sampling> = vec![];
+    for row in &results[0].rows {
+        if !cases.contains(&row.case) {
+            cases.push(row.case);
+        }
+    }
+    let opts = EvalOptions { cases, ..opts.clone() };
+    write_reports(&opts, &results)?;
+    Ok(results)
+}
+
 /// Markdown summary: one table per metric, rows methods, columns cases,
 /// cells `mean ± 1.96 std / sqrt(n)` over materials.
 pub fn summary_markdown(opts: &EvalOptions, results: &[MethodResults]) -> String {
@@ -63,12 +126,49 @@ pub fn summary_markdown(opts: &EvalOptions, results: &[MethodResults]) -> String
     s
 }
 
-/// Writes `NAME.csv` per method and `summary.md` (atomically).
+/// Writes `NAME.csv` per method and `summary.md` (atomically), and
+/// `refine.png` when a model was scored at two or more refinement steps.
 pub fn write_reports(opts: &EvalOptions, results: &[MethodResults]) -> Result<()> {
     for r in results {
         crate::io::atomic_write_bytes(&opts.out.join(format!("{}.csv", r.name)), csv_text(r).as_bytes())?;
     }
-    crate::io::atomic_write_bytes(&opts.out.join("summary.md"), summary_markdown(opts, results).as_bytes())
+    crate::io::atomic_write_bytes(&opts.out.join("summary.md"), summary_markdown(opts, results).as_bytes())?;
+    let series = refine_series(opts, results);
+    if series.first().is_some_and(|s| s.points.len() >= 2) {
+        let chart = crate::viz::line_chart("mean LPIPS against refinement steps", &series, 640, 360)?;
+        crate::io::write_png(&opts.out.join("refine.png"), &chart, crate::io::BitDepth::Eight)?;
+    }
+    Ok(())
+}
+
+/// Refinement steps of a method name: 0 for a flashmat model `NAME` when
+/// `NAME+refineN` methods exist, N for those.
+fn refine_steps(name: &str, results: &[MethodResults]) -> Option<(String, usize)> {
+    if let Some((base, steps)) = name.split_once("+refine") {
+        return steps.parse().ok().map(|s| (base.to_string(), s));
+    }
+    results.iter().any(|r| r.name.starts_with(&format!("{name}+refine"))).then(|| (name.to_string(), 0))
+}
+
+/// Mean LPIPS per case against refinement steps, for the first model
+/// scored at several steps (series named `case (model)`).
+pub fn refine_series(opts: &EvalOptions, results: &[MethodResults]) -> Vec<crate::viz::Series> {
+    let Some((model, _)) = results.iter().find_map(|r| refine_steps(&r.name, results)) else { return vec![] };
+    opts.cases
+        .iter()
+        .map(|&case| {
+            let mut points: Vec<(f64, f64)> = results
+                .iter()
+                .filter_map(|r| {
+                    let (base, steps) = refine_steps(&r.name, results)?;
+                    let v: Vec<f64> = r.rows.iter().filter(|x| x.case == case).map(|x| x.scores.lpips).collect();
+                    (base == model && !v.is_empty()).then(|| (steps as f64, mean_ci95(&v).0))
+                })
+                .collect();
+            points.sort_by(|a, b| a.0.total_cmp(&b.0));
+            crate::viz::Series { name: format!("{} ({model})", case_title(case)), points }
+        })
+        .collect()
 }
 
 /// Material indices ordered from best to worst by the first method's mean

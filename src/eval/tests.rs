@@ -146,6 +146,24 @@ fn refine_variants_are_scored_as_their_own_rows() {
         assert!(refined.scores.rmse_log < 0.7 * plain.scores.rmse_log, "{plain:?} -> {refined:?}");
     }
     assert!(out.join("tiny+refine40.csv").is_file());
+    // The chart's points are the summary's means, at steps 0 and 40.
+    let series = report::refine_series(&opts, &results);
+    assert_eq!(series.len(), 1);
+    assert_eq!(series[0].points.iter().map(|p| p.0).collect::<Vec<_>>(), [0.0, 40.0]);
+    let mean = |r: &MethodResults| r.rows.iter().map(|x| x.scores.lpips).sum::<f64>() / r.rows.len() as f64;
+    assert!((series[0].points[1].1 - mean(&results[1])).abs() < 1e-9);
+    let chart = crate::io::read_image(&out.join("refine.png")).unwrap();
+    assert_eq!((chart.width, chart.height), (640, 360));
+    // Re-reading the CSVs gives back the same summary.
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    std::fs::remove_file(out.join("summary.md")).unwrap();
+    let again = report::resummarize(&opts).unwrap();
+    assert_eq!(again.iter().map(|r| r.name.as_str()).collect::<Vec<_>>(), ["printout", "tiny", "tiny+refine40"]);
+    let resummary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    for r in &results {
+        let line = |s: &str| s.lines().find(|l| l.starts_with(&format!("| {} |", r.name))).unwrap().to_string();
+        assert_eq!(line(&summary), line(&resummary));
+    }
     // Without 0 in the list only the refined variant is scored.
     let only = run(&EvalOptions { refine: vec![RefineConfig::with_steps(5)], out: t.path().join("only"), ..small_eval(vec![model], &out) }).unwrap();
     assert_eq!(only.iter().map(|r| r.name.as_str()).collect::<Vec<_>>(), ["tiny+refine5"]);
