@@ -55,6 +55,19 @@ def parse_config(text):
     return out
 
 
+def header_crc(header, meta):
+    """CRC-32 of tensor names, dtypes, shapes and the metadata (docs/NMAT.md, `flashmat.meta_crc32`)."""
+    h = 0
+    for name in sorted(header, key=lambda s: s.encode("utf-8")):
+        info = header[name]
+        for field in (name, str(info["dtype"]), ",".join(str(int(d)) for d in info["shape"])):
+            h = zlib.crc32(field.encode("utf-8") + b"\0", h)
+    for key in sorted(meta, key=lambda s: s.encode("utf-8")):
+        if key != "flashmat.meta_crc32":
+            h = zlib.crc32(key.encode("utf-8") + b"\0" + str(meta[key]).encode("utf-8") + b"\0", h)
+    return h
+
+
 def read_nmat(path):
     """Reads and verifies a .nmat file; returns an :class:`Nmat`."""
     path = str(path)
@@ -105,6 +118,8 @@ def read_nmat(path):
         tensors[name] = np.frombuffer(raw, dtype="<f4").reshape(shape)
     if f"{crc:08x}" != meta.get("flashmat.crc32"):
         fail(f"checksum mismatch (stored {meta.get('flashmat.crc32')!r}, computed {crc:08x}): the file is damaged")
+    if "flashmat.meta_crc32" in meta and f"{header_crc(header, meta):08x}" != meta["flashmat.meta_crc32"]:
+        fail("header checksum mismatch (shapes or metadata): the file is damaged")
     try:
         config = parse_config(meta["config"])
         sizes = {k: int(config[k]) for k in CONFIG_INT_KEYS}

@@ -86,3 +86,23 @@ def test_plugin_raises_for_damaged_file(synthetic_nmat, tmp_path):
     with pytest.raises(Exception) as e:
         mi.load_dict({"type": "neural_brdf", "filename": str(p)})
     assert "bad.nmat" in str(e.value) and "checksum" in str(e.value)
+
+
+def test_header_checksum(tmp_path):
+    """flashmat.meta_crc32 covers shapes and metadata, which flashmat.crc32 does not."""
+    from flashmat_mitsuba.nmat import header_crc
+
+    t, meta = synthetic_tensors(h=4, w=6)
+    p = tmp_path / "sealed.nmat"
+    write_nmat(p, t, meta)
+    n = struct.unpack("<Q", p.read_bytes()[:8])[0]
+    header = json.loads(p.read_bytes()[8 : 8 + n])
+    meta_all = header.pop("__metadata__")
+    write_nmat(p, t, {**meta, "flashmat.meta_crc32": f"{header_crc(header, meta_all):08x}"})
+    assert read_nmat(p).neural_map.shape == (16, 4, 6)
+    # Swapped dimensions and resolution: the tensor CRC still matches, the header CRC does not.
+    sealed = {**meta, "flashmat.meta_crc32": f"{header_crc(header, meta_all):08x}", "resolution": json.dumps([6, 4])}
+    swapped = {k: (v.reshape(v.shape[0], 6, 4) if k in ("neural_map", "input_photo") else v) for k, v in t.items()}
+    bad = tmp_path / "swapped.nmat"
+    write_nmat(bad, swapped, sealed)
+    expect_error(bad, "header checksum mismatch")
