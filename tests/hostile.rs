@@ -290,7 +290,7 @@ fn hostile_exr(w: i32, h: i32) -> Vec<u8> {
         out.extend_from_slice(&first_chunk.to_le_bytes());
     }
     out.extend_from_slice(&0i32.to_le_bytes());
-    out.extend_from_slice(&(4 * w).to_le_bytes());
+    out.extend_from_slice(&w.saturating_mul(4).to_le_bytes());
     out.extend_from_slice(&vec![0u8; (4 * w as usize).min(4096)]);
     out
 }
