@@ -78,20 +78,8 @@ impl EvalArgs {
 
 pub fn eval(args: &EvalArgs) -> Result<()> {
     if args.summarize {
-        let opts = EvalOptions {
-            models: vec![],
-            dataset: args.dataset.clone(),
-            cases: args.cases.clone(),
-            out: args.output.clone(),
-            size: args.size,
-            seed: args.seed,
-            limit: args.limit,
-            configs: args.configs,
-            ldr_input: args.ldr_input,
-            device: tch::Device::Cpu,
-            progress: false,
-            refine: vec![],
-        };
+        // Nothing is scored: no device, no refinement.
+        let opts = EvalOptions { device: tch::Device::Cpu, progress: false, refine: vec![], ..eval_options(args)? };
         eval::report::resummarize(&opts)?;
         return print_summary(&args.output);
     }
@@ -111,7 +99,13 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         eval::captures::run(&opts)?;
         return print_summary(&args.output);
     }
-    let opts = EvalOptions {
+    eval::run(&eval_options(args)?)?;
+    print_summary(&args.output)
+}
+
+/// The held-out evaluation's options from the command line.
+fn eval_options(args: &EvalArgs) -> Result<EvalOptions> {
+    Ok(EvalOptions {
         models: args.models.clone(),
         dataset: args.dataset.clone(),
         cases: args.cases.clone(),
@@ -124,9 +118,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         device: super::train::parse_device(&args.device)?,
         progress: true,
         refine: args.refine_configs()?,
-    };
-    eval::run(&opts)?;
-    print_summary(&args.output)
+    })
 }
 
 /// `eval --uniform`: the uniform-colour check of every flashmat model given.
