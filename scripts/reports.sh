@@ -58,12 +58,11 @@ done
 
 # Refinement on the photo (reports/refine.md): LPIPS against steps on 8
 # materials, the default (100 steps) on the 50 held-out materials with LDR
-# photos and on 10 with HDR photos (unrefined rows: the eval-4000 reports,
-# same seed and configurations), the captures, and the bundled photos.
+# photos (the unrefined rows equal reports/eval-4000-ldr-inputs: same seed and
+# configurations), the captures, and the bundled photos.
 $FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 0,25,50,100,200 --limit 8 \
     --configs "$CONFIGS" -o reports/refine/steps-ldr-8
-$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 100 --configs "$CONFIGS" -o reports/refine/ldr-50
-$FLASHMAT eval --model $M/flashmat.safetensors --refine 0,100 --limit 10 --configs "$CONFIGS" -o reports/refine/hdr-10
+$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 0,100 --configs "$CONFIGS" -o reports/refine/ldr-50
 for I in 05 25 45; do
     $FLASHMAT eval --model $M/flashmat.safetensors --refine 0,100 \
         --captures target/captures/test$I -o reports/refine/captures-test$I

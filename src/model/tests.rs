@@ -210,6 +210,8 @@ fn renderer_backpropagates_to_params_and_weights() {
 
 #[test]
 fn straight_through_output_keeps_values_and_lifts_the_negative_gradient() {
+    // Seeded: the share of negative outputs at init depends on the draw.
+    tch::manual_seed(11);
     let cfg = ModelConfig::tiny();
     let m = Model::new(&cfg, Device::Cpu).unwrap();
     let params = Tensor::randn([64, cfg.neural_channels], (Kind::Float, Device::Cpu));
