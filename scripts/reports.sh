@@ -63,6 +63,7 @@ done
 $FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 0,25,50,100,200 --limit 8 \
     --configs "$CONFIGS" -o reports/refine/steps-ldr-8
 $FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 0,100 --configs "$CONFIGS" -o reports/refine/ldr-50
+$FLASHMAT eval --model $M/flashmat.safetensors --refine 0,100 --limit 10 --configs "$CONFIGS" -o reports/refine/hdr-10
 for I in 05 25 45; do
     $FLASHMAT eval --model $M/flashmat.safetensors --refine 0,100 \
         --captures target/captures/test$I -o reports/refine/captures-test$I
