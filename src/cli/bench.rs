@@ -128,7 +128,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
 /// no autograd) of the same material, measured in the same run.
 fn bench_refine(args: &RefineBenchArgs) -> Result<()> {
     use crate::infer::refine::{refine, RefineConfig};
-    use crate::infer::{Crop, NeuralMaterial, PreparedPhoto};
+    use crate::infer::{NeuralMaterial, PreparedPhoto};
     let device = super::train::parse_device(&args.device)?;
     crate::infer::photo::check_size(args.size)?;
     anyhow::ensure!(args.steps > 0, "--steps must be at least 1");
@@ -137,13 +137,7 @@ fn bench_refine(args: &RefineBenchArgs) -> Result<()> {
     let model = crate::model::Model::new(&config, device)?;
     let material = procedural::test_material(0, args.size);
     let linear = crate::svbrdf::render::render_material(&material, &[NeuralMaterial::identity_config()])?.remove(0);
-    let photo = PreparedPhoto {
-        linear: linear.clone(),
-        ldr: true,
-        fov_deg: crate::geometry::MODEL_FOV_DEG,
-        crop: Crop { x0: 0, y0: 0, side: args.size, source_width: args.size, source_height: args.size },
-        source: "bench".into(),
-    };
+    let photo = PreparedPhoto::at_model_view(linear.clone(), true, "bench");
     let info = crate::model::ModelInfo { ldr_input: true, steps: 0 };
     let mut neural = crate::infer::estimate(&model, &info, &photo)?;
     let render_ms = median_ms(device, 3, || neural.render(&[NeuralMaterial::identity_config()]).map(|_| ()))?;

@@ -8,7 +8,7 @@ use crate::data::samples::{est_input, input_directions};
 use crate::geometry::{config_tensors, LightView, MODEL_FOV_DEG};
 use crate::image::Image;
 use crate::infer::refine::{refine, RefineConfig};
-use crate::infer::{self, Crop, NeuralMaterial, PreparedPhoto};
+use crate::infer::{self, NeuralMaterial, PreparedPhoto};
 use crate::model::{FoldedMEst, Model, ModelInfo};
 use crate::svbrdf::render::half_vector_z;
 use crate::svbrdf::render::direction_maps_for;
@@ -18,6 +18,20 @@ use tch::{Device, Kind, Tensor};
 
 /// Name that selects the print-out baseline on the command line.
 pub const PRINTOUT: &str = "printout";
+
+/// Name of a flashmat model's refined variant: `NAME+refineSTEPS`.
+pub fn refined_name(name: &str, steps: usize) -> String {
+    format!("{name}+refine{steps}")
+}
+
+/// Inverse of [`refined_name`]: (model name, refinement steps), steps 0
+/// for any other method name.
+pub fn split_refined(name: &str) -> (&str, usize) {
+    match name.rsplit_once("+refine").and_then(|(base, steps)| Some((base, steps.parse().ok()?))) {
+        Some(split) => split,
+        None => (name, 0),
+    }
+}
 
 /// Configurations rendered per neural-renderer call (bounds memory).
 const RENDER_CHUNK: usize = 8;
@@ -71,14 +85,7 @@ impl Method for ModelMethod {
 
     fn prepare(&mut self, photo_linear: &Tensor) -> Result<()> {
         let linear = Image::from_tensor(&photo_linear.to_device(Device::Cpu).to_kind(Kind::Float))?;
-        let side = linear.width;
-        let photo = PreparedPhoto {
-            linear,
-            ldr: self.ldr_photo,
-            fov_deg: MODEL_FOV_DEG,
-            crop: Crop { x0: 0, y0: 0, side, source_width: side, source_height: side },
-            source: "evaluation render".into(),
-        };
+        let photo = PreparedPhoto::at_model_view(linear, self.ldr_photo, "evaluation render");
         let mut material = infer::estimate(&self.model, &self.info, &photo)?;
         if let Some(cfg) = &self.refine {
             let report = refine(&mut material, &photo.linear.to_tensor(), self.ldr_photo, cfg, |_| {})?;
@@ -332,7 +339,7 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &
             if cfg.steps == 0 {
                 out.push(Box::new(ModelMethod::load(path, name.clone(), ldr_photo, device)?));
             } else {
-                let refined = format!("{name}+refine{}", cfg.steps);
+                let refined = refined_name(&name, cfg.steps);
                 names.push(refined.clone());
                 out.push(Box::new(ModelMethod::load(path, refined, ldr_photo, device)?.with_refine(cfg.clone())));
             }

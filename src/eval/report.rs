@@ -2,6 +2,7 @@
 //! with 95% intervals in the paper's layout) and picture grids of the best
 //! and worst materials.
 
+use super::methods::split_refined;
 use super::{case_configs, case_name, case_title, input_photo, mean_ci95, reference_renders, EvalOptions, Method, MethodResults};
 use crate::image::Image;
 use crate::svbrdf::Svbrdf;
@@ -39,12 +40,11 @@ pub fn read_csv(path: &std::path::Path) -> Result<MethodResults> {
             if f.len() != 5 {
                 return Err(bad());
             }
-            let case = match f[1] {
-                "reflect" => crate::geometry::Sampling::Reflect,
-                "identity" => crate::geometry::Sampling::Identity,
-                "hemisphere" => crate::geometry::Sampling::Hemisphere,
-                _ => return Err(bad()),
-            };
+            use crate::geometry::Sampling;
+            let case = [Sampling::Reflect, Sampling::Identity, Sampling::Hemisphere]
+                .into_iter()
+                .find(|&c| case_name(c) == f[1])
+                .ok_or_else(bad)?;
             let num = |s: &str| s.parse::<f64>().map_err(|_| bad());
             Ok(super::Row { material: f[0].to_string(), case, scores: super::Scores { lpips: num(f[2])?, rmse_log: num(f[3])?, psnr: num(f[4])? } })
         })
@@ -65,11 +65,7 @@ pub fn resummarize(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     paths.retain(|p| p.extension().is_some_and(|e| e == "csv"));
     anyhow::ensure!(!paths.is_empty(), "{} holds no evaluation CSV", opts.out.display());
     let mut results = paths.iter().map(|p| read_csv(p)).collect::<Result<Vec<_>>>()?;
-    let key = |name: &str| match name.split_once("+refine") {
-        Some((base, steps)) => (base.to_string(), steps.parse::<usize>().unwrap_or(usize::MAX)),
-        None => (name.to_string(), 0),
-    };
-    results.sort_by_key(|r| key(&r.name));
+    results.sort_by(|a, b| split_refined(&a.name).cmp(&split_refined(&b.name)));
     let n = results[0].rows.len();
     for r in &results {
         anyhow::ensure!(r.rows.len() == n, "{}.csv has {} rows, {}.csv {n}: not the same evaluation", r.name, r.rows.len(), results[0].name);
@@ -144,10 +140,9 @@ pub fn write_reports(opts: &EvalOptions, results: &[MethodResults]) -> Result<()
 /// Refinement steps of a method name: 0 for a flashmat model `NAME` when
 /// `NAME+refineN` methods exist, N for those.
 fn refine_steps(name: &str, results: &[MethodResults]) -> Option<(String, usize)> {
-    if let Some((base, steps)) = name.split_once("+refine") {
-        return steps.parse().ok().map(|s| (base.to_string(), s));
-    }
-    results.iter().any(|r| r.name.starts_with(&format!("{name}+refine"))).then(|| (name.to_string(), 0))
+    let (base, steps) = split_refined(name);
+    let refined_exists = || results.iter().any(|r| r.name != name && split_refined(&r.name).0 == base);
+    (steps > 0 || refined_exists()).then(|| (base.to_string(), steps))
 }
 
 /// Mean LPIPS per case against refinement steps, for the first model

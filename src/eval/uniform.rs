@@ -13,7 +13,7 @@
 
 use crate::geometry::{LightView, MODEL_FOV_DEG};
 use crate::image::Image;
-use crate::infer::{self, overhead_camera, Crop, PreparedPhoto};
+use crate::infer::{self, overhead_camera, PreparedPhoto};
 use crate::model::{Model, ModelInfo};
 use crate::svbrdf::Svbrdf;
 use anyhow::Result;
@@ -112,13 +112,7 @@ fn colour_rows(model: &Model, info: &ModelInfo, size: usize) -> Result<Vec<Colou
     for (set, u) in uniform_materials() {
         let material = Svbrdf::uniform(size, size, u.diffuse, u.specular, u.roughness);
         let truth = crate::svbrdf::render::render_material(&material, &[identity, side])?;
-        let photo = PreparedPhoto {
-            linear: truth[0].clone(),
-            ldr: info.ldr_input,
-            fov_deg: MODEL_FOV_DEG,
-            crop: Crop { x0: 0, y0: 0, side: size, source_width: size, source_height: size },
-            source: "uniform-colour check".into(),
-        };
+        let photo = PreparedPhoto::at_model_view(truth[0].clone(), info.ldr_input, "uniform-colour check");
         let estimated = infer::estimate(model, info, &photo)?;
         for (name, config, reference) in [("identity", identity, &truth[0]), ("relit", side, &truth[1])] {
             let pred = estimated.render_image(&config)?;

@@ -175,13 +175,7 @@ mod tests {
 
     fn photo(size: usize, ldr: bool) -> PreparedPhoto {
         let linear = Image::from_fn(3, size, size, |c, y, x| 0.2 + 0.1 * c as f32 + 0.01 * ((x * 7 + y * 3) % 13) as f32 + if ldr { 0.0 } else { 2.0 });
-        PreparedPhoto {
-            linear,
-            ldr,
-            fov_deg: 28.0,
-            crop: Crop { x0: 0, y0: 0, side: size, source_width: size, source_height: size },
-            source: "p.exr".into(),
-        }
+        PreparedPhoto::at_model_view(linear, ldr, "p.exr")
     }
 
     #[test]

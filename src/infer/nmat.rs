@@ -181,15 +181,21 @@ impl NeuralMaterial {
             crate::cli::above_surface("light", c.light)?;
             crate::cli::above_surface("camera", c.view)?;
         }
-        let (h, w) = self.size();
-        let k = configs.len() as i64;
-        let (lights, views) = crate::geometry::config_tensors(configs, self.device());
-        let (wi, wo) = crate::svbrdf::render::direction_maps_for(&lights.view([1, k, 3]), &views.view([1, k, 3]), h, w);
+        let (wi, wo) = self.direction_maps(configs);
         let log = tch::no_grad(|| self.renderer.forward_maps(&self.neural_map.unsqueeze(0), &wi, &wo))?;
         // Finite weights can still overflow to Inf - Inf = NaN, which the
         // clamps below would keep (Inf itself clamps to MAX_LOG_RADIANCE).
         ensure!(log.isnan().any().int64_value(&[]) == 0, "M_render produced NaN values for this material (weights out of range?)");
         Ok(crate::spaces::from_log(&log.get(0).clamp_max(MAX_LOG_RADIANCE)).clamp_min(0.0))
+    }
+
+    /// Per-pixel unit directions towards the light and the camera of each
+    /// configuration over this material's pixels: wi, wo `[1, K, 3, H, W]`.
+    pub fn direction_maps(&self, configs: &[LightView]) -> (Tensor, Tensor) {
+        let (h, w) = self.size();
+        let k = configs.len() as i64;
+        let (lights, views) = crate::geometry::config_tensors(configs, self.device());
+        crate::svbrdf::render::direction_maps_for(&lights.view([1, k, 3]), &views.view([1, k, 3]), h, w)
     }
 
     /// One linear render `[3, H, W]` as an image.

@@ -51,6 +51,21 @@ pub struct PreparedPhoto {
     pub source: String,
 }
 
+impl PreparedPhoto {
+    /// A square linear photo `[3, S, S]` already at the model's 28 degree
+    /// co-located view (renders, evaluation photos): no crop.
+    pub fn at_model_view(linear: Image, ldr: bool, source: impl Into<String>) -> Self {
+        let (side, width, height) = (linear.width, linear.width, linear.height);
+        Self {
+            linear,
+            ldr,
+            fov_deg: crate::geometry::MODEL_FOV_DEG,
+            crop: Crop { x0: 0, y0: 0, side, source_width: width, source_height: height },
+            source: source.into(),
+        }
+    }
+}
+
 /// Default field of view for a photo type: phone photos for 8-bit files,
 /// the model's own camera for EXR renders (as made by `flashmat render`).
 pub fn default_fov(ldr: bool) -> f64 {

@@ -17,7 +17,6 @@
 //! M_render forward and backward over the H x W pixels.
 
 use super::nmat::NeuralMaterial;
-use crate::svbrdf::render::direction_maps_for;
 use crate::train::adam::Adam;
 use anyhow::{ensure, Result};
 use serde::{Deserialize, Serialize};
@@ -123,21 +122,31 @@ pub fn identity_l1(pred_log: &Tensor, target_log: &Tensor, clipped: Option<&Tens
     }
 }
 
+/// Absolute forward differences along x and y.
+/// t: `[C, H, W]` -> (`[C, H, W-1]`, `[C, H-1, W]`).
+fn abs_differences(t: &Tensor) -> (Tensor, Tensor) {
+    let (h, w) = (t.size()[1], t.size()[2]);
+    ((t.narrow(2, 1, w - 1) - t.narrow(2, 0, w - 1)).abs(), (t.narrow(1, 1, h - 1) - t.narrow(1, 0, h - 1)).abs())
+}
+
 /// Edge-aware smoothness of a change map: mean of e * |finite difference|
 /// along x and y. delta: `[C, H, W]`; edge_x: `[1, H, W-1]`, edge_y: `[1, H-1, W]`.
 fn smoothness(delta: &Tensor, edge_x: &Tensor, edge_y: &Tensor) -> Tensor {
-    let (h, w) = (delta.size()[1], delta.size()[2]);
-    let dx = (delta.narrow(2, 1, w - 1) - delta.narrow(2, 0, w - 1)).abs();
-    let dy = (delta.narrow(1, 1, h - 1) - delta.narrow(1, 0, h - 1)).abs();
+    let (dx, dy) = abs_differences(delta);
     (dx * edge_x).mean(Kind::Float) + (dy * edge_y).mean(Kind::Float)
 }
 
 /// Smoothness weights of a photo's ln(1+R) `[3, H, W]`: (x, y) as in [`smoothness`].
 fn edge_weights(target_log: &Tensor) -> (Tensor, Tensor) {
-    let (h, w) = (target_log.size()[1], target_log.size()[2]);
-    let gx = (target_log.narrow(2, 1, w - 1) - target_log.narrow(2, 0, w - 1)).abs().mean_dim(0, true, Kind::Float);
-    let gy = (target_log.narrow(1, 1, h - 1) - target_log.narrow(1, 0, h - 1)).abs().mean_dim(0, true, Kind::Float);
-    ((-gx / EDGE_SCALE).exp(), (-gy / EDGE_SCALE).exp())
+    let (gx, gy) = abs_differences(target_log);
+    let weight = |g: Tensor| (-g.mean_dim(0, true, Kind::Float) / EDGE_SCALE).exp();
+    (weight(gx), weight(gy))
+}
+
+/// Per-pixel L2 norm of a neural map: `[C, H, W]` -> `[H, W]` (a tiny
+/// floor under the root keeps its gradient finite at an all-zero pixel).
+fn pixel_norms(map: &Tensor) -> Tensor {
+    (map.square().sum_dim_intlist([0i64].as_slice(), false, Kind::Float) + 1e-12).sqrt()
 }
 
 /// Optimises `material.neural_map` so that its identity render matches
@@ -158,15 +167,13 @@ pub fn refine(material: &mut NeuralMaterial, photo: &Tensor, clipped_photo: bool
     let clipped = clipped_photo.then(|| photo.ge(CLIP_LEVEL));
     let (edge_x, edge_y) = edge_weights(&target);
 
-    let identity = NeuralMaterial::identity_config();
-    let (l, v) = crate::geometry::config_tensors(&[identity], device);
-    let (wi, wo) = direction_maps_for(&l.view([1, 1, 3]), &v.view([1, 1, 3]), h, w);
+    let (wi, wo) = material.direction_maps(&[NeuralMaterial::identity_config()]);
     let code = tch::no_grad(|| material.renderer.encode_maps(&wi, &wo))?; // [1, 1, E, H, W]
     let render = |map: &Tensor| -> Result<Tensor> { Ok(material.renderer.render_code(&map.unsqueeze(0), &code)?.get(0).get(0)) };
 
     let initial = material.neural_map.detach().copy();
     let scale = initial.square().mean(Kind::Float).sqrt().double_value(&[]).max(1e-6);
-    let max_norm = initial.square().sum_dim_intlist([0i64].as_slice(), false, Kind::Float).sqrt().max();
+    let max_norm = pixel_norms(&initial).max();
     let data_before = tch::no_grad(|| -> Result<f64> { Ok(identity_l1(&render(&initial)?, &target, clipped.as_ref()).double_value(&[])) })?;
 
     let map = initial.copy().set_requires_grad(true);
@@ -179,7 +186,7 @@ pub fn refine(material: &mut NeuralMaterial, photo: &Tensor, clipped_photo: bool
         let delta = &map - &initial;
         let pull = delta.square().mean(Kind::Float) * (cfg.pull_weight / (scale * scale));
         let smooth = smoothness(&delta, &edge_x, &edge_y) * (cfg.smooth_weight / scale);
-        let norms = (map.square().sum_dim_intlist([0i64].as_slice(), false, Kind::Float) + 1e-12).sqrt();
+        let norms = pixel_norms(&map);
         let range = (norms - &max_norm).relu().square().mean(Kind::Float) * (cfg.range_weight / (scale * scale));
         let loss = data + pull + smooth + range;
         let value = loss.double_value(&[]);
@@ -215,8 +222,8 @@ pub fn refine(material: &mut NeuralMaterial, photo: &Tensor, clipped_photo: bool
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::{LightView, MODEL_FOV_DEG};
-    use crate::infer::{estimate, overhead_camera, Crop, PreparedPhoto};
+    use crate::geometry::LightView;
+    use crate::infer::{estimate, overhead_camera, PreparedPhoto};
     use crate::model::{Model, ModelConfig, ModelInfo};
     use crate::svbrdf::Svbrdf;
     use tch::Device;
@@ -246,14 +253,7 @@ mod tests {
     }
 
     fn estimate_from(model: &Model, info: &ModelInfo, photo: &crate::image::Image, ldr: bool) -> NeuralMaterial {
-        let prepared = PreparedPhoto {
-            linear: photo.clone(),
-            ldr,
-            fov_deg: MODEL_FOV_DEG,
-            crop: Crop { x0: 0, y0: 0, side: SIZE, source_width: SIZE, source_height: SIZE },
-            source: "test".into(),
-        };
-        estimate(model, info, &prepared).unwrap()
+        estimate(model, info, &PreparedPhoto::at_model_view(photo.clone(), ldr, "test")).unwrap()
     }
 
     fn log_render(m: &NeuralMaterial, c: &LightView) -> Tensor {
@@ -340,14 +340,7 @@ mod tests {
         tch::manual_seed(3);
         let model = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
         let photo = crate::image::Image::from_fn(3, 16, 16, |c, y, x| 0.1 + 0.05 * c as f32 + 0.01 * ((x + y) % 5) as f32);
-        let prepared = PreparedPhoto {
-            linear: photo,
-            ldr: true,
-            fov_deg: MODEL_FOV_DEG,
-            crop: Crop { x0: 0, y0: 0, side: 16, source_width: 16, source_height: 16 },
-            source: "t".into(),
-        };
-        estimate(&model, &ModelInfo { ldr_input: true, steps: 0 }, &prepared).unwrap()
+        estimate(&model, &ModelInfo { ldr_input: true, steps: 0 }, &PreparedPhoto::at_model_view(photo, true, "t")).unwrap()
     }
 
     #[test]
