@@ -2,10 +2,84 @@
 //! [-1,1]^2 in the z = 0 plane with macro normal +z; every pixel is shaded
 //! with its own light and view directions (perspective rectification).
 
+use anyhow::{bail, Result};
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
+
+/// A point or direction in f64: the scalar GGX oracle, the shadow
+/// marcher and the samplers below share these helpers.
+pub type Vec3 = [f64; 3];
+
+pub fn dot(a: Vec3, b: Vec3) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+pub fn normalize(v: Vec3) -> Vec3 {
+    let n = dot(v, v).sqrt().max(1e-12);
+    [v[0] / n, v[1] / n, v[2] / n]
+}
+
+pub fn sub(a: Vec3, b: Vec3) -> Vec3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+pub fn add(a: Vec3, b: Vec3) -> Vec3 {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+pub fn cross(a: Vec3, b: Vec3) -> Vec3 {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+/// f32 normalisation for the CPU renderers.
+pub fn normalize3(v: [f32; 3]) -> [f32; 3] {
+    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-12);
+    [v[0] / n, v[1] / n, v[2] / n]
+}
+
+/// Largest light or camera coordinate, in units of the material's
+/// half-width. The renderers normalise directions in f32 (f64 for the
+/// tensor GGX one): far beyond this they lose all precision, and near
+/// 1e308 the squared length overflows and the render turns NaN.
+pub const MAX_POSITION: f64 = 1e6;
+
+/// Parses a position given as `X,Y,Z` (command-line options, capture
+/// folders): three finite numbers within +-[`MAX_POSITION`].
+pub fn parse_position(s: &str) -> std::result::Result<Vec3, String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    if parts.len() != 3 {
+        return Err(format!("expected X,Y,Z (three comma-separated numbers), got '{s}'"));
+    }
+    let mut v = [0.0; 3];
+    for (i, p) in parts.iter().enumerate() {
+        v[i] = p.parse::<f64>().map_err(|_| format!("'{p}' is not a number (in '{s}')"))?;
+        if !v[i].is_finite() {
+            return Err(format!("'{p}' is not a finite number"));
+        }
+        if v[i].abs() > MAX_POSITION {
+            return Err(format!("'{p}' is beyond +-{MAX_POSITION:e} (positions are in units of the material's half-width)"));
+        }
+    }
+    Ok(v)
+}
+
+/// Checks that a light or camera position is above the material plane.
+pub fn above_surface(what: &str, p: Vec3) -> Result<Vec3> {
+    if p[2] <= 0.0 {
+        bail!("the {what} position {},{},{} is not above the surface: z must be > 0", p[0], p[1], p[2]);
+    }
+    Ok(p)
+}
+
+/// Resolves render positions: defaults are the co-located input configuration.
+pub fn light_view_or_input(light: Option<Vec3>, view: Option<Vec3>) -> Result<LightView> {
+    let d = fov_to_distance(MODEL_FOV_DEG);
+    let view = above_surface("camera", view.unwrap_or([0.0, 0.0, d]))?;
+    let light = above_surface("light", light.unwrap_or(view))?;
+    Ok(LightView { light, view })
+}
 
 /// The model's field of view in degrees (the input photo's camera).
 pub const MODEL_FOV_DEG: f64 = 28.0;
@@ -48,15 +122,28 @@ pub fn direction_maps(positions: &Tensor, points: &Tensor) -> Tensor {
     normalize_channels(&diff)
 }
 
+/// Normalizes the 3 vector components along dimension `dim` (1 for
+/// `[B, 3, H, W]` maps, -3 for `[N, K, 3, H, W]`, -1 for `[..., 3]` rows).
+pub fn normalize_along(v: &Tensor, dim: i64) -> Tensor {
+    let norm = v.square().sum_dim_intlist([dim].as_slice(), true, v.kind()).sqrt().clamp_min(1e-12);
+    v / norm
+}
+
 /// Normalizes along dimension 1 (the 3 vector components) of `[.., 3, H, W]`.
 pub fn normalize_channels(v: &Tensor) -> Tensor {
-    let norm = v.square().sum_dim_intlist([1i64].as_slice(), true, v.kind()).sqrt().clamp_min(1e-12);
-    v / norm
+    normalize_along(v, 1)
+}
+
+/// Half vectors h = normalize(wi + wo) with the 3 components along `dim`
+/// (see [`normalize_along`]): the GGX renderer, M_est's h_z input and
+/// ND_enc all use this one.
+pub fn half_vectors_along(wi: &Tensor, wo: &Tensor, dim: i64) -> Tensor {
+    normalize_along(&(wi + wo), dim)
 }
 
 /// Half vectors h = normalize(wi + wo), both `[B, 3, H, W]`.
 pub fn half_vectors(wi: &Tensor, wo: &Tensor) -> Tensor {
-    normalize_channels(&(wi + wo))
+    half_vectors_along(wi, wo, 1)
 }
 
 /// A point light and a camera position (world units, material at z = 0).
@@ -105,7 +192,7 @@ pub fn sample_reflect<R: Rng>(rng: &mut R, d_view: f64) -> (LightView, [f64; 3])
     let p = [px, py, 0.0];
     let dir = uniform_hemisphere(rng);
     let view = [d_view * dir[0], d_view * dir[1], d_view * dir[2]];
-    let to_view = crate::svbrdf::scalar::normalize(crate::svbrdf::scalar::sub(view, p));
+    let to_view = normalize(sub(view, p));
     // Mirror about the normal (0,0,1): flip the tangential components.
     let mirror = [-to_view[0], -to_view[1], to_view[2]];
     let dist = normal.sample(rng).abs() + 0.5;
@@ -147,7 +234,6 @@ pub fn config_tensors(configs: &[LightView], device: Device) -> (Tensor, Tensor)
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::svbrdf::scalar::{add, normalize, sub};
     use rand::SeedableRng;
     use rand_pcg::Pcg64;
 

@@ -87,6 +87,17 @@ impl Image {
         Self { data: self.data.iter().map(|&v| f(v)).collect(), ..*self }
     }
 
+    /// The display transform of a linear image ([`crate::spaces::gamma_encode`]).
+    pub fn to_display(&self) -> Self {
+        self.map(crate::spaces::gamma_encode)
+    }
+
+    /// Display image of a linear render: [`crate::spaces::linear_to_display`].
+    /// linear: `[3, H, W]`.
+    pub fn display_of(linear: &tch::Tensor) -> anyhow::Result<Self> {
+        Self::from_tensor(&crate::spaces::linear_to_display(linear))
+    }
+
     /// Rectangular crop: rows `top..top+h`, columns `left..left+w`.
     /// One of the 8 symmetries of the square grid: bit 0 reverses the
     /// columns, bit 1 the rows, bit 2 then swaps rows and columns

@@ -3,8 +3,8 @@
 
 pub mod archive;
 pub mod baselines;
-pub mod cli;
 pub mod data;
+pub mod device;
 pub mod eval;
 pub mod geometry;
 pub mod image;
@@ -13,6 +13,7 @@ pub mod io;
 pub mod limits;
 pub mod lpips;
 pub mod model;
+pub mod optim;
 pub mod spaces;
 pub mod svbrdf;
 pub mod train;

@@ -1,5 +1,9 @@
 use clap::Parser;
 
+/// The command line: parses options and calls into the library; nothing
+/// in the library depends on it.
+mod cli;
+
 /// libtorch's OpenMP threads busy-wait after each parallel region by
 /// default, which starves the rayon threads that generate and render
 /// training data (measured: 4.4 -> 23 materials/s in `bench data`). The
@@ -29,8 +33,8 @@ fn main() {
         let first = msg.lines().next().unwrap_or("").to_string();
         eprintln!("error: internal error: {first}");
     }));
-    let cli = flashmat::cli::Cli::parse();
-    match std::panic::catch_unwind(|| flashmat::cli::run(cli)) {
+    let cli = cli::Cli::parse();
+    match std::panic::catch_unwind(|| cli::run(cli)) {
         Ok(Ok(())) => {}
         Ok(Err(e)) => {
             eprintln!("error: {e:#}");

@@ -113,7 +113,7 @@ fn bundled_model_round_trips_8_bit_photos_of_held_out_materials() {
 /// recipe (models/MODEL.md) says.
 #[test]
 fn bundled_model_records_its_method_and_steps() {
-    use flashmat::baselines::{read_header_metadata, METHOD_KEY};
+    use flashmat::model::file::{read_header_metadata, METHOD_KEY};
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
     for (file, method, steps, ldr) in [
         ("flashmat.safetensors", "flashmat", "4000", true),

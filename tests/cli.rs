@@ -192,7 +192,7 @@ fn baselines_train_resume_export_and_eval() {
         let model = dir.path().join(format!("{method}.safetensors"));
         let out = flashmat(&["export", "--run", &s(&run), "-o", &s(&model)]);
         assert!(out.status.success(), "{method}: {}", String::from_utf8_lossy(&out.stderr));
-        let meta = flashmat::baselines::read_header_metadata(&model).unwrap();
+        let meta = flashmat::model::file::read_header_metadata(&model).unwrap();
         assert_eq!(meta.get("method").map(String::as_str), Some(method));
         files.push(model);
     }

@@ -38,8 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .constants import DOT_EPS, FRESNEL_SG_A, FRESNEL_SG_B, SPECULAR_DENOM_EPS
+
 GAMMA = 2.2
-DOT_EPS = 1e-8
 MAPS = ("diffuse", "specular", "roughness", "normals")
 
 
@@ -56,13 +57,13 @@ def ggx_radiance(kd, ks, roughness, normal, wi, wo):
     noh, nov, nol, voh = dot(n, h), dot(n, wo), dot(n, wi), dot(wo, h)
     alpha = r * r
     a2 = alpha * alpha
-    d = a2 / (math.pi * np.maximum(noh * noh * (a2 - 1.0) + 1.0, 1e-8) ** 2)
-    k = np.maximum(alpha / 2.0, 1e-8)
+    d = a2 / (math.pi * np.maximum(noh * noh * (a2 - 1.0) + 1.0, DOT_EPS) ** 2)
+    k = np.maximum(alpha / 2.0, DOT_EPS)
     g1 = lambda x: x / (x * (1.0 - k) + k)
     g = g1(nol) * g1(nov)
-    fw = np.exp2((-5.55473 * voh - 6.98316) * voh)
+    fw = np.exp2((FRESNEL_SG_A * voh + FRESNEL_SG_B) * voh)
     f = ks + (1.0 - ks) * fw[:, None]
-    brdf = kd / math.pi + (d * g)[:, None] * f / (4.0 * nol * nov + 1e-12)[:, None]
+    brdf = kd / math.pi + (d * g)[:, None] * f / (4.0 * nol * nov + SPECULAR_DENOM_EPS)[:, None]
     return brdf * (nol * math.pi)[:, None]
 
 
@@ -216,13 +217,13 @@ def flashmat_ggx_class():
             voh = dr.maximum(dr.dot(cam, h), DOT_EPS)
             alpha = rough * rough
             a2 = alpha * alpha
-            den = dr.maximum(noh * noh * (a2 - 1.0) + 1.0, 1e-8)
+            den = dr.maximum(noh * noh * (a2 - 1.0) + 1.0, DOT_EPS)
             d = a2 / (math.pi * den * den)
-            k = dr.maximum(alpha * 0.5, 1e-8)
+            k = dr.maximum(alpha * 0.5, DOT_EPS)
             g = (nol / (nol * (1.0 - k) + k)) * (nov / (nov * (1.0 - k) + k))
-            fw = dr.exp2((-5.55473 * voh - 6.98316) * voh)
+            fw = dr.exp2((FRESNEL_SG_A * voh + FRESNEL_SG_B) * voh)
             f = ks + (1.0 - ks) * fw
-            brdf = kd * (1.0 / math.pi) + f * (d * g / (4.0 * nol * nov + 1e-12))
+            brdf = kd * (1.0 / math.pi) + f * (d * g / (4.0 * nol * nov + SPECULAR_DENOM_EPS))
             # eval = R / pi = f (n . wi)
             return dr.select(active, brdf * nol, 0.0), active
 

@@ -21,17 +21,12 @@ pub mod relight;
 pub use analytic::AnalyticNet;
 pub use relight::{RelightEncoded, RelightUNet};
 
-use crate::archive::Archive;
-use crate::model::{count_trainable, ModelConfig, ModelInfo, MODEL_FORMAT, MODEL_VERSION};
+use crate::model::file::{self, ModelFile, ModelInfo};
+use crate::model::{count_trainable, ModelConfig};
 use anyhow::{bail, ensure, Context, Result};
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
 use std::path::Path;
 use tch::{nn, Device, Tensor};
-
-/// Metadata key of model files naming the method (absent in files written
-/// before the baselines existed: those are flashmat models).
-pub const METHOD_KEY: &str = "method";
 
 /// What `flashmat train --method` trains.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -50,7 +45,7 @@ impl TrainMethod {
     /// The name used on the command line and in files.
     pub fn name(self) -> &'static str {
         match self {
-            Self::Flashmat => "flashmat",
+            Self::Flashmat => file::FLASHMAT_METHOD,
             Self::Analytic => "analytic",
             Self::RelightUnet => "relight-unet",
         }
@@ -147,7 +142,7 @@ impl Baseline {
     /// metadata the method, model id, width configuration and `info`.
     /// `half` stores large weight tensors as f16 (as flashmat exports do).
     pub fn save(&self, path: impl AsRef<Path>, info: &ModelInfo, half: bool) -> Result<()> {
-        crate::model::save_model_file(path.as_ref(), self.named_variables(), self.method.name(), &self.model_id(), &self.config, info, half)
+        file::save_model_file(path.as_ref(), self.named_variables(), self.method.name(), &self.model_id(), &self.config, info, half)
     }
 
     /// Reads a file written by [`Baseline::save`]. Flashmat model files,
@@ -156,17 +151,13 @@ impl Baseline {
     pub fn load(path: impl AsRef<Path>, device: Device) -> Result<(Self, ModelInfo)> {
         let path = path.as_ref();
         let ctx = || format!("model file {}", path.display());
-        let a = Archive::load(path, MODEL_FORMAT, MODEL_VERSION)?;
-        let method = match a.metadata.get(METHOD_KEY) {
-            Some(m) => TrainMethod::from_name(m).with_context(ctx)?,
-            None => TrainMethod::Flashmat,
-        };
+        let f = ModelFile::load(path)?;
+        let method = TrainMethod::from_name(&f.method).with_context(ctx)?;
         ensure!(!method.is_flashmat(), "{} holds a flashmat model, not a baseline", ctx());
-        let cfg = ModelConfig::from_toml_str(a.meta("config").with_context(ctx)?).with_context(ctx)?;
-        let info: ModelInfo = serde_json::from_str(a.meta("info").with_context(ctx)?).with_context(ctx)?;
-        let b = Self::new(method, &cfg, device)?;
-        ensure!(a.meta("model_id").with_context(ctx)? == b.model_id(), "{}: model id does not match its configuration", ctx());
-        crate::archive::restore_vars(&b.vs.variables(), &a.with_prefix(""), &ctx())?;
+        let b = Self::new(method, &f.config, device)?;
+        ensure!(f.model_id == b.model_id(), "{}: model id does not match its configuration", ctx());
+        crate::archive::restore_vars(&b.vs.variables(), &f.archive.with_prefix(""), &ctx())?;
+        let info = f.info;
         Ok((b, info))
     }
 }
@@ -176,31 +167,8 @@ impl Baseline {
 /// flashmat models. Files that are not readable model files give an error
 /// (callers may then let the full loader report it).
 pub fn file_method(path: &Path) -> Result<TrainMethod> {
-    let meta = read_header_metadata(path)?;
-    match meta.get("flashmat.format") {
-        Some(f) if f == MODEL_FORMAT => {}
-        _ => bail!("{} is not a flashmat model file", path.display()),
-    }
-    match meta.get(METHOD_KEY) {
-        Some(m) => TrainMethod::from_name(m).with_context(|| format!("model file {}", path.display())),
-        None => Ok(TrainMethod::Flashmat),
-    }
-}
-
-/// The `__metadata__` of a safetensors file's JSON header (8-byte
-/// little-endian length, then the header).
-pub fn read_header_metadata(path: &Path) -> Result<BTreeMap<String, String>> {
-    use std::io::Read;
-    let mut f = std::fs::File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let mut len = [0u8; 8];
-    f.read_exact(&mut len).with_context(|| format!("{}: too short for a model file", path.display()))?;
-    let len = u64::from_le_bytes(len);
-    ensure!(len <= 100_000_000, "{}: not a safetensors file", path.display());
-    let mut header = vec![0u8; len as usize];
-    f.read_exact(&mut header).with_context(|| format!("{}: truncated header", path.display()))?;
-    let v: serde_json::Value = serde_json::from_slice(&header).with_context(|| format!("{}: unreadable header", path.display()))?;
-    let meta = v.get("__metadata__").and_then(|m| m.as_object()).cloned().unwrap_or_default();
-    Ok(meta.into_iter().filter_map(|(k, v)| v.as_str().map(|s| (k, s.to_string()))).collect())
+    let name = file::recorded_method(path)?;
+    TrainMethod::from_name(&name).with_context(|| format!("model file {}", path.display()))
 }
 
 #[cfg(test)]

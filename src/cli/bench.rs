@@ -1,12 +1,12 @@
 //! `flashmat bench ...`: throughput measurements, printed with the ratio to a
 //! baseline measured in the same run.
 
-use crate::data::procedural;
-use crate::data::samples::{make_batch, stack_maps, SampleConfig};
-use crate::geometry::{config_tensors, pixel_center, sample_configs, Sampling};
-use crate::svbrdf::cpu;
-use crate::svbrdf::render::render;
-use crate::svbrdf::scalar;
+use flashmat::data::procedural;
+use flashmat::data::samples::{make_batch, stack_maps, SampleConfig};
+use flashmat::geometry::{config_tensors, pixel_center, sample_configs, Sampling};
+use flashmat::svbrdf::cpu;
+use flashmat::svbrdf::render::render;
+use flashmat::svbrdf::scalar;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 use rand::SeedableRng;
@@ -114,8 +114,8 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Smoke(a) => smoke(a),
         BenchCommand::Refine(a) => bench_refine(a),
         BenchCommand::Infer(a) => {
-            let device = super::train::parse_device(&a.device)?;
-            let t = crate::model::bench_infer_runs(&crate::model::ModelConfig::preset(&a.preset)?, a.size, device, a.runs)?;
+            let device = flashmat::device::parse_device(&a.device)?;
+            let t = flashmat::model::bench_infer_runs(&flashmat::model::ModelConfig::preset(&a.preset)?, a.size, device, a.runs)?;
             println!("{t}");
             println!("paper reference: the authors' PyTorch M_est takes about 20 s at 256x256 (paper preset) on a 2-core CPU");
             Ok(())
@@ -127,24 +127,24 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
 /// priors, Adam) against one identity render (ND_enc + M_render forward,
 /// no autograd) of the same material, measured in the same run.
 fn bench_refine(args: &RefineBenchArgs) -> Result<()> {
-    use crate::infer::refine::{refine, RefineConfig};
-    use crate::infer::{NeuralMaterial, PreparedPhoto};
-    let device = super::train::parse_device(&args.device)?;
-    crate::infer::photo::check_size(args.size)?;
+    use flashmat::infer::refine::{refine, RefineConfig};
+    use flashmat::infer::{NeuralMaterial, PreparedPhoto};
+    let device = flashmat::device::parse_device(&args.device)?;
+    flashmat::infer::photo::check_size(args.size)?;
     anyhow::ensure!(args.steps > 0, "--steps must be at least 1");
     tch::manual_seed(0);
-    let config = crate::model::ModelConfig::preset(&args.preset)?;
-    let model = crate::model::Model::new(&config, device)?;
+    let config = flashmat::model::ModelConfig::preset(&args.preset)?;
+    let model = flashmat::model::Model::new(&config, device)?;
     let material = procedural::test_material(0, args.size);
-    let linear = crate::svbrdf::render::render_material(&material, &[NeuralMaterial::identity_config()])?.remove(0);
+    let linear = flashmat::svbrdf::render::render_material(&material, &[NeuralMaterial::identity_config()])?.remove(0);
     let photo = PreparedPhoto::at_model_view(linear.clone(), true, "bench");
-    let info = crate::model::ModelInfo { ldr_input: true, steps: 0 };
-    let mut neural = crate::infer::estimate(&model, &info, &photo)?;
+    let info = flashmat::model::ModelInfo { ldr_input: true, steps: 0 };
+    let mut neural = flashmat::infer::estimate(&model, &info, &photo)?;
     let render_ms = median_ms(device, 3, || neural.render(&[NeuralMaterial::identity_config()]).map(|_| ()))?;
     let photo_t = linear.to_tensor().clamp(0.0, 1.0);
     let report = refine(&mut neural, &photo_t, true, &RefineConfig::with_steps(args.steps), |_| {})?;
     let step_ms = report.seconds * 1000.0 / args.steps as f64;
-    let default_steps = crate::infer::refine::DEFAULT_REFINE_STEPS;
+    let default_steps = flashmat::infer::refine::DEFAULT_REFINE_STEPS;
     println!(
         "refine {} {}x{} on {:?}: {step_ms:.1} ms/step ({:.2}x one identity render of {render_ms:.1} ms); the default {default_steps} steps: {:.1} s",
         args.preset,
@@ -166,16 +166,16 @@ pub fn peak_memory_gib() -> Option<f64> {
 }
 
 fn smoke(args: &SmokeArgs) -> Result<()> {
-    use crate::train::smoke::{compare_devices, SMOKE_TOLERANCE};
+    use flashmat::train::smoke::{compare_devices, SMOKE_TOLERANCE};
     println!(
         "libtorch: CUDA available {}, {} CUDA device(s), cuDNN {}",
         tch::Cuda::is_available(),
         tch::Cuda::device_count(),
         tch::Cuda::cudnn_is_available()
     );
-    let device = super::train::parse_device(&args.device)?;
-    let model = crate::model::ModelConfig::preset(&args.preset)?;
-    let cfg = crate::train::TrainConfig { model, crop: args.crop, material_size: args.crop.max(256), outputs_per_material: 4, ..Default::default() };
+    let device = flashmat::device::parse_device(&args.device)?;
+    let model = flashmat::model::ModelConfig::preset(&args.preset)?;
+    let cfg = flashmat::train::TrainConfig { model, crop: args.crop, material_size: args.crop.max(256), outputs_per_material: 4, ..Default::default() };
     let r = compare_devices(&cfg, device, args.steps)?;
     for (a, b) in r.cpu.iter().zip(&r.device) {
         println!(
@@ -192,15 +192,15 @@ fn smoke(args: &SmokeArgs) -> Result<()> {
 }
 
 fn bench_train(args: &TrainBenchArgs) -> Result<()> {
-    use crate::train::{batches::batch_for_step, TrainConfig, Trainer, UpdateScheme};
-    let device = super::train::parse_device(&args.device)?;
-    let model = crate::model::ModelConfig::preset(&args.preset)?;
+    use flashmat::train::{batches::batch_for_step, TrainConfig, Trainer, UpdateScheme};
+    let device = flashmat::device::parse_device(&args.device)?;
+    let model = flashmat::model::ModelConfig::preset(&args.preset)?;
     println!("flashmat bench train: {} preset, crop {}, 2 materials x (1 + {}) renders, {device:?}, {} torch threads", args.preset, args.crop, args.outputs, tch::get_num_threads());
     let mut results = vec![];
     for scheme in [UpdateScheme::Alternating, UpdateScheme::Combined] {
         let cfg = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), outputs_per_material: args.outputs, scheme, ..Default::default() };
         let mut trainer = Trainer::new(cfg.clone(), device)?;
-        let stream = crate::train::batches::MaterialStream::open(&cfg)?;
+        let stream = flashmat::train::batches::MaterialStream::open(&cfg)?;
         let batches: Vec<_> = (0..=args.steps as u64).map(|s| batch_for_step(&cfg, &stream.materials(&cfg, s)?, s, device)).collect::<Result<_>>()?;
         trainer.train_step(&batches[0])?;
         let t = Instant::now();
@@ -242,8 +242,8 @@ fn median_ms(device: Device, runs: usize, mut f: impl FnMut() -> Result<()>) -> 
 /// (forward + backward where the step has both) with its analytic FLOPs
 /// and the GFLOP/s it reaches against this machine's fp32 matmul rate,
 /// measured in the same run.
-fn step_breakdown(args: &TrainBenchArgs, model: &crate::model::ModelConfig, device: Device) -> Result<()> {
-    use crate::train::{batches::batch_for_step, losses, TrainConfig, Trainer};
+fn step_breakdown(args: &TrainBenchArgs, model: &flashmat::model::ModelConfig, device: Device) -> Result<()> {
+    use flashmat::train::{batches::batch_for_step, losses, TrainConfig, Trainer};
     use tch::Kind;
     let cfg = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), outputs_per_material: args.outputs, ..Default::default() };
     let runs = args.steps.max(1);
@@ -258,7 +258,7 @@ fn step_breakdown(args: &TrainBenchArgs, model: &crate::model::ModelConfig, devi
     println!("\nstep breakdown (alternating scheme; parts timed on their own, median of {runs}); fp32 1024x1024 matmul: {peak:.1} GFLOP/s");
 
     let trainer = Trainer::new(cfg.clone(), device)?;
-    let stream = crate::train::batches::MaterialStream::open(&cfg)?;
+    let stream = flashmat::train::batches::MaterialStream::open(&cfg)?;
     let mut rows: Vec<(&str, f64, f64)> = vec![];
     let mut materials = stream.materials(&cfg, 0)?;
     rows.push(("data: procedural materials + crops", median_ms(device, runs, || {
@@ -272,13 +272,13 @@ fn step_breakdown(args: &TrainBenchArgs, model: &crate::model::ModelConfig, devi
     })?, 0.0));
     let (nb, k) = (cfg.materials_per_batch as f64, cfg.outputs_per_material as f64);
     let px = (args.crop * args.crop) as f64;
-    let est_flops = 3.0 * nb * crate::model::est_flops(model, args.crop as i64, args.crop as i64);
+    let est_flops = 3.0 * nb * flashmat::model::est_flops(model, args.crop as i64, args.crop as i64);
     rows.push(("M_est forward + backward", median_ms(device, runs, || {
         trainer.model.est.forward_t(&batch.est_input, true)?.square().mean(Kind::Float).backward();
         Ok(())
     })?, est_flops));
     let neural = tch::no_grad(|| trainer.model.est.forward_t(&batch.est_input, false))?;
-    let render_flops = 3.0 * nb * k * px * crate::model::renderer_flops_per_row(model);
+    let render_flops = 3.0 * nb * k * px * flashmat::model::renderer_flops_per_row(model);
     let mut pred = Tensor::zeros([1], opts);
     rows.push(("ND_enc + M_render forward + backward", median_ms(device, runs, || {
         let leaf = neural.detach().set_requires_grad(true);
@@ -286,7 +286,7 @@ fn step_breakdown(args: &TrainBenchArgs, model: &crate::model::ModelConfig, devi
         pred.mean(Kind::Float).backward();
         Ok(())
     })?, render_flops));
-    let target_log = crate::spaces::to_log(&batch.targets);
+    let target_log = flashmat::spaces::to_log(&batch.targets);
     let photo_log = batch.est_input.narrow(1, 0, 3);
     let pred = pred.detach();
     rows.push(("LPIPS forward + backward", median_ms(device, runs, || {

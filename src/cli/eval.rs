@@ -1,11 +1,11 @@
 //! `flashmat eval`: scores models and the print-out baseline on held-out
-//! materials (work done in `crate::eval`).
+//! materials (work done in `flashmat::eval`).
 
-use crate::eval::captures::CaptureEvalOptions;
-use crate::eval::shadows::ShadowEvalOptions;
-use crate::eval::{self, EvalOptions, DEFAULT_CONFIGS, PROCEDURAL_TEST};
-use crate::svbrdf::shadow::ShadowOptions;
-use crate::geometry::Sampling;
+use flashmat::eval::captures::CaptureEvalOptions;
+use flashmat::eval::shadows::ShadowEvalOptions;
+use flashmat::eval::{self, EvalOptions, DEFAULT_CONFIGS, PROCEDURAL_TEST};
+use flashmat::svbrdf::shadow::ShadowOptions;
+use flashmat::geometry::Sampling;
 use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -59,7 +59,7 @@ pub struct EvalArgs {
     pub device: String,
     /// Score every flashmat model with its estimates refined on the photo for STEPS steps (rows NAME+refineSTEPS;
     /// 100 when no number is given; comma-separated for several, 0 = the unrefined model, e.g. 0,100).
-    #[arg(long, value_name = "STEPS", num_args = 0..=1, value_delimiter = ',', default_missing_value = crate::infer::refine::DEFAULT_REFINE_STEPS_ARG)]
+    #[arg(long, value_name = "STEPS", num_args = 0..=1, value_delimiter = ',', default_missing_value = flashmat::infer::refine::DEFAULT_REFINE_STEPS_ARG)]
     pub refine: Option<Vec<usize>>,
     #[command(flatten)]
     pub refine_weights: super::infer::RefineWeights,
@@ -67,7 +67,7 @@ pub struct EvalArgs {
 
 impl EvalArgs {
     /// The variants asked for, checked (0 steps: the unrefined model).
-    fn refine_configs(&self) -> Result<Vec<crate::infer::refine::RefineConfig>> {
+    fn refine_configs(&self) -> Result<Vec<flashmat::infer::refine::RefineConfig>> {
         let mut steps = self.refine.clone().unwrap_or_default();
         steps.dedup();
         let configs: Vec<_> = steps.into_iter().map(|s| self.refine_weights.config(s)).collect();
@@ -92,7 +92,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             dir: dir.clone(),
             out: args.output.clone(),
             size: args.size,
-            device: super::train::parse_device(&args.device)?,
+            device: flashmat::device::parse_device(&args.device)?,
             progress: true,
             refine: args.refine_configs()?,
         };
@@ -115,7 +115,7 @@ fn eval_options(args: &EvalArgs) -> Result<EvalOptions> {
         limit: args.limit,
         configs: args.configs,
         ldr_input: args.ldr_input,
-        device: super::train::parse_device(&args.device)?,
+        device: flashmat::device::parse_device(&args.device)?,
         progress: true,
         refine: args.refine_configs()?,
     })
@@ -123,22 +123,22 @@ fn eval_options(args: &EvalArgs) -> Result<EvalOptions> {
 
 /// `eval --uniform`: the uniform-colour check of every flashmat model given.
 fn uniform_check(args: &EvalArgs) -> Result<()> {
-    let device = super::train::parse_device(&args.device)?;
+    let device = flashmat::device::parse_device(&args.device)?;
     anyhow::ensure!(args.size % 8 == 0 && args.size >= 16, "--size must be a multiple of 8 and at least 16 (got {})", args.size);
     let mut text = String::from("# Uniform-colour check\n\n");
     let mut all = serde_json::Map::new();
     for path in &args.models {
-        anyhow::ensure!(path != crate::eval::PRINTOUT, "--uniform scores flashmat models (the print-out reproduces its photo exactly)");
-        let loaded = crate::infer::load_model(Some(std::path::Path::new(path)), device)?;
-        let rows = crate::eval::uniform::colour_check(&loaded.model, &loaded.info, args.size)?;
+        anyhow::ensure!(path != flashmat::eval::PRINTOUT, "--uniform scores flashmat models (the print-out reproduces its photo exactly)");
+        let loaded = flashmat::infer::load_model(Some(std::path::Path::new(path)), device)?;
+        let rows = flashmat::eval::uniform::colour_check(&loaded.model, &loaded.info, args.size)?;
         let name = std::path::Path::new(path).file_stem().map_or(path.clone(), |s| s.to_string_lossy().into_owned());
-        text.push_str(&crate::eval::uniform::markdown(&name, &rows));
+        text.push_str(&flashmat::eval::uniform::markdown(&name, &rows));
         text.push('\n');
-        all.insert(name, serde_json::json!({ "summary": crate::eval::uniform::summarize(&rows), "rows": rows }));
+        all.insert(name, serde_json::json!({ "summary": flashmat::eval::uniform::summarize(&rows), "rows": rows }));
     }
     std::fs::create_dir_all(&args.output).with_context(|| format!("cannot create {}", args.output.display()))?;
-    crate::io::atomic_write_bytes(&args.output.join("uniform.md"), text.as_bytes())?;
-    crate::io::atomic_write_bytes(&args.output.join("uniform.json"), serde_json::to_string_pretty(&all)?.as_bytes())?;
+    flashmat::io::atomic_write_bytes(&args.output.join("uniform.md"), text.as_bytes())?;
+    flashmat::io::atomic_write_bytes(&args.output.join("uniform.json"), serde_json::to_string_pretty(&all)?.as_bytes())?;
     println!("{text}wrote {}", args.output.display());
     Ok(())
 }
@@ -196,7 +196,7 @@ pub fn shadow_eval(args: &ShadowEvalArgs) -> Result<()> {
         shadows: ShadowOptions { height_scale: args.height_scale, ..Default::default() },
         ldr_input: args.ldr_input,
         grids: args.grids,
-        device: super::train::parse_device(&args.device)?,
+        device: flashmat::device::parse_device(&args.device)?,
         progress: true,
     };
     eval::shadows::run(&opts)?;

@@ -1,10 +1,11 @@
 //! `flashmat estimate | relight | show`: photos to neural materials and
-//! pictures of them (work done in `crate::infer`).
+//! pictures of them (work done in `flashmat::infer`).
 
-use super::materials::{to_display, write_render};
-use super::{above_surface, prepare_output, Vec3Arg};
-use crate::infer::refine::{refine, RefineConfig};
-use crate::infer::{self, NeuralMaterial};
+use super::materials::write_render;
+use super::{prepare_output, Vec3Arg};
+use flashmat::geometry::above_surface;
+use flashmat::infer::refine::{refine, RefineConfig};
+use flashmat::infer::{self, NeuralMaterial};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -31,7 +32,7 @@ pub struct EstimateOptions {
     pub device: String,
     /// After M_est, optimise the neural map for STEPS steps (100 when no number is given) so that its identity
     /// render matches the photo, with the neural BRDF frozen. On a .nmat, refines on its stored input photo.
-    #[arg(long, value_name = "STEPS", num_args = 0..=1, default_missing_value = crate::infer::refine::DEFAULT_REFINE_STEPS_ARG)]
+    #[arg(long, value_name = "STEPS", num_args = 0..=1, default_missing_value = flashmat::infer::refine::DEFAULT_REFINE_STEPS_ARG)]
     pub refine: Option<usize>,
     #[command(flatten)]
     pub refine_weights: RefineWeights,
@@ -147,7 +148,7 @@ fn require_extension(path: &Path, allowed: &[&str], what: &str) -> Result<()> {
 /// to stderr and returns the timing line, which callers print once their
 /// output is written (so a failed write stays a single error line).
 pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMaterial, String)> {
-    let device = super::train::parse_device(&opts.device)?;
+    let device = flashmat::device::parse_device(&opts.device)?;
     let refine_cfg = opts.refine_config()?;
     let t0 = Instant::now();
     let prepared = infer::load_photo(photo, opts.fov, opts.size)?;
@@ -191,12 +192,12 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
 /// PNG/JPEG/EXR signature or extension); see [`estimate_photo`] for the
 /// returned line.
 pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMaterial, Option<String>)> {
-    crate::io::check_input_file(path).with_context(|| format!("cannot read {}", path.display()))?;
+    flashmat::io::check_input_file(path).with_context(|| format!("cannot read {}", path.display()))?;
     if looks_like_image(path) {
         return estimate_photo(path, opts).map(|(m, line)| (m, Some(line)));
     }
     let refine_cfg = opts.refine_config()?;
-    let mut material = NeuralMaterial::load(path, super::train::parse_device(&opts.device)?)?;
+    let mut material = NeuralMaterial::load(path, flashmat::device::parse_device(&opts.device)?)?;
     let line = match &refine_cfg {
         Some(cfg) => {
             // The stored photo is what M_est saw: clamped to [0, 1] for 8-bit photos and LDR-input models.
@@ -211,7 +212,7 @@ pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMater
 
 /// A photo by its signature, or by its extension: a damaged `.png` is
 /// reported as a damaged image, not as a damaged `.nmat`. (A regular file:
-/// see [`crate::io::check_input_file`].)
+/// see [`flashmat::io::check_input_file`].)
 fn looks_like_image(path: &Path) -> bool {
     let mut head = [0u8; 8];
     let n = std::fs::File::open(path).and_then(|mut f| std::io::Read::read(&mut f, &mut head)).unwrap_or(0);
@@ -260,16 +261,16 @@ pub fn relight(a: &RelightArgs) -> Result<()> {
         let bar = ProgressBar::new(n as u64).with_style(ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} ETA {eta}")?);
         let frames = infer::render_frames(&material, &configs, |_| bar.inc(1)).with_context(rendering)?;
         bar.finish_and_clear();
-        let display: Vec<_> = frames.iter().map(to_display).collect();
+        let display: Vec<_> = frames.iter().map(flashmat::image::Image::to_display).collect();
         let secs = t0.elapsed().as_secs_f64();
-        crate::viz::write_gif(&a.output, &display, 8)?;
+        flashmat::viz::write_gif(&a.output, &display, 8)?;
         summary.iter().for_each(|l| eprintln!("{l}"));
         eprintln!("rendered {n} frames in {secs:.2} s ({:.3} s/frame)", secs / n as f64);
     } else {
         let config = if a.identity {
             NeuralMaterial::identity_config()
         } else {
-            crate::geometry::LightView { light: a.light.expect("checked above").0, view: camera }
+            flashmat::geometry::LightView { light: a.light.expect("checked above").0, view: camera }
         };
         let image = material.render_image(&config).with_context(rendering)?;
         let secs = t0.elapsed().as_secs_f64();
@@ -287,7 +288,7 @@ pub fn show(a: &ShowArgs) -> Result<()> {
     let out_dir = prepare_output(&a.output)?;
     let (material, summary) = open_material(&a.material, &a.estimate)?;
     let grid = infer::show::show_grid(&material).with_context(|| format!("rendering {}", a.material.display()))?;
-    crate::io::write_png(&a.output, &grid, crate::io::BitDepth::Eight)?;
+    flashmat::io::write_png(&a.output, &grid, flashmat::io::BitDepth::Eight)?;
     out_dir.keep();
     summary.iter().for_each(|l| eprintln!("{l}"));
     eprintln!(

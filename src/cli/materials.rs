@@ -1,15 +1,15 @@
 //! `flashmat render` and `flashmat svbrdf generate|preview`.
 
 use super::{light_view, prepare_output, CapturesArgs, GenerateArgs, MaterialArgs, PreviewArgs, RenderArgs, Renderer};
-use crate::data::loaders::{open_dataset, write_material_dir, write_matfusion};
-use crate::data::procedural::{self, Family, ProceduralConfig};
-use crate::geometry::LightView;
-use crate::image::Image;
-use crate::svbrdf::cpu;
-use crate::svbrdf::height::ensure_height_field;
-use crate::svbrdf::render::{render_material, render_material_shadowed};
-use crate::svbrdf::shadow::ShadowOptions;
-use crate::svbrdf::{encode_normal_map, Svbrdf};
+use flashmat::data::loaders::{open_dataset, write_material_dir, write_matfusion};
+use flashmat::data::procedural::{self, Family, ProceduralConfig};
+use flashmat::geometry::LightView;
+use flashmat::image::Image;
+use flashmat::svbrdf::cpu;
+use flashmat::svbrdf::height::ensure_height_field;
+use flashmat::svbrdf::render::{render_material, render_material_shadowed};
+use flashmat::svbrdf::shadow::ShadowOptions;
+use flashmat::svbrdf::{encode_normal_map, Svbrdf};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
@@ -40,23 +40,18 @@ pub fn load_material(args: &MaterialArgs) -> Result<(String, Svbrdf)> {
 }
 
 /// Checks the side of a material to generate: at least 1 pixel, at most
-/// [`crate::limits::MATERIAL_SIZE`].
+/// [`flashmat::limits::MATERIAL_SIZE`].
 fn check_material_size(option: &str, size: usize) -> Result<()> {
     anyhow::ensure!(size >= 1, "{option} must be at least 1 pixel");
-    crate::limits::MATERIAL_SIZE.check(option, size as u64)
-}
-
-/// Display encoding of a linear render: clamp to [0,1], then ^(1/2.2).
-pub fn to_display(linear: &Image) -> Image {
-    linear.map(crate::spaces::gamma_encode)
+    flashmat::limits::MATERIAL_SIZE.check(option, size as u64)
 }
 
 /// Writes a linear render: EXR keeps radiance, PNG gets the display transform.
 pub fn write_render(path: &std::path::Path, linear: &Image) -> Result<()> {
     let out_dir = prepare_output(path)?;
     match path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
-        Some("exr") => crate::io::write_exr(path, linear)?,
-        Some("png") => crate::io::write_png(path, &to_display(linear), crate::io::BitDepth::Eight)?,
+        Some("exr") => flashmat::io::write_exr(path, linear)?,
+        Some("png") => flashmat::io::write_png(path, &linear.to_display(), flashmat::io::BitDepth::Eight)?,
         _ => bail!("{}: output must end in .png or .exr", path.display()),
     }
     out_dir.keep();
@@ -91,7 +86,7 @@ pub fn render(args: &RenderArgs) -> Result<()> {
 
 pub fn generate(args: &GenerateArgs) -> Result<()> {
     check_material_size("--size", args.size)?;
-    crate::limits::COUNT.check("--count", args.count as u64)?;
+    flashmat::limits::COUNT.check("--count", args.count as u64)?;
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
     let seeds: Vec<u64> = if args.test_set {
         procedural::test_seeds()
@@ -117,13 +112,13 @@ pub fn generate(args: &GenerateArgs) -> Result<()> {
 
 /// One preview row: diffuse, specular, roughness, normals (display-encoded), co-located render.
 pub fn preview_row(material: &Svbrdf, size: usize) -> Result<Vec<Image>> {
-    let render = render_material(material, &[LightView::colocated(crate::geometry::MODEL_FOV_DEG)])?.remove(0);
+    let render = render_material(material, &[LightView::colocated(flashmat::geometry::MODEL_FOV_DEG)])?.remove(0);
     let cells = [
-        to_display(&material.diffuse),
-        to_display(&material.specular),
+        material.diffuse.to_display(),
+        material.specular.to_display(),
         material.roughness.clone(),
         encode_normal_map(&material.normal),
-        to_display(&render),
+        render.to_display(),
     ];
     Ok(cells.iter().map(|c| c.resize_bilinear(size, size)).collect())
 }
@@ -131,7 +126,7 @@ pub fn preview_row(material: &Svbrdf, size: usize) -> Result<Vec<Image>> {
 pub fn preview(args: &PreviewArgs) -> Result<()> {
     check_material_size("--size", args.size)?;
     // The grid holds every cell: count x 5 cells of size^2 pixels.
-    crate::limits::IMAGE_PIXELS.check_product(format_args!("the preview grid (--count {} x 5 cells of --size {} squared)", args.count, args.size), &[args.count as u64, 5, args.size as u64, args.size as u64])?;
+    flashmat::limits::IMAGE_PIXELS.check_product(format_args!("the preview grid (--count {} x 5 cells of --size {} squared)", args.count, args.size), &[args.count as u64, 5, args.size as u64, args.size as u64])?;
     let out_dir = prepare_output(&args.output)?;
     let materials: Vec<Svbrdf> = match args.source.as_str() {
         "procedural" => {
@@ -145,8 +140,8 @@ pub fn preview(args: &PreviewArgs) -> Result<()> {
         }
     };
     let rows: Vec<Vec<Image>> = materials.par_iter().map(|m| preview_row(m, args.size)).collect::<Result<_>>()?;
-    let grid = crate::viz::grid(&rows, 4)?;
-    crate::io::write_png(&args.output, &grid, crate::io::BitDepth::Eight)?;
+    let grid = flashmat::viz::grid(&rows, 4)?;
+    flashmat::io::write_png(&args.output, &grid, flashmat::io::BitDepth::Eight)?;
     out_dir.keep();
     eprintln!("wrote {} ({} materials: diffuse | specular | roughness | normals | co-located render)", args.output.display(), rows.len());
     Ok(())
@@ -158,12 +153,12 @@ pub fn captures(args: &CapturesArgs) -> Result<()> {
     if args.photos < 2 {
         bail!("--photos must be at least 2 (one to estimate from, others to compare with), got {}", args.photos);
     }
-    crate::limits::COUNT.check("--photos", args.photos as u64)?;
-    crate::infer::photo::check_size(args.material.size)?;
+    flashmat::limits::COUNT.check("--photos", args.photos as u64)?;
+    flashmat::infer::photo::check_size(args.material.size)?;
     let (name, material) = load_material(&args.material)?;
-    let material = crate::eval::fit_to_size(&material, args.material.size)?;
-    let configs = crate::eval::captures::synthetic_configs(args.photos);
-    crate::eval::captures::write_synthetic(&args.output, &material, &configs, args.sample_width)?;
+    let material = flashmat::eval::fit_to_size(&material, args.material.size)?;
+    let configs = flashmat::eval::captures::synthetic_configs(args.photos);
+    flashmat::eval::captures::write_synthetic(&args.output, &material, &configs, args.sample_width)?;
     println!("wrote {} photos of {name} with their positions to {}", configs.len(), args.output.display());
     Ok(())
 }

@@ -9,7 +9,7 @@ pub mod nmat_rows;
 pub mod train;
 
 
-use crate::geometry::{fov_to_distance, LightView, MODEL_FOV_DEG};
+use flashmat::geometry::LightView;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
@@ -77,34 +77,14 @@ pub struct CapturesArgs {
     pub sample_width: f64,
 }
 
-/// Largest light or camera coordinate, in units of the material's
-/// half-width. The renderers normalise directions in f32 (f64 for the
-/// tensor GGX one): far beyond this they lose all precision, and near
-/// 1e308 the squared length overflows and the render turns NaN.
-pub const MAX_POSITION: f64 = 1e6;
-
-/// A 3-vector given as `X,Y,Z`.
+/// A 3-vector given as `X,Y,Z` ([`flashmat::geometry::parse_position`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Vec3Arg(pub [f64; 3]);
 
 impl std::str::FromStr for Vec3Arg {
     type Err = String;
     fn from_str(s: &str) -> std::result::Result<Self, String> {
-        let parts: Vec<&str> = s.split(',').map(str::trim).collect();
-        if parts.len() != 3 {
-            return Err(format!("expected X,Y,Z (three comma-separated numbers), got '{s}'"));
-        }
-        let mut v = [0.0; 3];
-        for (i, p) in parts.iter().enumerate() {
-            v[i] = p.parse::<f64>().map_err(|_| format!("'{p}' is not a number (in '{s}')"))?;
-            if !v[i].is_finite() {
-                return Err(format!("'{p}' is not a finite number"));
-            }
-            if v[i].abs() > MAX_POSITION {
-                return Err(format!("'{p}' is beyond +-{MAX_POSITION:e} (positions are in units of the material's half-width)"));
-            }
-        }
-        Ok(Self(v))
+        flashmat::geometry::parse_position(s).map(Self)
     }
 }
 
@@ -119,13 +99,13 @@ pub fn positive_number(s: &str) -> std::result::Result<f64, String> {
 }
 
 /// clap parser of a count of items held in memory: 1 to
-/// [`crate::limits::COUNT`] (`--limit 0` would average nothing).
+/// [`flashmat::limits::COUNT`] (`--limit 0` would average nothing).
 pub fn count(s: &str) -> std::result::Result<usize, String> {
     let n: usize = s.trim().parse().map_err(|_| format!("'{s}' is not a whole number"))?;
     if n == 0 {
         return Err("must be at least 1".into());
     }
-    crate::limits::COUNT.check("it", n as u64).map_err(|e| e.to_string())?;
+    flashmat::limits::COUNT.check("it", n as u64).map_err(|e| e.to_string())?;
     Ok(n)
 }
 
@@ -218,20 +198,9 @@ pub struct PreviewArgs {
     pub size: usize,
 }
 
-/// Checks that a light or camera position is above the material plane.
-pub fn above_surface(what: &str, p: [f64; 3]) -> Result<[f64; 3]> {
-    if p[2] <= 0.0 {
-        bail!("the {what} position {},{},{} is not above the surface: z must be > 0", p[0], p[1], p[2]);
-    }
-    Ok(p)
-}
-
 /// Resolves render positions: defaults are the co-located input configuration.
 pub fn light_view(light: Option<Vec3Arg>, view: Option<Vec3Arg>) -> Result<LightView> {
-    let d = fov_to_distance(MODEL_FOV_DEG);
-    let view = above_surface("camera", view.map(|v| v.0).unwrap_or([0.0, 0.0, d]))?;
-    let light = above_surface("light", light.map(|v| v.0).unwrap_or(view))?;
-    Ok(LightView { light, view })
+    flashmat::geometry::light_view_or_input(light.map(|v| v.0), view.map(|v| v.0))
 }
 
 /// Folders that [`prepare_output`] created for an output. Dropped without

@@ -6,7 +6,7 @@
 //! ln(1 + R), computed by `NeuralRenderer::forward_rows`.
 
 use super::prepare_output;
-use crate::infer::NeuralMaterial;
+use flashmat::infer::NeuralMaterial;
 use anyhow::{bail, ensure, Result};
 use clap::Args;
 use rand::{Rng, SeedableRng};
@@ -85,7 +85,7 @@ fn robust_pair(rng: &mut Pcg64, quads: &[[i64; 4]]) -> ([f32; 3], [f32; 3]) {
 
 pub fn nmat_rows(a: &NmatRowsArgs) -> Result<()> {
     ensure!(a.count > 0, "--count must be positive");
-    crate::limits::COUNT.check("--count", a.count as u64)?;
+    flashmat::limits::COUNT.check("--count", a.count as u64)?;
     let mat = NeuralMaterial::load(&a.material, Device::Cpu)?;
     let (h, w) = mat.size();
     let c = mat.config.neural_channels as usize;
@@ -133,7 +133,7 @@ pub fn nmat_rows(a: &NmatRowsArgs) -> Result<()> {
         "rows": rows,
     });
     let out_dir = prepare_output(&a.output)?;
-    crate::io::atomic_write_bytes(&a.output, serde_json::to_string_pretty(&doc)?.as_bytes())?;
+    flashmat::io::atomic_write_bytes(&a.output, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     out_dir.keep();
     eprintln!("wrote {} rows to {}", a.count, a.output.display());
     Ok(())

@@ -1,9 +1,9 @@
 //! `flashmat train` and `flashmat export`.
 
-use crate::baselines::TrainMethod;
-use crate::model::ModelConfig;
-use crate::train::run::{self, RunOptions};
-use crate::train::{BaselineTrainer, PixelSampling, TrainConfig, UpdateScheme};
+use flashmat::baselines::TrainMethod;
+use flashmat::model::ModelConfig;
+use flashmat::train::run::{self, RunOptions};
+use flashmat::train::{BaselineTrainer, PixelSampling, TrainConfig, UpdateScheme};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -122,7 +122,7 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Number of CPU threads for libtorch (default: all cores).
-    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=crate::limits::MAX_THREADS))]
+    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=flashmat::limits::MAX_THREADS))]
     pub threads: Option<i32>,
 }
 
@@ -153,13 +153,13 @@ pub struct TeacherArgs {
     #[arg(long, default_value = "cpu")]
     pub device: String,
     /// Number of CPU threads for libtorch (default: all cores).
-    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=crate::limits::MAX_THREADS))]
+    #[arg(long, value_parser = clap::value_parser!(i32).range(1..=flashmat::limits::MAX_THREADS))]
     pub threads: Option<i32>,
 }
 
 pub fn train_teacher(a: &TeacherArgs) -> Result<()> {
     let device = training_setup(a.threads, &a.device, a.minutes)?;
-    let config = crate::train::teacher::TeacherConfig {
+    let config = flashmat::train::teacher::TeacherConfig {
         model: ModelConfig::preset(&a.preset)?,
         pixels: a.pixels,
         lr: a.lr,
@@ -167,10 +167,10 @@ pub fn train_teacher(a: &TeacherArgs) -> Result<()> {
         checkpoint_every: a.checkpoint_every,
         seed: a.seed,
     };
-    let t = crate::train::teacher::run(config, &a.out, device, a.minutes, true)?;
+    let t = flashmat::train::teacher::run(config, &a.out, device, a.minutes, true)?;
     eprintln!(
         "teacher {} at step {} of {}: held-out L1 of ln(1 + R) {:.4}",
-        crate::train::teacher::teacher_file(&a.out).display(),
+        flashmat::train::teacher::teacher_file(&a.out).display(),
         t.step,
         t.config.steps,
         t.held_out_l1()?
@@ -192,24 +192,6 @@ pub struct ExportArgs {
     pub f32: bool,
 }
 
-/// Parses `cpu`, `cuda`, `cuda:N`; CUDA must be present.
-pub fn parse_device(s: &str) -> Result<Device> {
-    match s {
-        "cpu" => Ok(Device::Cpu),
-        "cuda" | "gpu" => {
-            if !tch::Cuda::is_available() {
-                bail!("--device cuda: no CUDA device is available (libtorch sees {} GPUs)", tch::Cuda::device_count());
-            }
-            Ok(Device::Cuda(0))
-        }
-        other => match other.strip_prefix("cuda:").and_then(|n| n.parse::<usize>().ok()) {
-            Some(n) if (n as i64) < tch::Cuda::device_count() => Ok(Device::Cuda(n)),
-            Some(n) => bail!("--device cuda:{n}: only {} CUDA device(s) available", tch::Cuda::device_count()),
-            None => bail!("--device must be cpu, cuda or cuda:N (got '{other}')"),
-        },
-    }
-}
-
 /// The options every training command shares: threads, device, time limit.
 fn training_setup(threads: Option<i32>, device: &str, minutes: Option<f64>) -> Result<Device> {
     if let Some(t) = threads {
@@ -218,7 +200,7 @@ fn training_setup(threads: Option<i32>, device: &str, minutes: Option<f64>) -> R
     if let Some(m) = minutes {
         anyhow::ensure!(m.is_finite() && m >= 0.0, "--minutes must be a number of minutes >= 0 (got {m})");
     }
-    parse_device(device)
+    flashmat::device::parse_device(device)
 }
 
 pub fn train(a: &TrainArgs) -> Result<()> {
@@ -287,9 +269,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
 }
 
 pub fn export(a: &ExportArgs) -> Result<()> {
-    use crate::train::run::RunTrainer;
+    use flashmat::train::run::RunTrainer;
     let ckpt = run::checkpoint_path(&a.run);
-    if ckpt.exists() && !crate::train::Trainer::checkpoint_config(&ckpt)?.method.is_flashmat() {
+    if ckpt.exists() && !flashmat::train::Trainer::checkpoint_config(&ckpt)?.method.is_flashmat() {
         let trainer = BaselineTrainer::resume(&ckpt, Device::Cpu)?;
         let out_dir = super::prepare_output(&a.output)?;
         trainer.export_model(&a.output, !a.f32)?;
@@ -297,7 +279,7 @@ pub fn export(a: &ExportArgs) -> Result<()> {
         eprintln!("wrote {} ({} baseline {}, step {})", a.output.display(), trainer.config.method, trainer.net.model_id(), trainer.step);
         return Ok(());
     }
-    let trainer = crate::train::Trainer::resume(&ckpt, Device::Cpu, None)?;
+    let trainer = flashmat::train::Trainer::resume(&ckpt, Device::Cpu, None)?;
     let out_dir = super::prepare_output(&a.output)?;
     trainer.export_model(&a.output, !a.f32)?;
     out_dir.keep();

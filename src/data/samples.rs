@@ -165,7 +165,7 @@ mod tests {
         // A non-trivial normal so the check is not symmetric.
         for y in 0..h {
             for x in 0..w {
-                let n = scalar::normalize([0.1 * x as f64 / w as f64, -0.2, 1.0]);
+                let n = crate::geometry::normalize([0.1 * x as f64 / w as f64, -0.2, 1.0]);
                 for c in 0..3 {
                     s.normal.set(c, y, x, n[c] as f32);
                 }

@@ -182,10 +182,9 @@ fn read_positions(path: &Path, scale: f64, expected: usize) -> Result<Vec<[f64; 
         if line.trim().is_empty() {
             continue;
         }
-        let v: crate::cli::Vec3Arg =
-            line.parse().map_err(|e: String| anyhow!("{} line {}: {e}", path.display(), i + 1))?;
-        ensure!(v.0[2] > 0.0, "{} line {}: z must be > 0 (above the sample), got '{}'", path.display(), i + 1, line.trim());
-        out.push(v.0.map(|c| c * scale));
+        let v = crate::geometry::parse_position(line).map_err(|e| anyhow!("{} line {}: {e}", path.display(), i + 1))?;
+        ensure!(v[2] > 0.0, "{} line {}: z must be > 0 (above the sample), got '{}'", path.display(), i + 1, line.trim());
+        out.push(v.map(|c| c * scale));
     }
     ensure!(
         out.len() == expected,
@@ -297,7 +296,7 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
 /// Display image of a linear `[3, S, S]` render, shrunk (area) to
 /// [`GRID_CELL`] pixels when larger.
 fn grid_cell(linear: &Tensor) -> Result<Image> {
-    let im = Image::from_tensor(&crate::spaces::linear_to_display(linear))?;
+    let im = Image::display_of(linear)?;
     Ok(if im.width > GRID_CELL { im.resize_area(GRID_CELL, GRID_CELL) } else { im })
 }
 
@@ -417,7 +416,7 @@ pub fn write_synthetic(dir: &Path, material: &Svbrdf, configs: &[LightView], sam
     let renders = super::reference_renders(material, configs);
     for (i, c) in configs.iter().enumerate() {
         let linear = renders.get(i as i64) * falloff(c.light, r0, h, w);
-        let display = Image::from_tensor(&crate::spaces::linear_to_display(&linear))?;
+        let display = Image::display_of(&linear)?;
         crate::io::write_png(&dir.join(format!("{i:02}.png")), &display, crate::io::BitDepth::Eight)?;
     }
     let unit = sample_width / 2.0;

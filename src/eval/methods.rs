@@ -3,7 +3,7 @@
 //! are opened as the method their metadata records (flashmat, analytic,
 //! relight-unet); `printout` needs no file.
 
-use crate::baselines::{read_header_metadata, Baseline, BaselineNet, RelightEncoded, TrainMethod, METHOD_KEY};
+use crate::baselines::{Baseline, BaselineNet, RelightEncoded, TrainMethod};
 use crate::data::samples::{est_input, input_directions};
 use crate::geometry::{config_tensors, LightView, MODEL_FOV_DEG};
 use crate::image::Image;
@@ -278,12 +278,9 @@ impl Method for RelightMethod {
 /// readable model files count as flashmat files (whose loader's errors
 /// name the problem).
 fn recorded_method(path: &Path) -> Result<TrainMethod> {
-    Ok(match read_header_metadata(path) {
-        Ok(meta) if meta.get("flashmat.format").map(String::as_str) == Some(crate::model::MODEL_FORMAT) => match meta.get(METHOD_KEY) {
-            Some(m) => TrainMethod::from_name(m).with_context(|| format!("model file {}", path.display()))?,
-            None => TrainMethod::Flashmat,
-        },
-        _ => TrainMethod::Flashmat,
+    Ok(match crate::model::file::recorded_method(path) {
+        Ok(name) => TrainMethod::from_name(&name).with_context(|| format!("model file {}", path.display()))?,
+        Err(_) => TrainMethod::Flashmat,
     })
 }
 

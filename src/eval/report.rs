@@ -8,7 +8,6 @@ use crate::image::Image;
 use crate::svbrdf::Svbrdf;
 use anyhow::Result;
 use std::fmt::Write as _;
-use tch::Tensor;
 
 /// JPEG quality of report pictures (grids): small enough for the
 /// repository, no visible blocking at the grids' cell sizes.
@@ -181,11 +180,6 @@ pub fn rank_materials(results: &[MethodResults], materials: usize) -> Vec<usize>
     means.into_iter().map(|(_, i)| i).collect()
 }
 
-/// Display image of a linear `[3, H, W]` render.
-fn display(t: &Tensor) -> Result<Image> {
-    Image::from_tensor(&crate::spaces::linear_to_display(t))
-}
-
 /// Grid for one material: a row per case (its first configuration):
 /// input photo | GGX reference | each method.
 pub fn material_grid(opts: &EvalOptions, methods: &mut [Box<dyn Method>], index: usize, m: &Svbrdf) -> Result<Image> {
@@ -196,9 +190,9 @@ pub fn material_grid(opts: &EvalOptions, methods: &mut [Box<dyn Method>], index:
     let mut rows = Vec::new();
     for &case in &opts.cases {
         let cfg = &case_configs(case, opts.seed, index, opts.configs)[..1];
-        let mut row = vec![display(&photo)?, display(&reference_renders(m, cfg).get(0))?];
+        let mut row = vec![Image::display_of(&photo)?, Image::display_of(&reference_renders(m, cfg).get(0))?];
         for method in methods.iter() {
-            row.push(display(&method.render(cfg)?.get(0))?);
+            row.push(Image::display_of(&method.render(cfg)?.get(0))?);
         }
         rows.push(row);
     }

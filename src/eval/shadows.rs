@@ -256,11 +256,6 @@ pub fn summary_markdown(opts: &ShadowEvalOptions, rows: &[ShadowRow], methods: &
     s
 }
 
-/// Display image of a linear `[3, H, W]` render.
-fn display(t: &Tensor) -> Result<Image> {
-    Image::from_tensor(&crate::spaces::linear_to_display(t))
-}
-
 /// Renders of one material: U, V, S and each method's P, all `[K, ., H, W]` on the CPU.
 struct MaterialRenders {
     unshadowed: Tensor,
@@ -292,9 +287,9 @@ fn material_grid(r: &MaterialRenders) -> Result<Image> {
     let mut rows = Vec::new();
     for i in 0..k {
         let mask = r.visibility.get(i).expand([3, -1, -1], false);
-        let mut row = vec![Image::from_tensor(&mask)?, display(&r.unshadowed.get(i))?, display(&r.shadowed.get(i))?];
+        let mut row = vec![Image::from_tensor(&mask)?, Image::display_of(&r.unshadowed.get(i))?, Image::display_of(&r.shadowed.get(i))?];
         for p in &r.predictions {
-            row.push(display(&p.get(i))?);
+            row.push(Image::display_of(&p.get(i))?);
         }
         rows.push(row);
     }
@@ -340,7 +335,7 @@ pub fn run(opts: &ShadowEvalOptions) -> Result<Vec<ShadowRow>> {
         }
         if grid_set.contains(&i) {
             crate::io::write_jpeg(&opts.out.join(format!("grid-{name}.jpg")), &material_grid(&r)?, super::report::REPORT_JPEG_QUALITY)?;
-            crate::io::write_jpeg(&opts.out.join(format!("photo-{name}.jpg")), &display(&photo)?, super::report::REPORT_JPEG_QUALITY)?;
+            crate::io::write_jpeg(&opts.out.join(format!("photo-{name}.jpg")), &Image::display_of(&photo)?, super::report::REPORT_JPEG_QUALITY)?;
         }
         bar.inc(1);
     }

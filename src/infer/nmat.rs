@@ -44,7 +44,7 @@ pub struct NmatMeta {
     /// What the estimating model's file recorded.
     pub model_info: ModelInfo,
     /// The refinement on the photo applied after M_est, if any.
-    pub refine: Option<super::refine::RefineReport>,
+    pub refine: Option<super::refine::settings::RefineReport>,
 }
 
 /// A relightable neural material: per-pixel parameters and the neural BRDF
@@ -178,8 +178,8 @@ impl NeuralMaterial {
     pub fn render(&self, configs: &[LightView]) -> Result<Tensor> {
         ensure!(!configs.is_empty(), "no light/view configuration to render");
         for c in configs {
-            crate::cli::above_surface("light", c.light)?;
-            crate::cli::above_surface("camera", c.view)?;
+            crate::geometry::above_surface("light", c.light)?;
+            crate::geometry::above_surface("camera", c.view)?;
         }
         let (wi, wo) = self.direction_maps(configs);
         let log = tch::no_grad(|| self.renderer.forward_maps(&self.neural_map.unsqueeze(0), &wi, &wo))?;

@@ -79,7 +79,7 @@ pub fn norm_picture(map: &Tensor) -> Result<Image> {
 /// (+x, +y, -x, -y), camera overhead. Cells are the material's resolution,
 /// with [`GRID_GAP`] pixels between them.
 pub fn show_grid(material: &NeuralMaterial) -> Result<Image> {
-    let disp = |im: &Image| crate::cli::materials::to_display(im);
+    let disp = |im: &Image| im.to_display();
     let identity = material.render_image(&NeuralMaterial::identity_config())?;
     let row1 = vec![
         disp(&material.input_image()?),

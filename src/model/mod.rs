@@ -9,6 +9,7 @@
 
 pub mod config;
 pub mod discriminator;
+pub mod file;
 pub(crate) mod layers;
 pub mod m_est;
 pub mod m_render;
@@ -16,11 +17,11 @@ pub mod nd_enc;
 
 pub use config::{ModelConfig, PRESETS};
 pub use discriminator::Discriminator;
+pub use file::{ModelInfo, MODEL_FORMAT, MODEL_VERSION};
 pub use m_est::{est_flops, FoldedMEst, MEst};
 pub use m_render::MRender;
 pub use nd_enc::{encode_directions, NdEnc};
 
-use crate::archive::Archive;
 use anyhow::{ensure, Context, Result};
 use std::collections::HashMap;
 use std::path::Path;
@@ -185,7 +186,7 @@ impl Model {
     /// exported-model format that `flashmat export` writes. `half` stores
     /// the large weight tensors as f16 ([`Archive::store_half`]).
     pub fn save(&self, path: impl AsRef<Path>, info: &ModelInfo, half: bool) -> Result<()> {
-        save_model_file(path.as_ref(), self.named_variables(), crate::baselines::TrainMethod::Flashmat.name(), &self.model_id(), &self.config, info, half)
+        file::save_model_file(path.as_ref(), self.named_variables(), file::FLASHMAT_METHOD, &self.model_id(), &self.config, info, half)
     }
 
     /// Builds the model a file written by [`Model::save`] describes and
@@ -193,16 +194,15 @@ impl Model {
     /// missing, extra or mis-shaped variable, are refused naming the file.
     pub fn load(path: impl AsRef<Path>, device: Device) -> Result<(Self, ModelInfo)> {
         let path = path.as_ref();
-        let a = Archive::load(path, MODEL_FORMAT, MODEL_VERSION)?;
+        let f = file::ModelFile::load(path)?;
         let ctx = || format!("model file {}", path.display());
-        if let Some(method) = a.metadata.get(crate::baselines::METHOD_KEY).filter(|m| *m != "flashmat") {
-            anyhow::bail!("{} holds a '{method}' model, not a flashmat one (baselines are scored with `flashmat eval --model`)", ctx());
+        if f.method != file::FLASHMAT_METHOD {
+            anyhow::bail!("{} holds a '{}' model, not a flashmat one (baselines are scored with `flashmat eval --model`)", ctx(), f.method);
         }
-        let cfg = ModelConfig::from_toml_str(a.meta("config").with_context(ctx)?).with_context(ctx)?;
-        let info: ModelInfo = serde_json::from_str(a.meta("info").with_context(ctx)?).with_context(ctx)?;
-        let mut m = Self::new(&cfg, device)?;
-        ensure!(a.meta("model_id")? == m.model_id(), "{}: model id does not match its configuration", ctx());
-        m.load_named(&a.tensors.iter().map(|(k, v)| (k.clone(), v.shallow_clone())).collect()).with_context(ctx)?;
+        let mut m = Self::new(&f.config, device)?;
+        ensure!(f.model_id == m.model_id(), "{}: model id does not match its configuration", ctx());
+        m.load_named(&f.archive.tensors.iter().map(|(k, v)| (k.clone(), v.shallow_clone())).collect()).with_context(ctx)?;
+        let info = f.info;
         Ok((m, info))
     }
 
@@ -217,34 +217,6 @@ impl Model {
         );
         Ok((m, info))
     }
-}
-
-/// Writes an exported-model file (flashmat or baseline): the weights
-/// (large ones as f16 when `half`), the method, model id, configuration
-/// and `info` in the metadata.
-pub(crate) fn save_model_file(path: &Path, weights: Vec<(String, Tensor)>, method: &str, model_id: &str, config: &ModelConfig, info: &ModelInfo, half: bool) -> Result<()> {
-    let mut a = Archive { store_half: half, ..Archive::new() };
-    for (name, t) in weights {
-        a.insert(name, &t);
-    }
-    a.set_meta(crate::baselines::METHOD_KEY, method);
-    a.set_meta("model_id", model_id);
-    a.set_meta("config", config.to_toml_string()?);
-    a.set_meta("info", serde_json::to_string(info)?);
-    a.save(path, MODEL_FORMAT, MODEL_VERSION)
-}
-
-/// Format tag and version of exported model files.
-pub const MODEL_FORMAT: &str = "flashmat-model";
-pub const MODEL_VERSION: u32 = 1;
-
-/// What a model file records besides weights.
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct ModelInfo {
-    /// Trained on LDR (clamped) input photos.
-    pub ldr_input: bool,
-    /// Training steps completed.
-    pub steps: u64,
 }
 
 /// Number of trainable scalars in a VarStore.

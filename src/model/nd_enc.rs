@@ -13,13 +13,6 @@ use anyhow::{ensure, Result};
 use std::f64::consts::PI;
 use tch::{nn, Kind, Tensor};
 
-/// Unit half vectors. wi, wo: `[..., 3]` -> `[..., 3]`.
-pub fn half_vector_rows(wi: &Tensor, wo: &Tensor) -> Tensor {
-    let s = wi + wo;
-    let norm = s.square().sum_dim_intlist([-1i64].as_slice(), true, s.kind()).sqrt().clamp_min(1e-12);
-    s / norm
-}
-
 /// The sinusoidal encoding of wi, wo and their half vector.
 /// wi, wo: `[..., 3]` (unit, any float kind) -> `[..., 9 + 18 n]`.
 ///
@@ -27,7 +20,7 @@ pub fn half_vector_rows(wi: &Tensor, wo: &Tensor) -> Tensor {
 /// exact in floating point, so high frequencies keep full precision in f32
 /// (a plain f32 product would carry ~1e-3 rad of error at k = 15).
 pub fn encode_directions(wi: &Tensor, wo: &Tensor, frequencies: i64) -> Tensor {
-    let v = Tensor::cat(&[wi, wo, &half_vector_rows(wi, wo)], -1);
+    let v = Tensor::cat(&[wi, wo, &crate::geometry::half_vectors_along(wi, wo, -1)], -1);
     if frequencies == 0 {
         return v;
     }

@@ -13,7 +13,8 @@ use anyhow::{bail, Result};
 use rayon::prelude::*;
 use std::f32::consts::PI;
 
-use super::normalize3 as norm3;
+use super::ggx::{DOT_EPS, FRESNEL_SG_A, FRESNEL_SG_B, SPECULAR_DENOM_EPS};
+use crate::geometry::normalize3 as norm3;
 
 #[inline]
 fn dot3(a: [f32; 3], b: [f32; 3]) -> f32 {
@@ -191,7 +192,7 @@ fn render_impl(material: &Svbrdf, configs: &[LightView], with_dirs: bool) -> (Pl
                 let n = [nrm[i], nrm[plane + i], nrm[2 * plane + i]];
                 let alpha = rough[i] * rough[i];
                 let a2 = alpha * alpha;
-                let kk = (alpha * 0.5).max(1e-8);
+                let kk = (alpha * 0.5).max(DOT_EPS as f32);
                 for c in 0..k {
                     let wi = norm3([lights[c][0] - p[0], lights[c][1] - p[1], lights[c][2]]);
                     let wo = norm3([views[c][0] - p[0], views[c][1] - p[1], views[c][2]]);
@@ -202,15 +203,15 @@ fn render_impl(material: &Svbrdf, configs: &[LightView], with_dirs: bool) -> (Pl
                         }
                     }
                     let hv = norm3([wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]]);
-                    let n_dot_h = dot3(n, hv).max(1e-8);
-                    let n_dot_v = dot3(n, wo).max(1e-8);
-                    let n_dot_l = dot3(n, wi).max(1e-8);
-                    let v_dot_h = dot3(wo, hv).max(1e-8);
-                    let denom = (n_dot_h * n_dot_h * (a2 - 1.0) + 1.0).max(1e-8);
+                    let n_dot_h = dot3(n, hv).max(DOT_EPS as f32);
+                    let n_dot_v = dot3(n, wo).max(DOT_EPS as f32);
+                    let n_dot_l = dot3(n, wi).max(DOT_EPS as f32);
+                    let v_dot_h = dot3(wo, hv).max(DOT_EPS as f32);
+                    let denom = (n_dot_h * n_dot_h * (a2 - 1.0) + 1.0).max(DOT_EPS as f32);
                     let d = a2 / (PI * denom * denom);
                     let g = (n_dot_l / (n_dot_l * (1.0 - kk) + kk)) * (n_dot_v / (n_dot_v * (1.0 - kk) + kk));
-                    let fw = ((-5.55473 * v_dot_h - 6.98316) * v_dot_h).exp2();
-                    let spec = d * g / (4.0 * n_dot_l * n_dot_v + 1e-12);
+                    let fw = ((FRESNEL_SG_A as f32 * v_dot_h + FRESNEL_SG_B as f32) * v_dot_h).exp2();
+                    let spec = d * g / (4.0 * n_dot_l * n_dot_v + SPECULAR_DENOM_EPS as f32);
                     for ch in 0..3 {
                         let f0 = ks[ch * plane + i];
                         let f = f0 + (1.0 - f0) * fw;
@@ -255,7 +256,7 @@ mod tests {
         }
         for y in 0..h {
             for x in 0..w {
-                let n = scalar::normalize([rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 1.0]);
+                let n = crate::geometry::normalize([rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 1.0]);
                 for c in 0..3 {
                     m.normal.set(c, y, x, n[c] as f32);
                 }
@@ -282,8 +283,8 @@ mod tests {
         assert_eq!(r2, out);
         let (k, y, x) = (2usize, 5usize, 7usize);
         let p = pixel_center(y, x, h, w);
-        let expect = scalar::normalize(scalar::sub(configs[k].light, p));
-        let expect_o = scalar::normalize(scalar::sub(configs[k].view, p));
+        let expect = crate::geometry::normalize(crate::geometry::sub(configs[k].light, p));
+        let expect_o = crate::geometry::normalize(crate::geometry::sub(configs[k].view, p));
         for c in 0..3 {
             assert!((wi[((k * 3 + c) * h + y) * w + x] as f64 - expect[c]).abs() < 1e-6);
             assert!((wo[((k * 3 + c) * h + y) * w + x] as f64 - expect_o[c]).abs() < 1e-6);

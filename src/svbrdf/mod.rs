@@ -4,6 +4,7 @@
 //! cast (`height`, `shadow`).
 
 pub mod cpu;
+pub mod ggx;
 pub mod height;
 pub mod render;
 pub mod scalar;
@@ -160,16 +161,9 @@ pub fn dihedral_point(code: u8, p: [f64; 3]) -> [f64; 3] {
     [x, y, p[2]]
 }
 
-/// v / |v| (a zero vector stays zero).
-#[inline]
-pub fn normalize3(v: [f32; 3]) -> [f32; 3] {
-    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-12);
-    [v[0] / n, v[1] / n, v[2] / n]
-}
-
 /// Decodes a normal-map pixel c in [0,1]^3 to a unit vector: normalize(2c - 1).
 pub fn decode_normal(c: [f32; 3]) -> [f32; 3] {
-    normalize3([2.0 * c[0] - 1.0, 2.0 * c[1] - 1.0, 2.0 * c[2] - 1.0])
+    crate::geometry::normalize3([2.0 * c[0] - 1.0, 2.0 * c[1] - 1.0, 2.0 * c[2] - 1.0])
 }
 
 /// Rescales every pixel of a `[3, H, W]` normal field to unit length (after
@@ -178,7 +172,7 @@ pub fn renormalize_normals(normals: &Image) -> Image {
     let mut out = normals.clone();
     let n = normals.height * normals.width;
     for i in 0..n {
-        let u = normalize3([normals.data[i], normals.data[n + i], normals.data[2 * n + i]]);
+        let u = crate::geometry::normalize3([normals.data[i], normals.data[n + i], normals.data[2 * n + i]]);
         for c in 0..3 {
             out.data[c * n + i] = u[c];
         }

@@ -2,12 +2,12 @@
 //! materials times many light/view configurations in one call.
 
 use super::shadow::{full_march_steps, march_step, ShadowOptions};
-use crate::geometry::{direction_maps, half_vectors, pixel_positions};
+use crate::geometry::{direction_maps, half_vectors, half_vectors_along, pixel_positions};
 use anyhow::{bail, ensure, Result};
 use std::f64::consts::PI;
 use tch::{Kind, Tensor};
 
-const DOT_EPS: f64 = 1e-8;
+use super::ggx::{DOT_EPS, FRESNEL_SG_A, FRESNEL_SG_B, SPECULAR_DENOM_EPS};
 
 fn dot(a: &Tensor, b: &Tensor) -> Tensor {
     (a * b).sum_dim_intlist([-3i64].as_slice(), true, a.kind())
@@ -23,7 +23,7 @@ pub fn render_directions(maps: &Tensor, wi: &Tensor, wo: &Tensor) -> Tensor {
     let ks = maps.narrow(2, 3, 3);
     let rough = maps.narrow(2, 6, 1);
     let normal = maps.narrow(2, 7, 3);
-    let h = half_vectors_5d(wi, wo);
+    let h = half_vectors_along(wi, wo, -3);
     let n_dot_h = dot(&normal, &h).clamp_min(DOT_EPS);
     let n_dot_v = dot(&normal, wo).clamp_min(DOT_EPS);
     let n_dot_l = dot(&normal, wi).clamp_min(DOT_EPS);
@@ -31,23 +31,16 @@ pub fn render_directions(maps: &Tensor, wi: &Tensor, wo: &Tensor) -> Tensor {
 
     let alpha = rough.square();
     let a2 = alpha.square();
-    let denom = (n_dot_h.square() * (&a2 - 1.0) + 1.0).clamp_min(1e-8);
+    let denom = (n_dot_h.square() * (&a2 - 1.0) + 1.0).clamp_min(DOT_EPS);
     let d = &a2 / (denom.square() * PI);
-    let k = (&alpha / 2.0).clamp_min(1e-8);
+    let k = (&alpha / 2.0).clamp_min(DOT_EPS);
     let g1 = |x: &Tensor| x / (x * (1.0 - &k) + &k);
     let g = g1(&n_dot_l) * g1(&n_dot_v);
-    let fresnel_weight = ((&v_dot_h * -5.55473 - 6.98316) * &v_dot_h * std::f64::consts::LN_2).exp();
+    let fresnel_weight = ((&v_dot_h * FRESNEL_SG_A + FRESNEL_SG_B) * &v_dot_h * std::f64::consts::LN_2).exp();
     let f = &ks + (1.0 - &ks) * fresnel_weight;
-    let specular = d * g * f / (&n_dot_l * &n_dot_v * 4.0 + 1e-12);
+    let specular = d * g * f / (&n_dot_l * &n_dot_v * 4.0 + SPECULAR_DENOM_EPS);
     let brdf = kd / PI + specular;
     brdf * n_dot_l * PI
-}
-
-/// Half vectors for `[N, K, 3, H, W]` direction maps.
-fn half_vectors_5d(wi: &Tensor, wo: &Tensor) -> Tensor {
-    let s = wi + wo;
-    let norm = s.square().sum_dim_intlist([-3i64].as_slice(), true, s.kind()).sqrt().clamp_min(1e-12);
-    s / norm
 }
 
 /// Per-pixel light and view direction maps for point lights and cameras.
@@ -239,7 +232,7 @@ mod tests {
                     1 => 1.0,
                     _ => rng.random::<f32>(),
                 };
-                let nrm = scalar::normalize([rng.random_range(-0.6..0.6), rng.random_range(-0.6..0.6), 1.0]);
+                let nrm = crate::geometry::normalize([rng.random_range(-0.6..0.6), rng.random_range(-0.6..0.6), 1.0]);
                 for c in 0..3 {
                     v[base + (7 + c) * plane + p] = nrm[c] as f32;
                 }

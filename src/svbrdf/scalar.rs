@@ -4,44 +4,27 @@
 
 use std::f64::consts::PI;
 
-pub type Vec3 = [f64; 3];
-
-pub fn dot(a: Vec3, b: Vec3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-pub fn normalize(v: Vec3) -> Vec3 {
-    let n = dot(v, v).sqrt().max(1e-12);
-    [v[0] / n, v[1] / n, v[2] / n]
-}
-
-pub fn sub(a: Vec3, b: Vec3) -> Vec3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-pub fn add(a: Vec3, b: Vec3) -> Vec3 {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
+use super::ggx::{DOT_EPS, FRESNEL_SG_A, FRESNEL_SG_B, SPECULAR_DENOM_EPS};
+use crate::geometry::{add, dot, normalize, sub, Vec3};
 
 /// Clamp below used for every dot product of the model.
-pub const DOT_EPS: f64 = 1e-8;
 
 /// GGX normal distribution D for alpha = r^2.
 pub fn ggx_d(n_dot_h: f64, alpha: f64) -> f64 {
     let a2 = alpha * alpha;
-    let denom = (n_dot_h * n_dot_h * (a2 - 1.0) + 1.0).max(1e-8);
+    let denom = (n_dot_h * n_dot_h * (a2 - 1.0) + 1.0).max(DOT_EPS);
     a2 / (PI * denom * denom)
 }
 
 /// Schlick-GGX masking for one direction, k = max(alpha/2, 1e-8).
 pub fn ggx_g1(x: f64, alpha: f64) -> f64 {
-    let k = (alpha / 2.0).max(1e-8);
+    let k = (alpha / 2.0).max(DOT_EPS);
     x / (x * (1.0 - k) + k)
 }
 
 /// Spherical-Gaussian Schlick Fresnel.
 pub fn fresnel(ks: f64, v_dot_h: f64) -> f64 {
-    ks + (1.0 - ks) * 2f64.powf((-5.55473 * v_dot_h - 6.98316) * v_dot_h)
+    ks + (1.0 - ks) * 2f64.powf((FRESNEL_SG_A * v_dot_h + FRESNEL_SG_B) * v_dot_h)
 }
 
 /// Material sample of one pixel (linear values, unit normal).
@@ -67,7 +50,7 @@ pub fn brdf(m: &PixelMaterial, wi: Vec3, wo: Vec3) -> Vec3 {
     let mut out = [0.0; 3];
     for c in 0..3 {
         let f = fresnel(m.ks[c], v_dot_h);
-        out[c] = m.kd[c] / PI + d * g * f / (4.0 * n_dot_l * n_dot_v + 1e-12);
+        out[c] = m.kd[c] / PI + d * g * f / (4.0 * n_dot_l * n_dot_v + SPECULAR_DENOM_EPS);
     }
     out
 }

@@ -26,7 +26,7 @@
 //! multiplies it (hard shadows: 0 or 1; a disc light: the fraction of its
 //! sample points that are visible).
 
-use super::scalar::{self, Vec3};
+use crate::geometry::{cross, dot, normalize, Vec3};
 use anyhow::{ensure, Result};
 use serde::{Deserialize, Serialize};
 
@@ -101,10 +101,10 @@ pub fn disc_light_points(light: Vec3, radius: f64, samples: usize) -> Vec<Vec3> 
     if radius.is_nan() || radius <= 0.0 || samples <= 1 {
         return vec![light];
     }
-    let n = if scalar::dot(light, light) > 1e-24 { scalar::normalize(light) } else { [0.0, 0.0, 1.0] };
+    let n = if dot(light, light) > 1e-24 { normalize(light) } else { [0.0, 0.0, 1.0] };
     // Any axis not parallel to n gives a tangent frame.
     let a = if n[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
-    let u = scalar::normalize(cross(n, a));
+    let u = normalize(cross(n, a));
     let v = cross(n, u);
     let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
     (0..samples)
@@ -116,17 +116,13 @@ pub fn disc_light_points(light: Vec3, radius: f64, samples: usize) -> Vec<Vec3> 
         .collect()
 }
 
-fn cross(a: Vec3, b: Vec3) -> Vec3 {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::geometry::{pixel_center, sample_configs, LightView, Sampling};
     use crate::image::Image;
     use crate::svbrdf::render::{render, render_shadowed, shadow_mask, shadow_visibility};
-    use crate::svbrdf::{cpu, Svbrdf};
+    use crate::svbrdf::{cpu, scalar, Svbrdf};
     use rand::{Rng, SeedableRng};
     use rand_pcg::Pcg64;
     use tch::{Kind, Tensor};
@@ -157,7 +153,7 @@ mod tests {
         }
         for y in 0..n {
             for x in 0..n {
-                let d = crate::svbrdf::scalar::normalize([rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 1.0]);
+                let d = crate::geometry::normalize([rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 1.0]);
                 (0..3).for_each(|c| m.normal.set(c, y, x, d[c] as f32));
             }
         }
@@ -364,16 +360,16 @@ mod tests {
         let l = [1.0, -2.0, 3.0];
         let pts = disc_light_points(l, 0.5, 32);
         assert_eq!(pts.len(), 32);
-        let n = scalar::normalize(l);
+        let n = crate::geometry::normalize(l);
         let mut mean = [0.0; 3];
         for p in &pts {
-            let d = scalar::sub(*p, l);
-            assert!(scalar::dot(d, n).abs() < 1e-12, "off the disc plane");
-            assert!(scalar::dot(d, d).sqrt() <= 0.5 + 1e-12);
+            let d = crate::geometry::sub(*p, l);
+            assert!(crate::geometry::dot(d, n).abs() < 1e-12, "off the disc plane");
+            assert!(crate::geometry::dot(d, d).sqrt() <= 0.5 + 1e-12);
             (0..3).for_each(|k| mean[k] += d[k] / 32.0);
         }
         // The spiral is balanced around the centre.
-        assert!(scalar::dot(mean, mean).sqrt() < 0.05, "{mean:?}");
+        assert!(crate::geometry::dot(mean, mean).sqrt() < 0.05, "{mean:?}");
         assert_eq!(disc_light_points(l, 0.0, 32), vec![l]);
         assert_eq!(disc_light_points(l, 0.3, 1), vec![l]);
     }

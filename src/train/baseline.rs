@@ -7,7 +7,7 @@
 //! Checkpoints hold the network, the discriminator and both optimizers'
 //! moments, so a resumed run continues exactly.
 
-use super::adam::Adam;
+use crate::optim::Adam;
 use super::{trainable, StepLosses, TrainConfig};
 use crate::archive::{restore_vars, Archive};
 use crate::baselines::{Baseline, BaselineNet};
@@ -127,7 +127,7 @@ impl BaselineTrainer {
             let wi = batch.out_wi.narrow(0, 0, 1).narrow(1, 0, k);
             let wo = batch.out_wo.narrow(0, 0, 1).narrow(1, 0, k);
             let pred = self.net.forward_t(&x, &wi, &wo, false)?;
-            let display = |linear: &Tensor| Image::from_tensor(&crate::spaces::linear_to_display(linear));
+            let display = Image::display_of;
             let first = match &self.net.net {
                 BaselineNet::Analytic(a) => display(&a.maps_t(&x, false)?.get(0).narrow(0, 0, 3))?,
                 BaselineNet::Relight(r) => {

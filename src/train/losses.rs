@@ -14,7 +14,7 @@ fn flat(t: &Tensor) -> Tensor {
 /// Display transform for LPIPS with a small offset so the 1/2.2 power has a
 /// finite gradient at black. log: `[N, K, 3, H, W]` -> `[N*K, 3, H, W]` in [0,1].
 fn display_for_lpips(log: &Tensor) -> Tensor {
-    (flat(log).expm1().clamp(0.0, 1.0) + 1e-4).pow_tensor_scalar(1.0 / 2.2).clamp(0.0, 1.0)
+    (flat(log).expm1().clamp(0.0, 1.0) + 1e-4).pow_tensor_scalar(1.0 / crate::spaces::GAMMA).clamp(0.0, 1.0)
 }
 
 /// Mean LPIPS between predicted and target log renders (0 when disabled).

@@ -4,7 +4,6 @@
 //! checkpoints that resume exactly. The baselines train on the same
 //! batches with the same losses in [`baseline`].
 
-pub mod adam;
 pub mod baseline;
 pub mod batches;
 pub mod checkpoint;
@@ -20,7 +19,7 @@ pub use config::{PixelSampling, TrainConfig, UpdateScheme};
 use crate::data::samples::TrainingBatch;
 use crate::lpips::Lpips;
 use crate::model::{Discriminator, Model};
-use adam::Adam;
+use crate::optim::Adam;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Tensor};

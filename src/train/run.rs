@@ -18,7 +18,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
-use tch::{Device, Kind, Tensor};
+use tch::{Device, Kind};
 
 pub fn checkpoint_path(run: &Path) -> PathBuf {
     run.join("checkpoint.safetensors")
@@ -96,7 +96,7 @@ pub fn preview_grid(trainer: &Trainer, batch: &TrainingBatch, max_outputs: usize
         let x = batch.est_input.narrow(0, 0, 1);
         let neural = trainer.model.est.forward_t(&x, false)?;
         let pred = trainer.model.renderer.forward_maps(&neural, &batch.out_wi.narrow(0, 0, 1).narrow(1, 0, k), &batch.out_wo.narrow(0, 0, 1).narrow(1, 0, k))?;
-        let display = |linear: &Tensor| Image::from_tensor(&crate::spaces::linear_to_display(linear));
+        let display = Image::display_of;
         let mut top = vec![display(&batch.input_linear.get(0))?];
         let norm = neural.get(0).square().sum_dim_intlist([0i64].as_slice(), true, Kind::Float).sqrt();
         let norm = &norm / norm.max().clamp_min(1e-8);

@@ -12,7 +12,7 @@
 //! beside the paper's losses, starting from the teacher's renderer. The
 //! shipped architecture stays the paper's: the encoder is training-only.
 
-use super::adam::Adam;
+use crate::optim::Adam;
 use crate::archive::{restore_vars, Archive};
 use crate::model::layers::leaky;
 use crate::model::{Model, ModelConfig};
