@@ -16,6 +16,10 @@ pub fn dot(a: Vec3, b: Vec3) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+pub fn length(v: Vec3) -> f64 {
+    dot(v, v).sqrt()
+}
+
 pub fn normalize(v: Vec3) -> Vec3 {
     let n = dot(v, v).sqrt().max(1e-12);
     [v[0] / n, v[1] / n, v[2] / n]

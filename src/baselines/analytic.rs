@@ -75,12 +75,6 @@ impl AnalyticNet {
         Self::decode(&self.unet.forward_t(x, train)?)
     }
 
-    /// Inference: BatchNorm folded, no autograd. x: `[N, 4, H, W]` -> `[N, 10, H, W]`.
-    pub fn maps_inference(&self, x: &Tensor) -> Result<Tensor> {
-        let raw = self.unet.fold_batchnorm().forward(x)?;
-        tch::no_grad(|| Self::decode(&raw))
-    }
-
     /// Renders the predicted maps with the GGX renderer, in log space.
     /// x: `[N, 4, H, W]`; wi, wo: `[N, K, 3, H, W]` -> ln(1 + R) `[N, K, 3, H, W]`.
     pub fn render_log_t(&self, x: &Tensor, wi: &Tensor, wo: &Tensor, train: bool) -> Result<Tensor> {

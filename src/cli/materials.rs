@@ -157,8 +157,8 @@ pub fn captures(args: &CapturesArgs) -> Result<()> {
     flashmat::infer::photo::check_size(args.material.size)?;
     let (name, material) = load_material(&args.material)?;
     let material = flashmat::eval::fit_to_size(&material, args.material.size)?;
-    let configs = flashmat::eval::captures::synthetic_configs(args.photos);
-    flashmat::eval::captures::write_synthetic(&args.output, &material, &configs, args.sample_width)?;
+    let configs = flashmat::data::captures::synthetic_configs(args.photos);
+    flashmat::data::captures::write_synthetic(&args.output, &material, &configs, args.sample_width)?;
     println!("wrote {} photos of {name} with their positions to {}", configs.len(), args.output.display());
     Ok(())
 }

@@ -89,6 +89,19 @@ pub fn est_input(photo_linear: &Tensor, h_z: &Tensor) -> Tensor {
     Tensor::cat(&[spaces::to_log(&photo_linear.clamp_min(0.0)), h_z.shallow_clone()], 1)
 }
 
+/// M_est's input for one photo, as every photo reaches M_est (inference,
+/// evaluation, refinement): clamped to [0, 1] for a model trained on LDR
+/// photos (as in its training), below at 0 otherwise; h_z of the model's
+/// co-located camera at [`crate::geometry::MODEL_FOV_DEG`].
+/// photo_linear: `[3, H, W]` -> `[1, 4, H, W]` (f32) on `device`.
+pub fn photo_est_input(photo_linear: &Tensor, ldr_model: bool, device: Device) -> Tensor {
+    let s = photo_linear.size();
+    let linear = photo_linear.to_device(device).to_kind(tch::Kind::Float).unsqueeze(0);
+    let linear = if ldr_model { spaces::ldr_clamp(&linear) } else { linear.clamp_min(0.0) };
+    let (wi, wo) = input_directions(s[1] as usize, s[2] as usize, crate::geometry::MODEL_FOV_DEG, device);
+    est_input(&linear, &half_vector_z(&wi, &wo))
+}
+
 /// Co-located input directions for an H x W photo at `fov_deg`:
 /// (wi, wo) each `[1, 3, H, W]` (identical, light at the camera).
 pub fn input_directions(h: usize, w: usize, fov_deg: f64, device: Device) -> (Tensor, Tensor) {

@@ -4,13 +4,11 @@
 //! relight-unet); `printout` needs no file.
 
 use crate::baselines::{Baseline, BaselineNet, RelightEncoded, TrainMethod};
-use crate::data::samples::{est_input, input_directions};
 use crate::geometry::{config_tensors, LightView, MODEL_FOV_DEG};
 use crate::image::Image;
 use crate::infer::refine::{refine, RefineConfig};
 use crate::infer::{self, NeuralMaterial, PreparedPhoto};
 use crate::model::{FoldedMEst, Model, ModelInfo};
-use crate::svbrdf::render::half_vector_z;
 use crate::svbrdf::render::direction_maps_for;
 use anyhow::{bail, ensure, Context, Result};
 use std::path::Path;
@@ -153,10 +151,7 @@ impl Method for PrintoutMethod {
 fn model_input(photo_linear: &Tensor, info: &ModelInfo, device: Device) -> Result<Tensor> {
     let s = photo_linear.size();
     ensure!(s.len() == 3 && s[0] == 3, "the photo must be [3, H, W], got {s:?}");
-    let linear = photo_linear.to_device(device).to_kind(Kind::Float).unsqueeze(0);
-    let linear = if info.ldr_input { crate::spaces::ldr_clamp(&linear) } else { linear.clamp_min(0.0) };
-    let (wi, wo) = input_directions(s[1] as usize, s[2] as usize, MODEL_FOV_DEG, device);
-    Ok(est_input(&linear, &half_vector_z(&wi, &wo)))
+    Ok(crate::data::samples::photo_est_input(photo_linear, info.ldr_input, device))
 }
 
 /// Light/view configurations as `[1, K, 3]` lights and views on `device`.

@@ -165,8 +165,7 @@ pub fn fit_to_size(m: &Svbrdf, size: usize) -> Result<Svbrdf> {
 
 /// GGX renders of a material (CPU renderer): `[K, 3, H, W]` linear.
 pub fn reference_renders(m: &Svbrdf, configs: &[LightView]) -> Tensor {
-    let r = crate::svbrdf::cpu::render(m, configs);
-    Tensor::from_slice(&r).view([configs.len() as i64, 3, m.height() as i64, m.width() as i64])
+    crate::svbrdf::cpu::render_tensor(m, configs)
 }
 
 /// The input photo of a material: its co-located GGX render `[3, H, W]`,

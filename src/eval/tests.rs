@@ -2,7 +2,7 @@ use super::*;
 use crate::infer::refine::RefineConfig;
 use crate::data::procedural::{generate_family, Family};
 use crate::model::{Model, ModelConfig, ModelInfo};
-use crate::svbrdf::scalar::{add, normalize, sub};
+use crate::geometry::{add, normalize, sub};
 
 /// All three cases on 2 held-out materials at 32x32, 2 configurations.
 fn small_eval(models: Vec<String>, out: &std::path::Path) -> EvalOptions {
@@ -274,7 +274,7 @@ fn eval_scores_baseline_model_files() {
     }
     // A file claiming an unknown method is refused with its name.
     let mut bad = crate::archive::Archive::load(&relight, crate::model::MODEL_FORMAT, crate::model::MODEL_VERSION).unwrap();
-    bad.set_meta(crate::baselines::METHOD_KEY, "matfusion");
+    bad.set_meta(crate::model::file::METHOD_KEY, "matfusion");
     let bad_path = t.path().join("bad.safetensors");
     bad.save(&bad_path, crate::model::MODEL_FORMAT, crate::model::MODEL_VERSION).unwrap();
     let e = format!("{:#}", run(&EvalOptions { models: vec![bad_path.to_string_lossy().into_owned()], out: t.path().join("bad"), ..opts }).unwrap_err());

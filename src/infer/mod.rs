@@ -22,11 +22,10 @@ pub mod show;
 pub use nmat::{NeuralMaterial, NmatMeta, NMAT_FORMAT, NMAT_VERSION};
 pub use photo::{load_photo, prepare_image, Crop, PreparedPhoto};
 
-use crate::data::samples::{est_input, input_directions};
+use crate::data::samples::photo_est_input;
 use crate::geometry::{fov_to_distance, LightView, MODEL_FOV_DEG};
 use crate::image::Image;
 use crate::model::{Model, ModelConfig, ModelInfo};
-use crate::svbrdf::render::half_vector_z;
 use anyhow::{bail, ensure, Result};
 use std::path::{Path, PathBuf};
 use tch::Device;
@@ -116,13 +115,11 @@ pub fn input_mismatch_warning(info: &ModelInfo, model_path: &Path, ldr_photo: bo
 /// renderer. The photo is clamped to [0, 1] for LDR-input models (as in
 /// their training), and below at 0 otherwise.
 pub fn estimate(model: &Model, info: &ModelInfo, photo: &PreparedPhoto) -> Result<NeuralMaterial> {
-    let (h, w) = (photo.linear.height, photo.linear.width);
     ensure!(photo.linear.channels == 3, "the prepared photo must have 3 channels, got {}", photo.linear.channels);
     let device = model.device();
     let linear = photo.linear.to_tensor().unsqueeze(0).to_device(device); // [1, 3, H, W]
     let linear = if info.ldr_input { crate::spaces::ldr_clamp(&linear) } else { linear.clamp_min(0.0) };
-    let (wi, wo) = input_directions(h, w, MODEL_FOV_DEG, device);
-    let x = est_input(&linear, &half_vector_z(&wi, &wo)); // [1, 4, H, W]
+    let x = photo_est_input(&photo.linear.to_tensor(), info.ldr_input, device); // [1, 4, H, W]
     let map = model.est.fold_batchnorm().forward(&x)?; // [1, C, H, W]
     ensure!(crate::image::all_finite(&map), "M_est produced NaN/Inf values for this photo (the model's weights have diverged?)");
     let meta = NmatMeta {
@@ -171,7 +168,9 @@ pub fn render_frames(material: &NeuralMaterial, configs: &[LightView], mut on_fr
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::data::samples::{est_input, input_directions};
     use crate::model::ModelConfig;
+    use crate::svbrdf::render::half_vector_z;
 
     fn photo(size: usize, ldr: bool) -> PreparedPhoto {
         let linear = Image::from_fn(3, size, size, |c, y, x| 0.2 + 0.1 * c as f32 + 0.01 * ((x * 7 + y * 3) % 13) as f32 + if ldr { 0.0 } else { 2.0 });

@@ -150,11 +150,6 @@ impl Model {
         self.est.fold_batchnorm().forward(x)
     }
 
-    /// Trainable parameter counts (M_est, renderer).
-    pub fn param_counts(&self) -> (i64, i64) {
-        (count_trainable(&self.est_vs), count_trainable(&self.renderer_vs))
-    }
-
     /// Every variable of M_est and the renderer (`est.*`, `renderer.*`,
     /// including BatchNorm running statistics), sorted by name. Shallow
     /// copies: they share storage with the model.

@@ -1,5 +1,4 @@
 use super::*;
-use std::time::Instant;
 
 fn est_params(width: i64) -> i64 {
     let cfg = ModelConfig { est_width: width, ..ModelConfig::paper() };
@@ -362,80 +361,4 @@ fn flop_model_matches_reference_figures() {
     assert!(near(NdEnc::flops_per_row(&c) * rows, 35.0));
     assert!(near(MRender::flops_per_row(&ModelConfig::paper()) * rows, 51.0));
     assert!(near(MRender::flops_per_row(&c) * rows, 15.0));
-}
-
-/// Release-mode timing, run by hand:
-/// `cargo test --release --lib model::tests::bench -- --ignored --nocapture`
-/// (FLASHMAT_BENCH_PRESETS=tiny,compact,paper, FLASHMAT_BENCH_SIZE=256).
-#[test]
-#[ignore]
-fn bench() {
-    set_bench_threads();
-    let presets = std::env::var("FLASHMAT_BENCH_PRESETS").unwrap_or_else(|_| "tiny,compact".into());
-    let size: usize = std::env::var("FLASHMAT_BENCH_SIZE").ok().and_then(|s| s.parse().ok()).unwrap_or(256);
-    let runs: usize = std::env::var("FLASHMAT_BENCH_RUNS").ok().and_then(|s| s.parse().ok()).unwrap_or(3);
-    for p in presets.split(',') {
-        let t = bench_infer_runs(&ModelConfig::preset(p).unwrap(), size, Device::cuda_if_available(), runs).unwrap();
-        println!("{t}");
-    }
-}
-
-/// Cost of one alternating training step (no optimizer, no losses beyond
-/// an L1 stand-in), run by hand:
-/// `cargo test --release --lib model::tests::bench_train -- --ignored --nocapture`
-/// (FLASHMAT_BENCH_PRESETS, FLASHMAT_BENCH_CROP=128, FLASHMAT_BENCH_K=9).
-#[test]
-#[ignore]
-fn bench_train() {
-    set_bench_threads();
-    let presets = std::env::var("FLASHMAT_BENCH_PRESETS").unwrap_or_else(|_| "compact".into());
-    let crop: i64 = std::env::var("FLASHMAT_BENCH_CROP").ok().and_then(|s| s.parse().ok()).unwrap_or(128);
-    let k: i64 = std::env::var("FLASHMAT_BENCH_K").ok().and_then(|s| s.parse().ok()).unwrap_or(9);
-    let device = Device::cuda_if_available();
-    let opts = (Kind::Float, device);
-    for p in presets.split(',') {
-        let cfg = if p.ends_with(".toml") { ModelConfig::from_toml_file(p).unwrap() } else { ModelConfig::preset(p).unwrap() };
-        let mut m = Model::new(&cfg, device).unwrap();
-        let x = Tensor::randn([2, 4, crop, crop], opts);
-        let unit = |t: Tensor| &t / t.square().sum_dim_intlist([2i64].as_slice(), true, Kind::Float).sqrt();
-        let wi = unit(Tensor::randn([2, k, 3, crop, crop], opts) * 0.3 + 1.0);
-        let wo = unit(Tensor::randn([2, k, 3, crop, crop], opts) * 0.3 + 1.0);
-        let target = Tensor::rand([2, k, 3, crop, crop], opts);
-        let t0 = Instant::now();
-        for _ in 0..2 {
-            m.est_forward_t(&x, true).unwrap().abs().mean(Kind::Float).backward();
-        }
-        let t_alone = t0.elapsed().as_secs_f64() / 2.0;
-        // One alternating step as the paper trains, sharing ND_enc's output
-        // between the two updates.
-        let mut step = || {
-            let t0 = Instant::now();
-            let code = m.renderer.encode_maps(&wi, &wo).unwrap();
-            let t_code = t0.elapsed().as_secs_f64();
-            m.renderer_vs.freeze();
-            let map = m.est_forward_t(&x, true).unwrap();
-            let out = m.renderer.render_code(&map, &code.detach()).unwrap();
-            (out - &target).abs().mean(Kind::Float).backward();
-            m.renderer_vs.unfreeze();
-            let t_est = t0.elapsed().as_secs_f64() - t_code;
-            let out = m.renderer.render_code(&map.detach(), &code).unwrap();
-            (out - &target).abs().mean(Kind::Float).backward();
-            (t_code, t_est, t0.elapsed().as_secs_f64() - t_code - t_est)
-        };
-        let _ = step();
-        let (t_code, t_est, t_ren) = step();
-        let t_all = t_code + t_est + t_ren;
-        println!("{p}: M_est fwd+bwd alone {t_alone:.2} s");
-        println!(
-            "{p}: crop {crop}, 2 materials x {k} frames: ND_enc fwd {t_code:.2} s, M_est update {t_est:.2} s, renderer update {t_ren:.2} s, total {t_all:.2} s/step ({} threads)",
-            tch::get_num_threads()
-        );
-    }
-}
-
-/// FLASHMAT_BENCH_THREADS=n sets libtorch's intra-op threads.
-fn set_bench_threads() {
-    if let Some(n) = std::env::var("FLASHMAT_BENCH_THREADS").ok().and_then(|s| s.parse().ok()) {
-        tch::set_num_threads(n);
-    }
 }

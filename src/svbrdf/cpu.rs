@@ -235,6 +235,12 @@ fn render_impl(material: &Svbrdf, configs: &[LightView], with_dirs: bool) -> (Pl
     (gather(0), dirs)
 }
 
+/// [`render`] as a tensor: configs.len() renders `[K, 3, H, W]` (CPU, f32).
+pub fn render_tensor(m: &Svbrdf, configs: &[LightView]) -> tch::Tensor {
+    let r = render(m, configs);
+    tch::Tensor::from_slice(&r).view([configs.len() as i64, 3, m.height() as i64, m.width() as i64])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,5 +1,10 @@
-//! Training hyper-parameters, with the paper's values as defaults where the
-//! paper gives them (REFERENCE section 5).
+//! Training hyper-parameters (REFERENCE section 5). The defaults are the
+//! paper's values for the losses, their weights, the batch (2 materials x 8
+//! outputs), the optimizers and the learning-rate schedule; two defaults
+//! are CPU values instead, because the paper's take days on a GPU: the
+//! model preset (`compact`; the paper's is `--preset paper`) and the crop
+//! (128; the paper trains at 192, then 256). `docs/TRAINING.md` gives both
+//! recipes.
 
 use crate::baselines::TrainMethod;
 use crate::model::ModelConfig;
@@ -32,7 +37,8 @@ pub struct TrainConfig {
     #[serde(default, skip_serializing_if = "TrainMethod::is_flashmat")]
     pub method: TrainMethod,
     /// Width preset; baselines use its U-Net width (and, for the
-    /// relighting U-Net, its direction-code sizes).
+    /// relighting U-Net, its direction-code sizes). Default `compact`, a CPU
+    /// value (the paper's sizes are the `paper` preset).
     pub model: ModelConfig,
     /// `procedural` or a dataset folder.
     pub data: String,
@@ -44,7 +50,7 @@ pub struct TrainConfig {
     /// fresh material every draw. A GPU step outruns the generator.
     #[serde(default)]
     pub bank: usize,
-    /// Training crop (paper: 192, then 256).
+    /// Training crop (default 128, a CPU value; paper: 192, then 256).
     pub crop: usize,
     pub materials_per_batch: usize,
     pub outputs_per_material: usize,

@@ -1,0 +1,357 @@
+//! Capture folders of one flat material: photos `NN.png` (numbered;
+//! sorted by number), `camera_pos.txt` and `light_pos.txt` (one `x,y,z` per
+//! line, one line per photo, in photo order) and `image_size.txt` (the
+//! sample's width: the unit of the positions). The origin is the sample
+//! centre, x points right and y up in the photos, z out of the sample;
+//! photos are rectified to the sample square.
+//!
+//! Positions are converted to flashmat units, where the material spans
+//! [-1, 1]: divided by width / 2. Photos hold the light's 1/r^2 fall-off,
+//! which the renderers omit: [`Captures::load_compensated`] multiplies each
+//! photo by |light - p|^2 / r0^2 per surface point p, with r0 the overhead
+//! light's distance to the sample centre (so the input photo keeps its
+//! level at the centre). `eval::captures` scores methods on such folders.
+//!
+//! [`write_synthetic`] writes such a folder from a GGX material (the
+//! fall-off applied), for trying the format and for tests.
+
+use crate::geometry::{fov_to_distance, length, pixel_positions, LightView, MODEL_FOV_DEG};
+use crate::image::Image;
+use crate::svbrdf::Svbrdf;
+use anyhow::{anyhow, bail, ensure, Result};
+use std::path::{Path, PathBuf};
+use tch::{Device, Kind, Tensor};
+
+/// Smallest photo side accepted, in pixels (LPIPS needs 31).
+const MIN_PHOTO_SIDE: usize = 32;
+
+/// How far from square a rectified photo may be (relative).
+const SQUARE_TOLERANCE: f64 = 0.02;
+
+/// One capture folder, parsed and checked.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Captures {
+    pub dir: PathBuf,
+    /// Photos sorted by their number.
+    pub photos: Vec<PathBuf>,
+    /// Camera positions, flashmat units, one per photo.
+    pub cameras: Vec<[f64; 3]>,
+    /// Light positions, flashmat units, one per photo.
+    pub lights: Vec<[f64; 3]>,
+    /// The sample's width in the files' unit.
+    pub sample_width: f64,
+}
+
+impl Captures {
+    /// Reads and checks a capture folder. Errors are one line naming the
+    /// file at fault.
+    pub fn open(dir: &Path) -> Result<Self> {
+        ensure!(dir.is_dir(), "capture folder {} does not exist", dir.display());
+        let photos = numbered_photos(dir)?;
+        let size_path = dir.join("image_size.txt");
+        let size_text = read_text(&size_path)?;
+        let sample_width: f64 = size_text
+            .trim()
+            .parse()
+            .map_err(|_| anyhow!("{}: expected one number (the sample's width), got '{}'", size_path.display(), size_text.trim()))?;
+        ensure!(sample_width.is_finite() && sample_width > 0.0, "{}: the sample's width must be > 0, got {sample_width}", size_path.display());
+        let scale = 2.0 / sample_width;
+        let cameras = read_positions(&dir.join("camera_pos.txt"), scale, photos.len())?;
+        let lights = read_positions(&dir.join("light_pos.txt"), scale, photos.len())?;
+        Ok(Self { dir: dir.to_path_buf(), photos, cameras, lights, sample_width })
+    }
+
+    /// Index of the photo taken closest to straight overhead: the camera
+    /// with the smallest angle to +z (the first one on ties).
+    pub fn overhead(&self) -> usize {
+        overhead_index(&self.cameras)
+    }
+
+    /// Light and camera of photo `i`, flashmat units.
+    pub fn config(&self, i: usize) -> LightView {
+        LightView { light: self.lights[i], view: self.cameras[i] }
+    }
+
+    /// r0: distance of the overhead photo's light to the sample centre,
+    /// flashmat units; photos are compensated to this distance.
+    pub fn reference_distance(&self) -> f64 {
+        length(self.lights[self.overhead()])
+    }
+
+    /// Every photo at `size x size`, linear (decoded with ^2.2) and with
+    /// the 1/r^2 fall-off compensated (see the module docs): `[3, S, S]` each.
+    pub fn load_compensated(&self, size: usize) -> Result<Vec<Tensor>> {
+        let r0 = self.reference_distance();
+        self.photos
+            .iter()
+            .zip(&self.lights)
+            .map(|(path, &light)| Ok(load_photo(path, size)? / falloff(light, r0, size, size)))
+            .collect()
+    }
+}
+
+/// Index of the camera with the smallest angle to +z (the first on ties).
+pub fn overhead_index(cameras: &[[f64; 3]]) -> usize {
+    let cos = |c: &[f64; 3]| c[2] / length(*c);
+    let mut best = 0;
+    for (i, c) in cameras.iter().enumerate() {
+        if cos(c) > cos(&cameras[best]) {
+            best = i;
+        }
+    }
+    best
+}
+
+/// Light fall-off relative to distance r0: r0^2 / |light - p|^2 for each
+/// pixel's surface point p of an H x W photo of the [-1,1]^2 sample.
+/// Returns `[1, H, W]` (CPU, float).
+pub fn falloff(light: [f64; 3], r0: f64, h: usize, w: usize) -> Tensor {
+    let p = pixel_positions(h, w, (Kind::Float, Device::Cpu));
+    let l = Tensor::from_slice(&light.map(|c| c as f32)).view([3, 1, 1]);
+    let r2 = (l - p).square().sum_dim_intlist([0i64].as_slice(), true, Kind::Float);
+    r2.reciprocal() * (r0 * r0)
+}
+
+/// One capture photo, linear `[3, S, S]`: gamma-decoded (^2.2, as every
+/// 8-bit photo flashmat reads) and resized to `size` (area when shrinking,
+/// bilinear when enlarging). Refuses photos that are not square (they
+/// should be rectified to the sample square) or smaller than 32 pixels.
+pub fn load_photo(path: &Path, size: usize) -> Result<Tensor> {
+    let rgb = crate::io::read_rgb(path)?;
+    let (w, h) = (rgb.width, rgb.height);
+    ensure!(
+        w.min(h) >= MIN_PHOTO_SIDE,
+        "{}: the photo is {w}x{h} pixels; capture photos need at least {MIN_PHOTO_SIDE}x{MIN_PHOTO_SIDE}",
+        path.display()
+    );
+    ensure!(
+        (w as f64 - h as f64).abs() <= SQUARE_TOLERANCE * w.max(h) as f64,
+        "{}: the photo is {w}x{h} pixels, not square; capture photos must be rectified to the sample square",
+        path.display()
+    );
+    let linear = rgb.map(crate::spaces::gamma_decode);
+    Ok(linear.resize_to(size, size).to_tensor())
+}
+
+fn read_text(path: &Path) -> Result<String> {
+    std::fs::read_to_string(path).map_err(|e| anyhow!("cannot read {}: {e}", path.display()))
+}
+
+/// `NN.png` files of `dir` sorted by number; errors when there are none.
+fn numbered_photos(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut found: Vec<(u64, PathBuf)> = Vec::new();
+    for p in crate::io::sorted_entries(dir)? {
+        let is_png = p.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("png"));
+        if let (true, Some(n)) = (is_png, p.file_stem().and_then(|s| s.to_str()).and_then(|s| s.parse::<u64>().ok())) {
+            found.push((n, p));
+        }
+    }
+    ensure!(!found.is_empty(), "no numbered photos (00.png, 01.png ...) in capture folder {}", dir.display());
+    found.sort();
+    if let Some(w) = found.windows(2).find(|w| w[0].0 == w[1].0) {
+        bail!("capture folder {}: photos {} and {} have the same number", dir.display(), w[0].1.display(), w[1].1.display());
+    }
+    Ok(found.into_iter().map(|(_, p)| p).collect())
+}
+
+/// Parses one `x,y,z` per non-empty line, scaled by `scale`; there must be
+/// `expected` lines and every z must be > 0.
+fn read_positions(path: &Path, scale: f64, expected: usize) -> Result<Vec<[f64; 3]>> {
+    let text = read_text(path)?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        let v = crate::geometry::parse_position(line).map_err(|e| anyhow!("{} line {}: {e}", path.display(), i + 1))?;
+        ensure!(v[2] > 0.0, "{} line {}: z must be > 0 (above the sample), got '{}'", path.display(), i + 1, line.trim());
+        out.push(v.map(|c| c * scale));
+    }
+    ensure!(
+        out.len() == expected,
+        "{} has {} positions but the folder has {expected} photos (one line per photo)",
+        path.display(),
+        out.len()
+    );
+    Ok(out)
+}
+
+/// Co-located flash configurations of a synthetic capture (a phone with
+/// its flash): photo 0 straight overhead at the model's camera distance,
+/// then `count - 1` around the sample at the same distance, elevations 65,
+/// 50 and 35 degrees in turn, azimuths evenly spread.
+pub fn synthetic_configs(count: usize) -> Vec<LightView> {
+    let d = fov_to_distance(MODEL_FOV_DEG);
+    let mut out = vec![LightView::colocated(MODEL_FOV_DEG)];
+    let others = count.saturating_sub(1);
+    for i in 0..others {
+        let elevation = [65.0f64, 50.0, 35.0][i % 3].to_radians();
+        let azimuth = 2.0 * std::f64::consts::PI * i as f64 / others as f64;
+        let p = [d * elevation.cos() * azimuth.cos(), d * elevation.cos() * azimuth.sin(), d * elevation.sin()];
+        out.push(LightView { light: p, view: p });
+    }
+    out.truncate(count);
+    out
+}
+
+/// Writes a capture folder of a GGX material (CPU renderer): 8-bit
+/// photos `NN.png` (display-encoded, with the 1/r^2 fall-off relative to
+/// the overhead light, see [`Captures::reference_distance`]), the
+/// positions in units of `sample_width` and `image_size.txt`.
+/// configs: flashmat units, at least one.
+pub fn write_synthetic(dir: &Path, material: &Svbrdf, configs: &[LightView], sample_width: f64) -> Result<()> {
+    ensure!(!configs.is_empty(), "a capture needs at least one photo");
+    ensure!(sample_width.is_finite() && sample_width > 0.0, "the sample's width must be > 0, got {sample_width}");
+    for c in configs {
+        ensure!(c.light[2] > 0.0 && c.view[2] > 0.0, "capture positions must be above the sample (z > 0)");
+    }
+    std::fs::create_dir_all(dir).map_err(|e| anyhow!("cannot create capture folder {}: {e}", dir.display()))?;
+    let (h, w) = (material.height(), material.width());
+    let cameras: Vec<[f64; 3]> = configs.iter().map(|c| c.view).collect();
+    let r0 = length(configs[overhead_index(&cameras)].light);
+    let renders = crate::svbrdf::cpu::render_tensor(material, configs);
+    for (i, c) in configs.iter().enumerate() {
+        let linear = renders.get(i as i64) * falloff(c.light, r0, h, w);
+        let display = Image::display_of(&linear)?;
+        crate::io::write_png(&dir.join(format!("{i:02}.png")), &display, crate::io::BitDepth::Eight)?;
+    }
+    let unit = sample_width / 2.0;
+    let lines = |pick: fn(&LightView) -> [f64; 3]| -> String {
+        configs.iter().map(|c| pick(c).map(|v| v * unit)).map(|p| format!("{:.6},{:.6},{:.6}\n", p[0], p[1], p[2])).collect()
+    };
+    crate::io::atomic_write_bytes(&dir.join("camera_pos.txt"), lines(|c| c.view).as_bytes())?;
+    crate::io::atomic_write_bytes(&dir.join("light_pos.txt"), lines(|c| c.light).as_bytes())?;
+    crate::io::atomic_write_bytes(&dir.join("image_size.txt"), format!("{sample_width}\n").as_bytes())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn falloff_is_r0_squared_over_r_squared() {
+        // 2x2 pixels: centres at (+-0.5, +-0.5, 0); light at (0, 0, 2),
+        // r^2 = 0.25 + 0.25 + 4 = 4.5 everywhere, r0 = 2: 4 / 4.5.
+        let f = falloff([0.0, 0.0, 2.0], 2.0, 2, 2);
+        assert_eq!(f.size(), vec![1, 2, 2]);
+        for v in Vec::<f32>::try_from(f.flatten(0, -1)).unwrap() {
+            assert!((v - 4.0 / 4.5).abs() < 1e-6, "{v}");
+        }
+        // Light at (1, 0, 1): the right column (x = 0.5) is nearer, r^2 =
+        // 0.25 + 0.25 + 1 = 1.5; the left one r^2 = 2.25 + 0.25 + 1 = 3.5.
+        let f = falloff([1.0, 0.0, 1.0], 1.0, 2, 2);
+        assert!((f.double_value(&[0, 0, 1]) - 1.0 / 1.5).abs() < 1e-6);
+        assert!((f.double_value(&[0, 1, 0]) - 1.0 / 3.5).abs() < 1e-6);
+    }
+
+    fn fixture(dir: &Path, photos: usize, cams: &str, lights: &str, size: &str) {
+        for i in 0..photos {
+            crate::io::write_png(&dir.join(format!("{i:02}.png")), &crate::image::Image::filled(3, 4, 4, 0.5), crate::io::BitDepth::Eight)
+                .unwrap();
+        }
+        std::fs::write(dir.join("camera_pos.txt"), cams).unwrap();
+        std::fs::write(dir.join("light_pos.txt"), lights).unwrap();
+        std::fs::write(dir.join("image_size.txt"), size).unwrap();
+    }
+
+    fn err(dir: &Path) -> String {
+        let m = format!("{:#}", Captures::open(dir).unwrap_err());
+        assert!(!m.contains('\n'), "{m}");
+        m
+    }
+
+    #[test]
+    fn parses_a_capture_folder() {
+        let t = tempfile::tempdir().unwrap();
+        fixture(t.path(), 3, "10,0,40\n0, 1 ,50\n-20,5,30\n", "10,0,40\n0,1,50\n-20,5,30\n\n", "20\n");
+        let c = Captures::open(t.path()).unwrap();
+        assert_eq!(c.photos.len(), 3);
+        assert!(c.photos[2].ends_with("02.png"));
+        assert_eq!(c.sample_width, 20.0);
+        // Divided by width / 2 = 10.
+        assert_eq!(c.cameras[0], [1.0, 0.0, 4.0]);
+        assert_eq!(c.lights[2], [-2.0, 0.5, 3.0]);
+        assert_eq!(c.overhead(), 1);
+    }
+
+    #[test]
+    fn synthetic_configs_are_colocated_flash_photos() {
+        let c = synthetic_configs(7);
+        assert_eq!(c.len(), 7);
+        let d = fov_to_distance(MODEL_FOV_DEG);
+        assert_eq!(c[0], LightView::colocated(MODEL_FOV_DEG));
+        for (i, x) in c.iter().enumerate().skip(1) {
+            assert_eq!(x.light, x.view);
+            assert!((length(x.view) - d).abs() < 1e-9);
+            let elevation = (x.view[2] / d).asin().to_degrees();
+            assert!((elevation - [65.0, 50.0, 35.0][(i - 1) % 3]).abs() < 1e-9, "{elevation}");
+        }
+        assert_eq!(overhead_index(&c.iter().map(|x| x.view).collect::<Vec<_>>()), 0);
+        assert_eq!(synthetic_configs(1).len(), 1);
+    }
+
+    #[test]
+    fn synthetic_captures_round_trip_to_the_renderer() {
+        // Photos written with the fall-off, read back and compensated, are
+        // the renderer's images (up to 8-bit rounding of display values).
+        let t = tempfile::tempdir().unwrap();
+        let material = crate::data::procedural::test_material(3, 32);
+        let configs = synthetic_configs(4);
+        write_synthetic(t.path(), &material, &configs, 8.0).unwrap();
+        let c = Captures::open(t.path()).unwrap();
+        assert_eq!(c.photos.len(), 4);
+        assert_eq!(c.sample_width, 8.0);
+        for (a, b) in c.cameras.iter().zip(&configs) {
+            for k in 0..3 {
+                assert!((a[k] - b.view[k]).abs() < 1e-5, "{a:?} vs {:?}", b.view);
+            }
+        }
+        assert_eq!(c.overhead(), 0);
+        assert!((c.reference_distance() - fov_to_distance(MODEL_FOV_DEG)).abs() < 1e-5);
+        let photos = c.load_compensated(32).unwrap();
+        let truth = crate::eval::reference_renders(&material, &configs);
+        let disp = crate::spaces::linear_to_display;
+        for (i, p) in photos.iter().enumerate() {
+            let err = (disp(p) - disp(&truth.get(i as i64))).abs().max().double_value(&[]);
+            assert!(err < 1.5 / 255.0 + 1e-4, "photo {i}: display error {err}");
+        }
+        // Uncompensated, the oblique photos are darker where the light is
+        // far: at the pixel farthest from photo 3's light the raw photo is
+        // the render times r0^2 / r^2 < 1.
+        let raw = load_photo(&c.photos[3], 32).unwrap();
+        let f = falloff(c.lights[3], c.reference_distance(), 32, 32);
+        let fmin = f.min().double_value(&[]);
+        assert!(fmin < 0.75, "{fmin}");
+        let lin_err = (&raw - truth.get(3) * &f).abs().max().double_value(&[]);
+        assert!(lin_err < 0.02, "{lin_err}");
+    }
+
+    #[test]
+    fn rejects_inconsistent_folders() {
+        let t = tempfile::tempdir().unwrap();
+        fixture(t.path(), 3, "0,0,4\n0,0,5\n", "0,0,4\n0,0,5\n0,0,6\n", "2");
+        assert!(err(t.path()).contains("camera_pos.txt has 2 positions but the folder has 3 photos"));
+
+        let t = tempfile::tempdir().unwrap();
+        fixture(t.path(), 2, "0,0,4\n0,x,5\n", "0,0,4\n0,0,5\n", "2");
+        let m = err(t.path());
+        assert!(m.contains("camera_pos.txt line 2") && m.contains("not a number"), "{m}");
+
+        let t = tempfile::tempdir().unwrap();
+        fixture(t.path(), 2, "0,0,4\n0,0,5\n", "0,0,4\n0,0,5\n", "wide");
+        assert!(err(t.path()).contains("image_size.txt: expected one number"));
+
+        let t = tempfile::tempdir().unwrap();
+        fixture(t.path(), 2, "0,0,4\n0,0,5\n", "0,0,4\n0,0,-5\n", "2");
+        assert!(err(t.path()).contains("light_pos.txt line 2: z must be > 0"));
+
+        let t = tempfile::tempdir().unwrap();
+        fixture(t.path(), 2, "0,0,4\n0,0,5\n", "0,0,4\n0,0,5\n", "2");
+        std::fs::remove_file(t.path().join("light_pos.txt")).unwrap();
+        assert!(err(t.path()).contains("cannot read") && err(t.path()).contains("light_pos.txt"));
+
+        let t = tempfile::tempdir().unwrap();
+        assert!(err(t.path()).contains("no numbered photos"));
+        assert!(err(&t.path().join("nope")).contains("does not exist"));
+    }
+}
