@@ -23,7 +23,7 @@ const CELL: usize = 128;
 const SIDE_LIGHT: [f64; 3] = [2.0, 0.0, 3.0];
 
 fn display(linear: &Image) -> Image {
-    linear.map(flashmat::spaces::gamma_encode).resize_to(CELL, CELL)
+    linear.to_display().resize_to(CELL, CELL)
 }
 
 fn main() -> Result<()> {
