@@ -87,6 +87,30 @@ impl Image {
         Self { data: self.data.iter().map(|&v| f(v)).collect(), ..*self }
     }
 
+    /// The image as it should be shown given its EXIF orientation tag
+    /// (1: as stored; 2/4 mirrored; 3 turned 180 degrees; 6 and 8 turned 90
+    /// degrees clockwise and counter-clockwise; 5/7 transposed). Tags 5-8
+    /// swap height and width; other values leave the image as it is.
+    pub fn oriented(&self, orientation: u16) -> Self {
+        let (h, w) = (self.height, self.width);
+        let (oh, ow) = if (5..=8).contains(&orientation) { (w, h) } else { (h, w) };
+        // Source (row, column) of output pixel (r, c).
+        let source = |r: usize, c: usize| match orientation {
+            2 => (r, w - 1 - c),
+            3 => (h - 1 - r, w - 1 - c),
+            4 => (h - 1 - r, c),
+            5 => (c, r),
+            6 => (h - 1 - c, r),
+            7 => (h - 1 - c, w - 1 - r),
+            8 => (c, w - 1 - r),
+            _ => (r, c),
+        };
+        Self::from_fn(self.channels, oh, ow, |ch, r, c| {
+            let (sr, sc) = source(r, c);
+            self.get(ch, sr, sc)
+        })
+    }
+
     /// The display transform of a linear image ([`crate::spaces::gamma_encode`]).
     pub fn to_display(&self) -> Self {
         self.map(crate::spaces::gamma_encode)

@@ -45,6 +45,14 @@ const PNG_SIGNATURE: &[u8] = b"\x89PNG\r\n\x1a\n";
 const JPEG_SIGNATURE: &[u8] = &[0xFF, 0xD8, 0xFF];
 const EXR_SIGNATURE: &[u8] = &[0x76, 0x2F, 0x31, 0x01];
 
+/// An ISO base-media (HEIF: HEIC, AVIF) file: a `ftyp` box first whose
+/// brand is one of the image brands.
+fn is_heif(bytes: &[u8]) -> bool {
+    bytes.len() >= 12
+        && &bytes[4..8] == b"ftyp"
+        && matches!(&bytes[8..12], b"heic" | b"heix" | b"hevc" | b"heim" | b"heis" | b"mif1" | b"msf1" | b"avif" | b"avis")
+}
+
 /// One-line error for a file that could not be read.
 fn read_error(path: &Path, reason: impl std::fmt::Display) -> anyhow::Error {
     // Decoder messages occasionally span lines; keep ours on one.
@@ -142,6 +150,11 @@ pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)>
         FileFormat::Jpeg
     } else if bytes.starts_with(EXR_SIGNATURE) {
         FileFormat::Exr
+    } else if is_heif(&bytes) || matches!(extension_lowercase(path).as_deref(), Some("heic" | "heif" | "avif")) {
+        return Err(read_error(
+            path,
+            "HEIC/AVIF photos are not supported: convert it to JPEG first (`heif-convert IN.HEIC OUT.jpg` from Debian's libheif-examples, or set the phone's camera to \"Most Compatible\")",
+        ));
     } else {
         return Err(match extension_lowercase(path).as_deref() {
             Some(ext @ ("png" | "jpg" | "jpeg" | "exr")) => {

@@ -100,17 +100,18 @@ fn estimate_relight_orbit_show_from_a_phone_photo() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let model = tiny_model(&d.join("tiny-ldr.safetensors"), true, 1);
-    // 160x120 at the default 45 degrees: a 72-pixel centre crop, shrunk to 64.
+    // 160x120 without EXIF: the model's 28 degrees, the 120-pixel centre square, shrunk to 64.
     let photo = png_photo(&d.join("photo.png"), 160, 120);
     let nmat = d.join("out/m.nmat");
     let err = assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--size", "64", "-o", s(&nmat)]));
     assert!(err.contains("estimated in ") && err.contains(" s"), "{err}");
     assert!(!err.contains("warning"), "{err}");
+    assert!(err.contains("no focal length in the photo's EXIF") && err.contains("--fov"), "{err}");
     let m = NeuralMaterial::load(&nmat, Device::Cpu).unwrap();
     assert_eq!(m.size(), (64, 64));
-    assert_eq!((m.meta.crop.x0, m.meta.crop.y0, m.meta.crop.side), (44, 24, 72));
+    assert_eq!((m.meta.crop.x0, m.meta.crop.y0, m.meta.crop.side), (20, 0, 120));
     assert_eq!((m.meta.crop.source_width, m.meta.crop.source_height), (160, 120));
-    assert_eq!((m.meta.fov_deg, m.meta.ldr_input, m.meta.source.as_str()), (45.0, true, "photo.png"));
+    assert_eq!((m.meta.fov_deg, m.meta.ldr_input, m.meta.source.as_str()), (28.0, true, "photo.png"));
     assert_eq!(m.meta.model_id, ModelConfig::tiny().model_id());
 
     // Identity relight: the photo's (model-resolution) size.

@@ -20,10 +20,14 @@ pub struct EstimateOptions {
     /// (folder overridden by $FLASHMAT_MODELS).
     #[arg(long, value_name = "FILE")]
     pub model: Option<PathBuf>,
-    /// Field of view of the photo across its shorter side, in degrees (default 45 for PNG/JPEG, a phone;
-    /// 28 for EXR, the model's own camera). The centre is cropped to the model's 28 degree view.
+    /// Field of view of the photo across its shorter side, in degrees. Default: from the photo's EXIF
+    /// focal length; without one, the model's own 28 degrees (no crop). The centre is cropped to the
+    /// model's 28 degree view.
     #[arg(long, value_name = "DEG")]
     pub fov: Option<f64>,
+    /// Exposure change in stops applied to the linearised photo (+1 doubles it).
+    #[arg(long, value_name = "EV", allow_negative_numbers = true)]
+    pub exposure: Option<f64>,
     /// Model resolution in pixels (a multiple of 8); the cropped photo is shrunk to it.
     #[arg(long, default_value_t = 256)]
     pub size: usize,
@@ -151,7 +155,8 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
     let device = flashmat::device::parse_device(&opts.device)?;
     let refine_cfg = opts.refine_config()?;
     let t0 = Instant::now();
-    let prepared = infer::load_photo(photo, opts.fov, opts.size)?;
+    let prepared = infer::load_photo_with(photo, &infer::PhotoOptions { fov_deg: opts.fov, size: opts.size, exposure_ev: opts.exposure })?;
+    eprintln!("{}", prepared.camera_note);
     let t_photo = t0.elapsed().as_secs_f64();
     let loaded = infer::load_model(opts.model.as_deref(), device)?;
     // The bundled model serves both photo types by design: warn only for a chosen one.

@@ -14,13 +14,14 @@
 //! with a wider lens are cropped to that view ([`photo`]), so the identity
 //! configuration of every material is [`NeuralMaterial::identity_config`].
 
+pub mod camera;
 pub mod nmat;
 pub mod photo;
 pub mod refine;
 pub mod show;
 
 pub use nmat::{NeuralMaterial, NmatMeta, NMAT_FORMAT, NMAT_VERSION};
-pub use photo::{load_photo, prepare_image, Crop, PreparedPhoto};
+pub use photo::{load_photo, load_photo_with, prepare_image, Crop, PhotoOptions, PreparedPhoto};
 
 use crate::data::samples::photo_est_input;
 use crate::geometry::{fov_to_distance, LightView, MODEL_FOV_DEG};

@@ -15,10 +15,6 @@ use anyhow::{bail, ensure, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// Default field of view of PNG/JPEG photos: a typical phone main camera
-/// across the shorter side of the picture.
-pub const PHONE_FOV_DEG: f64 = 45.0;
-
 /// Widest accepted field of view (the crop ratio vanishes at 180 degrees).
 pub const MAX_FOV_DEG: f64 = 170.0;
 
@@ -49,6 +45,9 @@ pub struct PreparedPhoto {
     pub crop: Crop,
     /// File name of the source (no folders).
     pub source: String,
+    /// Where the field of view came from and what the camera's EXIF said
+    /// (exposure, rotation), for the terminal.
+    pub camera_note: String,
 }
 
 impl PreparedPhoto {
@@ -62,19 +61,23 @@ impl PreparedPhoto {
             fov_deg: crate::geometry::MODEL_FOV_DEG,
             crop: Crop { x0: 0, y0: 0, side, source_width: width, source_height: height },
             source: source.into(),
+            camera_note: String::new(),
         }
     }
 }
 
-/// Default field of view for a photo type: phone photos for 8-bit files,
-/// the model's own camera for EXR renders (as made by `flashmat render`).
-pub fn default_fov(ldr: bool) -> f64 {
-    if ldr {
-        PHONE_FOV_DEG
-    } else {
-        MODEL_FOV_DEG
-    }
+/// How a photo is read: the field of view (None: from the EXIF, else the
+/// model's own), the model resolution, and an exposure change in stops.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PhotoOptions {
+    pub fov_deg: Option<f64>,
+    pub size: usize,
+    /// Multiplies the linearised photo by 2^EV.
+    pub exposure_ev: Option<f64>,
 }
+
+/// Largest `--exposure` change, in stops.
+pub const MAX_EXPOSURE_EV: f64 = 20.0;
 
 /// Checks a resolution for M_est (its U-Net halves three times; memory
 /// grows with its square, see [`crate::limits::MODEL_SIZE`]).
@@ -131,21 +134,55 @@ pub fn prepare_image(linear: &Image, fov_deg: f64, size: usize) -> Result<(Image
 
 /// Reads and prepares a photo: PNG/JPEG are LDR and gamma-decoded to
 /// linear (^2.2, REFERENCE section 3), EXR is linear HDR (NaN/Inf refused
-/// by the reader). `fov_deg` defaults by type (see [`default_fov`]).
-/// Errors name the file.
+/// by the reader). The field of view comes from `fov_deg`, else the EXIF's
+/// focal length, else it is the model's own (no crop). Errors name the file.
 pub fn load_photo(path: &Path, fov_deg: Option<f64>, size: usize) -> Result<PreparedPhoto> {
-    check_size(size)?;
-    if let Some(f) = fov_deg {
+    load_photo_with(path, &PhotoOptions { fov_deg, size, exposure_ev: None })
+}
+
+/// [`load_photo`] with every option: the EXIF orientation is applied, the
+/// exposure change scales the linear photo.
+pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto> {
+    check_size(opts.size)?;
+    if let Some(f) = opts.fov_deg {
         check_fov(f)?;
+    }
+    if let Some(ev) = opts.exposure_ev {
+        ensure!(ev.is_finite() && ev.abs() <= MAX_EXPOSURE_EV, "--exposure must be a number of stops within +-{MAX_EXPOSURE_EV}, got {ev}");
     }
     let (image, format) = read_image_with_format(path)?;
     let ldr = !format.is_float();
-    let rgb = crate::io::to_rgb(&image);
-    let linear = if ldr { rgb.map(crate::spaces::gamma_decode) } else { rgb };
-    let fov = fov_deg.unwrap_or_else(|| default_fov(ldr));
-    let (linear, crop) = prepare_image(&linear, fov, size).map_err(|e| anyhow::anyhow!("{}: {e:#}", path.display()))?;
+    let camera = if ldr { super::camera::read_camera(path, image.width, image.height)? } else { super::camera::CameraInfo { orientation: 1, ..Default::default() } };
+    let rgb = crate::io::to_rgb(&image).oriented(camera.orientation);
+    let mut linear = if ldr { rgb.map(crate::spaces::gamma_decode) } else { rgb };
+    if let Some(ev) = opts.exposure_ev {
+        let gain = 2f32.powf(ev as f32);
+        linear = linear.map(|v| v * gain);
+    }
+    let (fov, fov_source) = match (opts.fov_deg, &camera.fov) {
+        (Some(f), _) => (f, "--fov".to_string()),
+        (None, Some((f, from))) => (*f, from.clone()),
+        (None, None) => (
+            MODEL_FOV_DEG,
+            format!("no focal length in the photo's EXIF: taken as the model's own {MODEL_FOV_DEG} degree view, no crop; pass --fov DEGREES for a wider lens"),
+        ),
+    };
+    if opts.fov_deg.is_none() && fov < MODEL_FOV_DEG - 1e-9 {
+        bail!("{}: its {fov_source} gives a {fov:.1} degree field of view, narrower than the model's {MODEL_FOV_DEG}: the photo shows too little of the material (step back, or pass --fov DEGREES)", path.display());
+    }
+    let mut note = format!("photo {}x{}: FOV {fov:.1} deg ({fov_source})", linear.width, linear.height);
+    if let Some(e) = &camera.exposure {
+        note.push_str(&format!("; exposure {e}"));
+    }
+    if camera.orientation != 1 {
+        note.push_str(&format!("; rotated by its EXIF orientation {}", camera.orientation));
+    }
+    if let Some(ev) = opts.exposure_ev {
+        note.push_str(&format!("; --exposure {ev:+} EV"));
+    }
+    let (linear, crop) = prepare_image(&linear, fov, opts.size).map_err(|e| anyhow::anyhow!("{}: {e:#}", path.display()))?;
     let source = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    Ok(PreparedPhoto { linear, ldr, fov_deg: fov, crop, source })
+    Ok(PreparedPhoto { linear, ldr, fov_deg: fov, crop, source, camera_note: note })
 }
 
 #[cfg(test)]
@@ -224,5 +261,120 @@ mod tests {
         let uncropped = wide.resize_area(64, 64);
         let off = uncropped.data.iter().zip(&reference.data).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
         assert!(off > 0.05, "{off}");
+    }
+
+    /// A JPEG of `image` with an EXIF block of `fields` (APP1 after SOI).
+    fn jpeg_with_exif(path: &Path, image: &Image, fields: &[exif::Field]) {
+        crate::io::write_jpeg(path, image, 95).unwrap();
+        let jpeg = std::fs::read(path).unwrap();
+        let mut writer = exif::experimental::Writer::new();
+        for f in fields {
+            writer.push_field(f);
+        }
+        let mut tiff = std::io::Cursor::new(Vec::new());
+        writer.write(&mut tiff, false).unwrap();
+        let payload = [b"Exif\0\0".as_slice(), tiff.get_ref()].concat();
+        let len = (payload.len() + 2) as u16;
+        let out = [&jpeg[..2], &[0xFF, 0xE1], &len.to_be_bytes(), &payload, &jpeg[2..]].concat();
+        std::fs::write(path, out).unwrap();
+    }
+
+    fn field(tag: exif::Tag, value: exif::Value) -> exif::Field {
+        exif::Field { tag, ifd_num: exif::In::PRIMARY, value }
+    }
+
+    fn rational(num: u32, denom: u32) -> exif::Value {
+        exif::Value::Rational(vec![exif::Rational { num, denom }])
+    }
+
+    #[test]
+    fn fov_exposure_and_rotation_come_from_the_exif() {
+        use exif::{Tag, Value};
+        let dir = tempfile::tempdir().unwrap();
+        // 4:3 at a 26 mm equivalent: 53.06 degrees across the shorter side.
+        let p = dir.path().join("phone.jpg");
+        let im = Image::from_fn(3, 96, 128, |c, y, x| 0.2 + 0.3 * (x as f32 / 128.0) + 0.1 * c as f32 + 0.001 * y as f32);
+        jpeg_with_exif(
+            &p,
+            &im,
+            &[
+                field(Tag::FocalLengthIn35mmFilm, Value::Short(vec![26])),
+                field(Tag::ExposureTime, rational(1, 60)),
+                field(Tag::FNumber, rational(18, 10)),
+                field(Tag::PhotographicSensitivity, Value::Short(vec![100])),
+            ],
+        );
+        let photo = load_photo(&p, None, 32).unwrap();
+        assert!((photo.fov_deg - 53.0595).abs() < 0.01, "{}", photo.fov_deg);
+        assert!(photo.camera_note.contains("FocalLengthIn35mmFilm 26 mm") && photo.camera_note.contains("1/60 s, f/1.8, ISO 100"), "{}", photo.camera_note);
+        // The crop is the model's 28 degrees of the 96-pixel side: tan(14)/tan(26.53) = 0.4994 -> 48.
+        assert_eq!((photo.crop.side, photo.crop.x0, photo.crop.y0), (48, 40, 24));
+        // --fov wins over the EXIF.
+        assert_eq!(load_photo(&p, Some(28.0), 32).unwrap().fov_deg, 28.0);
+
+        // Orientation 6 (turn 90 degrees clockwise): the 96x128 stored photo is shown 128 high, 96 wide,
+        // and its stored left column becomes the top row.
+        let r = dir.path().join("rotated.jpg");
+        jpeg_with_exif(&r, &im, &[field(Tag::Orientation, Value::Short(vec![6]))]);
+        let photo = load_photo(&r, None, 32).unwrap();
+        assert_eq!((photo.crop.source_width, photo.crop.source_height), (96, 128));
+        assert!(photo.camera_note.contains("orientation 6") && photo.camera_note.contains("no focal length"), "{}", photo.camera_note);
+        // Stored, brightness grows to the right; shown, it grows downwards.
+        let (top, bottom) = (photo.linear.get(0, 0, 16), photo.linear.get(0, 31, 16));
+        assert!(bottom > top + 0.1, "{top} {bottom}");
+
+        // Two focal lengths that disagree: 26 mm equivalent (53 degrees) and 10 mm on a 4.2 mm side (24 degrees).
+        let c = dir.path().join("contradicts.jpg");
+        jpeg_with_exif(
+            &c,
+            &im,
+            &[
+                field(Tag::FocalLengthIn35mmFilm, Value::Short(vec![26])),
+                field(Tag::FocalLength, rational(10, 1)),
+                field(Tag::FocalPlaneXResolution, rational(128, 4)), // 32 px per mm at 128 px: 4 mm wide, 3 mm short side
+                field(Tag::FocalPlaneResolutionUnit, Value::Short(vec![4])),
+            ],
+        );
+        let e = format!("{:#}", load_photo(&c, None, 32).unwrap_err());
+        assert!(e.contains("contradicts itself") && e.contains("--fov") && !e.contains('\n'), "{e}");
+        assert!(load_photo(&c, Some(40.0), 32).is_err(), "the EXIF is read (and refused) even with --fov");
+    }
+
+    #[test]
+    fn oriented_maps_every_tag() {
+        // 2x3 image with values 10 r + c.
+        let im = Image::from_fn(1, 2, 3, |_, r, c| (10 * r + c) as f32);
+        let rows = |m: &Image| (0..m.height).map(|r| (0..m.width).map(|c| m.get(0, r, c) as i32).collect::<Vec<_>>()).collect::<Vec<_>>();
+        assert_eq!(rows(&im.oriented(1)), vec![vec![0, 1, 2], vec![10, 11, 12]]);
+        assert_eq!(rows(&im.oriented(2)), vec![vec![2, 1, 0], vec![12, 11, 10]]);
+        assert_eq!(rows(&im.oriented(3)), vec![vec![12, 11, 10], vec![2, 1, 0]]);
+        assert_eq!(rows(&im.oriented(4)), vec![vec![10, 11, 12], vec![0, 1, 2]]);
+        assert_eq!(rows(&im.oriented(5)), vec![vec![0, 10], vec![1, 11], vec![2, 12]]);
+        assert_eq!(rows(&im.oriented(6)), vec![vec![10, 0], vec![11, 1], vec![12, 2]]);
+        assert_eq!(rows(&im.oriented(7)), vec![vec![12, 2], vec![11, 1], vec![10, 0]]);
+        assert_eq!(rows(&im.oriented(8)), vec![vec![2, 12], vec![1, 11], vec![0, 10]]);
+        assert_eq!(im.oriented(9), im);
+    }
+
+    #[test]
+    fn exposure_scales_and_heic_is_refused_with_a_way_out() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("p.png");
+        crate::io::write_png(&p, &Image::filled(3, 32, 32, 0.5), crate::io::BitDepth::Eight).unwrap();
+        let base = load_photo(&p, None, 32).unwrap();
+        let brighter = load_photo_with(&p, &PhotoOptions { fov_deg: None, size: 32, exposure_ev: Some(1.0) }).unwrap();
+        let ratio = brighter.linear.get(1, 5, 5) / base.linear.get(1, 5, 5);
+        assert!((ratio - 2.0).abs() < 1e-5, "{ratio}");
+        assert!(brighter.camera_note.contains("--exposure +1 EV"), "{}", brighter.camera_note);
+        assert!(load_photo_with(&p, &PhotoOptions { fov_deg: None, size: 32, exposure_ev: Some(f64::NAN) }).is_err());
+        // A HEIC file (ftyp box, brand heic), whatever its name.
+        let h = dir.path().join("IMG_0001.dat");
+        std::fs::write(&h, [&[0, 0, 0, 24][..], b"ftypheic", &[0; 12]].concat()).unwrap();
+        let e = format!("{:#}", load_photo(&h, None, 32).unwrap_err());
+        assert!(e.contains("HEIC/AVIF") && e.contains("heif-convert") && !e.contains('\n'), "{e}");
+        // A 0-byte file.
+        let z = dir.path().join("empty.jpg");
+        std::fs::write(&z, b"").unwrap();
+        assert!(format!("{:#}", load_photo(&z, None, 32).unwrap_err()).contains("empty"));
     }
 }
