@@ -16,6 +16,7 @@ pub mod model;
 pub mod spaces;
 pub mod svbrdf;
 pub mod train;
+pub mod viewer;
 pub mod viz;
 
 /// Environment variable naming the folder that holds flashmat's bundled
