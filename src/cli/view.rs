@@ -6,7 +6,7 @@ use super::infer::{open_material, EstimateOptions};
 use super::{above_surface, prepare_output, Vec3Arg};
 use crate::geometry::LightView;
 use crate::infer::NeuralMaterial;
-use crate::viewer::{write_page, MapBits, ViewerOptions};
+use crate::viewer::{write_page, Bits, ViewerOptions};
 use anyhow::{bail, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -24,10 +24,14 @@ pub struct ViewArgs {
     /// Camera position X,Y,Z the page opens with (default: overhead, as in the photo).
     #[arg(long, value_name = "X,Y,Z")]
     pub view: Option<Vec3Arg>,
-    /// Storage of the neural map in the page: 8 bits per value with a per-channel scale (half the size), 16-bit floats,
-    /// or auto: 8 bits when the render stays within one display level of the f32 material, else 16.
-    #[arg(long, value_enum, default_value_t = MapBits::Auto)]
-    pub map_bits: MapBits,
+    /// Storage of the neural map in the page: 8 bits per value with a per-channel scale, 16- or 32-bit floats, or
+    /// auto: the smallest whose render stays within one display level (of 255) of the f32 material on five views.
+    #[arg(long, value_enum, default_value_t = Bits::Auto)]
+    pub map_bits: Bits,
+    /// Storage of the ND_enc + M_render weights: 16- or 32-bit floats, or auto: 16 bits when they move the render by
+    /// less than half a display level.
+    #[arg(long, value_enum, default_value_t = Bits::Auto)]
+    pub weight_bits: Bits,
     #[command(flatten)]
     pub estimate: EstimateOptions,
 }
@@ -36,6 +40,9 @@ pub fn view(a: &ViewArgs) -> Result<()> {
     match a.output.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
         Some("html" | "htm") => {}
         _ => bail!("{}: the output must end in .html", a.output.display()),
+    }
+    if a.weight_bits == Bits::Eight {
+        bail!("--weight-bits takes 16, 32 or auto (8 bits are for the map only)");
     }
     let identity = NeuralMaterial::identity_config();
     let view = match a.view {
@@ -49,7 +56,7 @@ pub fn view(a: &ViewArgs) -> Result<()> {
     let out_dir = prepare_output(&a.output)?;
     let (material, summary) = open_material(&a.material, &a.estimate)?;
     let relight_input = a.material.to_string_lossy().into_owned();
-    let opts = ViewerOptions { map_bits: a.map_bits, initial: LightView { light, view }, relight_input };
+    let opts = ViewerOptions { map_bits: a.map_bits, weight_bits: a.weight_bits, initial: LightView { light, view }, relight_input };
     let report = write_page(&material, &a.output, &opts)?;
     out_dir.keep();
     summary.iter().for_each(|l| eprintln!("{l}"));

@@ -3,11 +3,14 @@
 //! mouse. See docs/VIEWER.md.
 //!
 //! The page embeds (base64, no network):
-//! - the ND_enc + M_render weights as one RGBA16F texture: each layer's
-//!   `[out, in]` matrix padded to multiples of 4 in both dimensions, texel
-//!   (g, row) = `W[row][4g..4g+4]`, layers stacked by rows ([`pack_weights`]);
-//! - the neural map as a texture array of ceil(C/4) RGBA layers, f16 or
-//!   8-bit with a per-channel scale and offset ([`MapEncoding`]);
+//! - the ND_enc + M_render weights as one table of RGBA entries: each
+//!   layer's `[out, in]` matrix padded to multiples of 4 in both
+//!   dimensions, entry (row, g) = `W[row][4g..4g+4]`, layers stacked by rows
+//!   ([`pack_weights`]); f16, or f32 where f16 would move the render by
+//!   half a display level or more ([`Precision`]);
+//! - the neural map as a texture array of ceil(C/4) RGBA layers, 8-bit
+//!   with a per-channel scale and offset, f16 or f32: the smallest that
+//!   keeps the render within one display level of the f32 material;
 //! - the input photo (linear RGB, f16) for the photo toggle.
 //!
 //! The fragment shaders (`layer.frag`, `display.frag`) evaluate docs/NMAT.md
@@ -33,25 +36,56 @@ const DISPLAY_SHADER: &str = include_str!("display.frag");
 pub const VIEWER_FORMAT: &str = "flashmat-viewer";
 pub const VIEWER_VERSION: u32 = 1;
 
-/// How the neural map is stored in the page.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum MapEncoding {
+/// How numbers are stored in the page.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Precision {
+    /// 8 bits per value, value = offset[c] + scale[c] * q / 255 per channel (maps only).
+    U8,
     /// IEEE half floats (2 bytes per value).
     F16,
-    /// 8 bits per value, value = offset[c] + scale[c] * q / 255 per channel.
-    U8,
+    /// IEEE single floats, exact.
+    F32,
 }
 
-/// What `--map-bits` asks for.
+impl Precision {
+    pub fn bits(self) -> u32 {
+        match self {
+            Precision::U8 => 8,
+            Precision::F16 => 16,
+            Precision::F32 => 32,
+        }
+    }
+}
+
+/// What `--map-bits` / `--weight-bits` ask for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum MapBits {
-    /// 8-bit when it stays below one display level of the f32 render on the check views, else f16.
+pub enum Bits {
+    /// The smallest storage whose render stays within the display-level budget on the check views.
     Auto,
     #[value(name = "8")]
     Eight,
     #[value(name = "16")]
     Sixteen,
+    #[value(name = "32")]
+    ThirtyTwo,
 }
+
+impl Bits {
+    fn fixed(self) -> Option<Precision> {
+        match self {
+            Bits::Auto => None,
+            Bits::Eight => Some(Precision::U8),
+            Bits::Sixteen => Some(Precision::F16),
+            Bits::ThirtyTwo => Some(Precision::F32),
+        }
+    }
+}
+
+/// Largest display-level error (of 255) on the check views that `auto`
+/// accepts: the map's storage and the weights' may each take up to
+/// [`WEIGHT_ERROR_BUDGET`] of it.
+pub const ERROR_BUDGET: f64 = 1.0;
+pub const WEIGHT_ERROR_BUDGET: f64 = 0.5;
 
 /// One network layer in the packed weight texture.
 #[derive(Clone, Debug, PartialEq)]
@@ -70,14 +104,14 @@ pub struct PackedLayer {
     pub slope: f64,
 }
 
-/// ND_enc + M_render as one RGBA texture of f16 values.
+/// ND_enc + M_render as one table of RGBA entries.
 #[derive(Clone, Debug)]
 pub struct PackedWeights {
-    /// Texture width in texels (4 values each) and height in rows.
+    /// Table width in entries (4 values each) and height in rows.
     pub width: usize,
     pub height: usize,
-    /// f16 bits, `[height, width, 4]` row-major.
-    pub data: Vec<u16>,
+    /// Values `[height, width, 4]` row-major (zero padding).
+    pub data: Vec<f32>,
     pub layers: Vec<PackedLayer>,
 }
 
@@ -111,6 +145,8 @@ fn layer_matrices(m: &NeuralMaterial) -> Vec<(String, Tensor, f64)> {
 /// part (padded to ceil4(enc_out)), the layout of the shader's inputs.
 pub fn pack_weights(m: &NeuralMaterial) -> Result<PackedWeights> {
     let c = m.config.neural_channels as usize;
+    let f = m.config.enc_frequencies as usize;
+    ensure!(f <= MAX_FREQUENCIES, "the viewer supports up to {MAX_FREQUENCIES} encoding frequencies, this material has {f}");
     let mut layers = Vec::new();
     let mut mats = Vec::new();
     let mut row = 0;
@@ -118,7 +154,10 @@ pub fn pack_weights(m: &NeuralMaterial) -> Result<PackedWeights> {
         let s = w.size();
         ensure!(s.len() == 2, "layer {name} must be a matrix, got shape {s:?}");
         let (out, inp) = (s[0] as usize, s[1] as usize);
-        let in_pad = if name == "m_render.0" {
+        let in_pad = if name == "nd_enc.0" {
+            ensure!(inp == m.config.encoding_width() as usize, "layer nd_enc.0 has {inp} inputs, expected {}", m.config.encoding_width());
+            encoding_columns(m.config.enc_frequencies as usize)
+        } else if name == "m_render.0" {
             ensure!(inp > c, "layer m_render.0 has {inp} inputs, fewer than the {c} neural channels");
             ceil4(c) + ceil4(inp - c)
         } else {
@@ -131,18 +170,54 @@ pub fn pack_weights(m: &NeuralMaterial) -> Result<PackedWeights> {
     }
     let width = layers.iter().map(|l| l.in_pad / 4).max().unwrap_or(1);
     let height = row;
-    let mut data = vec![0u16; height * width * 4];
+    let mut data = vec![0f32; height * width * 4];
     for (l, w) in layers.iter().zip(&mats) {
         let vals: Vec<f32> = Vec::try_from(w.contiguous().view([-1]))?;
         for o in 0..l.out {
             for i in 0..l.inp {
-                let col = if l.name == "m_render.0" && i >= c { ceil4(c) + (i - c) } else { i };
-                let v = vals[o * l.inp + i];
-                data[(l.row + o) * width * 4 + col] = to_f16(v).with_context(|| format!("weight {}[{o}, {i}]", l.name))?;
+                let col = match l.name.as_str() {
+                    "nd_enc.0" => encoding_column(i, m.config.enc_frequencies as usize),
+                    "m_render.0" if i >= c => ceil4(c) + (i - c),
+                    _ => i,
+                };
+                data[(l.row + o) * width * 4 + col] = vals[o * l.inp + i];
             }
         }
     }
     Ok(PackedWeights { width, height, data, layers })
+}
+
+/// Largest encoding frequency count the shader supports (phases scale by `1 << k` in 32-bit ints).
+pub const MAX_FREQUENCIES: usize = 28;
+
+/// Padded input width of ND_enc's first layer in the shader's order:
+/// 12 + 72 ceil(F / 4) (see [`encoding_column`]).
+pub fn encoding_columns(frequencies: usize) -> usize {
+    12 + 72 * frequencies.div_ceil(4)
+}
+
+/// Column of encoding channel `n` (docs/NMAT.md order: v (9), sin k-major
+/// (9 F), cos (9 F)) in the shader's order, which computes sin and cos of
+/// four phases at a time: V0 = (wi, wo.x), V1 = (wo.y, wo.z, h.x, h.y),
+/// (h.z, 0, 0, 0); then per block of four frequencies k = 4b .. 4b+3, for
+/// each k: sin(phase(2^k V0)), cos(..), sin(phase(2^k V1)), cos(..) (16
+/// columns), then sin and cos of h.z at the block's four frequencies (8
+/// columns). Unused columns (3 after h.z, frequencies past F) stay zero.
+pub fn encoding_column(n: usize, frequencies: usize) -> usize {
+    if n < 9 {
+        return n;
+    }
+    let j = n - 9;
+    let (is_cos, j) = if j >= 9 * frequencies { (true, j - 9 * frequencies) } else { (false, j) };
+    let (k, c) = (j / 9, j % 9);
+    let base = 12 + 72 * (k / 4);
+    let kk = k % 4;
+    let cos = if is_cos { 4 } else { 0 };
+    match c {
+        0..=3 => base + 16 * kk + cos + c,
+        4..=7 => base + 16 * kk + 8 + cos + (c - 4),
+        _ => base + 64 + cos + kk,
+    }
 }
 
 /// f32 -> f16 bits (round to nearest even); values beyond the f16 range are errors.
@@ -168,13 +243,33 @@ fn to_layers<T: Copy + Default>(values: &[T], c: usize, h: usize, w: usize) -> V
     out
 }
 
-/// A neural map `[C, H, W]` as f16 bits in texture-array order.
-pub fn pack_map_f16(map: &Tensor) -> Result<Vec<u16>> {
+/// A neural map `[C, H, W]` in texture-array order (f32 values).
+pub fn map_layers(map: &Tensor) -> Result<Vec<f32>> {
     let s = map.size();
     ensure!(s.len() == 3, "neural map must be [C, H, W], got {s:?}");
     let vals: Vec<f32> = Vec::try_from(map.to_kind(Kind::Float).to_device(tch::Device::Cpu).contiguous().view([-1]))?;
-    let bits = vals.iter().map(|&v| to_f16(v)).collect::<Result<Vec<u16>>>().context("the neural map cannot be stored as f16")?;
-    Ok(to_layers(&bits, s[0] as usize, s[1] as usize, s[2] as usize))
+    Ok(to_layers(&vals, s[0] as usize, s[1] as usize, s[2] as usize))
+}
+
+/// Little-endian bytes of values as f16 (`what` names them in the error
+/// for values beyond the f16 range) or f32.
+pub fn float_bytes(values: &[f32], precision: Precision, what: &str) -> Result<Vec<u8>> {
+    match precision {
+        Precision::F32 => Ok(values.iter().flat_map(|v| v.to_le_bytes()).collect()),
+        Precision::F16 => {
+            let bits = values.iter().map(|&v| to_f16(v)).collect::<Result<Vec<u16>>>().with_context(|| format!("{what} cannot be stored as f16"))?;
+            Ok(u16_bytes(&bits))
+        }
+        Precision::U8 => bail!("{what}: 8-bit storage needs a per-channel scale"),
+    }
+}
+
+/// Values rounded through f16 (`Kind::Half`) and back; f32 unchanged.
+fn rounded(t: &Tensor, precision: Precision) -> Tensor {
+    match precision {
+        Precision::F16 => t.to_kind(Kind::Half).to_kind(Kind::Float),
+        _ => t.to_kind(Kind::Float),
+    }
 }
 
 /// An 8-bit neural map: value = offset[c] + scale[c] * q / 255.
@@ -234,42 +329,46 @@ pub fn check_configs() -> Vec<LightView> {
     v
 }
 
-/// The material as the page evaluates it: weights rounded to f16 and the
-/// given map `[C, H, W]` (already decoded from its stored form).
-fn as_stored(m: &NeuralMaterial, map: &Tensor) -> Result<NeuralMaterial> {
-    let weights: HashMap<String, Tensor> = m
-        .renderer_vs
-        .variables()
-        .into_iter()
-        .map(|(k, t)| (k, t.detach().to_kind(Kind::Half).to_kind(Kind::Float)))
-        .collect();
+/// The material as the page evaluates it: weights in `weights` precision
+/// and the given map `[C, H, W]` (already decoded from its stored form).
+fn as_stored(m: &NeuralMaterial, map: &Tensor, weights: Precision) -> Result<NeuralMaterial> {
+    let weights: HashMap<String, Tensor> =
+        m.renderer_vs.variables().into_iter().map(|(k, t)| (k, rounded(&t.detach(), weights))).collect();
     NeuralMaterial::from_parts(map.to_device(m.device()), m.input_photo.shallow_clone(), &m.config, &weights, m.meta.clone())
 }
 
 /// What was embedded and how far it is from the f32 material.
 #[derive(Clone, Debug)]
 pub struct ViewerReport {
-    pub encoding: MapEncoding,
+    pub map: Precision,
+    pub weights: Precision,
     /// Mean and max display-level error (of 255) of the stored material
     /// against the f32 one over [`check_configs`].
     pub mean_error: f64,
     pub max_error: f64,
-    /// Max error of the 8-bit map when it was tried and refused (auto).
-    pub rejected_u8_max_error: Option<f64>,
+    /// Smaller storages `auto` tried and refused, with their max error.
+    pub refused: Vec<(&'static str, Precision, f64)>,
     /// Bytes of the page.
     pub bytes: usize,
+}
+
+fn describe(p: Precision) -> &'static str {
+    match p {
+        Precision::U8 => "8 bits with a per-channel scale",
+        Precision::F16 => "16-bit floats",
+        Precision::F32 => "32-bit floats",
+    }
 }
 
 impl ViewerReport {
     /// One line for the terminal.
     pub fn summary(&self) -> String {
-        let enc = match self.encoding {
-            MapEncoding::F16 => "16-bit floats",
-            MapEncoding::U8 => "8 bits per channel with a per-channel scale",
-        };
-        let refused = self.rejected_u8_max_error.map(|e| format!("; 8 bits would be off by up to {e:.2} levels")).unwrap_or_default();
+        let refused: String =
+            self.refused.iter().map(|(what, p, e)| format!("; {what} in {} bits would be off by up to {e:.2} levels", p.bits())).collect();
         format!(
-            "neural map stored as {enc}, weights as 16-bit floats: against the f32 material, display error mean {:.3} / max {:.2} levels of 255 over {} views{refused}",
+            "neural map stored as {}, weights as {}: against the f32 material, display error mean {:.3} / max {:.2} levels of 255 over {} views{refused}",
+            describe(self.map),
+            describe(self.weights),
             self.mean_error,
             self.max_error,
             check_configs().len()
@@ -280,11 +379,33 @@ impl ViewerReport {
 /// Settings of the page.
 #[derive(Clone, Debug)]
 pub struct ViewerOptions {
-    pub map_bits: MapBits,
+    pub map_bits: Bits,
+    pub weight_bits: Bits,
     /// Light and camera the page opens with (the URL fragment overrides them).
     pub initial: LightView,
     /// File the page's `flashmat relight` command names.
     pub relight_input: String,
+}
+
+/// The stored map's precision and the decoded map the page will see
+/// (u8 also returns its codes).
+struct StoredMap {
+    precision: Precision,
+    u8: Option<U8Map>,
+}
+
+impl StoredMap {
+    fn new(m: &NeuralMaterial, precision: Precision) -> Result<Self> {
+        let u8 = if precision == Precision::U8 { Some(pack_map_u8(&m.neural_map)?) } else { None };
+        Ok(Self { precision, u8 })
+    }
+
+    fn decoded(&self, m: &NeuralMaterial) -> Tensor {
+        match &self.u8 {
+            Some(q) => q.decoded.shallow_clone(),
+            None => rounded(&m.neural_map, self.precision),
+        }
+    }
 }
 
 /// Base64 (standard alphabet, padded).
@@ -327,23 +448,50 @@ pub fn build_page(m: &NeuralMaterial, opts: &ViewerOptions) -> Result<(String, V
     let weights = pack_weights(m)?;
     let configs = check_configs();
     let reference = m.render(&configs).context("rendering the f32 material for the encoding check")?;
-    let err_of = |map: &Tensor| -> Result<(f64, f64)> { Ok(display_error(&reference, &as_stored(m, map)?.render(&configs)?)) };
-    let f16_map = || m.neural_map.to_kind(Kind::Half).to_kind(Kind::Float);
-    let (encoding, (mean_error, max_error), rejected, map_b64, map_meta) = match opts.map_bits {
-        MapBits::Sixteen => {
-            let e = err_of(&f16_map())?;
-            (MapEncoding::F16, e, None, base64(&u16_bytes(&pack_map_f16(&m.neural_map)?)), None)
-        }
-        MapBits::Eight | MapBits::Auto => {
-            let q = pack_map_u8(&m.neural_map)?;
-            let e = err_of(&q.decoded)?;
-            if opts.map_bits == MapBits::Eight || e.1 < 1.0 {
-                (MapEncoding::U8, e, None, base64(&q.data), Some((q.offset, q.scale)))
+    let err_of = |map: &Tensor, w: Precision| -> Result<(f64, f64)> {
+        Ok(display_error(&reference, &as_stored(m, map, w)?.render(&configs)?))
+    };
+    let mut refused = Vec::new();
+    let weight_precision = match opts.weight_bits {
+        Bits::Auto => {
+            let e = err_of(&m.neural_map, Precision::F16)?;
+            if e.1 < WEIGHT_ERROR_BUDGET {
+                Precision::F16
             } else {
-                let e16 = err_of(&f16_map())?;
-                (MapEncoding::F16, e16, Some(e.1), base64(&u16_bytes(&pack_map_f16(&m.neural_map)?)), None)
+                refused.push(("weights", Precision::F16, e.1));
+                Precision::F32
             }
         }
+        Bits::Eight => bail!("weights are stored in 16 or 32 bits (--weight-bits 16|32|auto)"),
+        b => b.fixed().expect("not auto"),
+    };
+    let (stored, (mean_error, max_error)) = match opts.map_bits.fixed() {
+        Some(p) => {
+            let sm = StoredMap::new(m, p)?;
+            let e = err_of(&sm.decoded(m), weight_precision)?;
+            (sm, e)
+        }
+        None => {
+            let mut chosen = None;
+            for p in [Precision::U8, Precision::F16, Precision::F32] {
+                let sm = StoredMap::new(m, p)?;
+                // f16 cannot hold values beyond 65504: the next precision.
+                if p == Precision::F16 && !crate::image::all_finite(&sm.decoded(m)) {
+                    continue;
+                }
+                let e = err_of(&sm.decoded(m), weight_precision)?;
+                if e.1 < ERROR_BUDGET || p == Precision::F32 {
+                    chosen = Some((sm, e));
+                    break;
+                }
+                refused.push(("the map", p, e.1));
+            }
+            chosen.expect("f32 is always accepted")
+        }
+    };
+    let (map_b64, offset, scale) = match &stored.u8 {
+        Some(q) => (base64(&q.data), q.offset.clone(), q.scale.clone()),
+        None => (base64(&float_bytes(&map_layers(&m.neural_map)?, stored.precision, "the neural map")?), Vec::new(), Vec::new()),
     };
     let photo: Vec<f32> = Vec::try_from(m.input_photo.to_device(tch::Device::Cpu).contiguous().view([-1]))?;
     // [3, H, W] -> [H, W, 3] f16.
@@ -358,7 +506,6 @@ pub fn build_page(m: &NeuralMaterial, opts: &ViewerOptions) -> Result<(String, V
         .iter()
         .map(|l| serde_json::json!({"name": l.name, "out": l.out, "in": l.inp, "outPad": l.out_pad, "inPad": l.in_pad, "row": l.row, "slope": l.slope}))
         .collect();
-    let (offset, scale) = map_meta.unwrap_or_default();
     let meta = serde_json::json!({
         "format": VIEWER_FORMAT,
         "version": VIEWER_VERSION,
@@ -375,14 +522,15 @@ pub fn build_page(m: &NeuralMaterial, opts: &ViewerOptions) -> Result<(String, V
         "view": opts.initial.view,
         "relightInput": opts.relight_input,
         "layers": layers,
-        "weightTexture": [weights.width, weights.height],
-        "map": {"bits": if encoding == MapEncoding::U8 { 8 } else { 16 }, "offset": offset, "scale": scale},
+        "weightTable": [weights.width, weights.height],
+        "weightBits": weight_precision.bits(),
+        "map": {"bits": stored.precision.bits(), "offset": offset, "scale": scale},
         "check": {"meanError": mean_error, "maxError": max_error},
     });
     let data = format!(
         "<script type=\"application/json\" id=\"flashmat-meta\">{}</script>\n<script type=\"text/plain\" id=\"flashmat-weights\">{}</script>\n<script type=\"text/plain\" id=\"flashmat-map\">{}</script>\n<script type=\"text/plain\" id=\"flashmat-photo\">{}</script>",
         script_safe(&meta.to_string()),
-        base64(&u16_bytes(&weights.data)),
+        base64(&float_bytes(&weights.data, weight_precision, "the weights")?),
         map_b64,
         base64(&u16_bytes(&photo16)),
     );
@@ -395,7 +543,7 @@ pub fn build_page(m: &NeuralMaterial, opts: &ViewerOptions) -> Result<(String, V
     // Last: the data may contain anything that looks like a placeholder.
     ensure!(page.contains("{{DATA}}"), "viewer template lacks {{DATA}}");
     let page = page.replacen("{{DATA}}", &data, 1);
-    let report = ViewerReport { encoding, mean_error, max_error, rejected_u8_max_error: rejected, bytes: page.len() };
+    let report = ViewerReport { map: stored.precision, weights: weight_precision, mean_error, max_error, refused, bytes: page.len() };
     Ok((page, report))
 }
 
@@ -437,31 +585,61 @@ mod tests {
         assert_eq!(p.layers[4].slope, RENDER_SLOPE);
         assert_eq!(p.height, 32 + 32 + 8 + 16 * 5 + 8 + 4);
         assert_eq!(p.data.len(), p.height * p.width * 4);
-        let get = |row: usize, col: usize| half::f16::from_bits(p.data[row * p.width * 4 + col]).to_f32();
-        // ND_enc 0, element [5, 296]; padding columns 297..300 are zero.
+        let get = |row: usize, col: usize| p.data[row * p.width * 4 + col];
+        let at = |t: &Tensor, o: i64, i: i64| t.double_value(&[o, i]) as f32;
+        // ND_enc 0, element [5, 296] (cos of h.z at k = 15): column 12 + 72 * 3 + 68 + 3.
         let w0 = &m.renderer.nd_enc.layers[0];
-        assert_eq!(get(5, 296), half::f16::from_f32(w0.double_value(&[5, 296]) as f32).to_f32());
-        assert!((297..300).all(|c| get(5, c) == 0.0));
+        assert_eq!(get(5, 299), at(w0, 5, 296));
+        assert_eq!(get(5, 4), at(w0, 5, 4));
+        assert!((9..12).all(|c| get(5, c) == 0.0));
         // M_render 0 [out 16, in 16 + 8]: its code columns start at ceil4(16) = 16, and row 2 of it.
         let m0 = &m.renderer.m_render.layers[0];
         let r0 = p.layers[3].row;
-        assert_eq!(get(r0 + 2, 16 + 3), half::f16::from_f32(m0.double_value(&[2, 19]) as f32).to_f32());
+        assert_eq!(get(r0 + 2, 16 + 3), at(m0, 2, 19));
+        // Every weight is placed once: the table sums to the weights' sum.
+        let total: f64 = p.data.iter().map(|&v| v as f64).sum();
+        let expect: f64 = m.renderer_vs.variables().values().map(|t| t.sum(Kind::Double).double_value(&[])).sum();
+        assert!((total - expect).abs() < 1e-3, "{total} vs {expect}");
         // The last layer's padding row (3) is zero.
         assert!((0..p.width * 4).all(|c| get(last.row + 3, c) == 0.0));
+    }
+
+    #[test]
+    fn encoding_columns_are_a_permutation_into_the_padded_layout() {
+        for f in [1usize, 4, 5, 16] {
+            let width = encoding_columns(f);
+            let cols: Vec<usize> = (0..9 + 18 * f).map(|n| encoding_column(n, f)).collect();
+            let mut sorted = cols.clone();
+            sorted.sort();
+            sorted.dedup();
+            assert_eq!(sorted.len(), cols.len(), "F = {f}: two channels share a column");
+            assert!(cols.iter().all(|&c| c < width && !(9..12).contains(&c)), "F = {f}");
+        }
+        assert_eq!(encoding_columns(16), 300);
+        // sin(2^0 pi wi.x) (channel 9) -> 12; cos of it (channel 9 + 144) -> 16;
+        // sin(2^1 pi wo.y) (channel 9 + 9 + 4) -> 12 + 16 + 8; sin(2^5 pi h.z) -> 12 + 72 + 64 + 1.
+        assert_eq!(encoding_column(9, 16), 12);
+        assert_eq!(encoding_column(9 + 144, 16), 16);
+        assert_eq!(encoding_column(9 + 9 + 4, 16), 36);
+        assert_eq!(encoding_column(9 + 45 + 8, 16), 149);
     }
 
     #[test]
     fn maps_go_to_rgba_layers() {
         // 6 channels -> 2 layers, the second half empty.
         let map = Tensor::arange(6 * 2 * 3, (Kind::Float, tch::Device::Cpu)).view([6, 2, 3]);
-        let f = pack_map_f16(&map).unwrap();
+        let f = map_layers(&map).unwrap();
         assert_eq!(f.len(), 2 * 2 * 3 * 4);
-        let v = |i: usize| half::f16::from_bits(f[i]).to_f32();
+        let v = |i: usize| f[i];
         // Layer 0, pixel (row 1, col 2) = p 5: channels 0..3 = 5, 11, 17, 23.
         assert_eq!([v(20), v(21), v(22), v(23)], [5.0, 11.0, 17.0, 23.0]);
         // Layer 1, pixel 0: channels 4, 5, then padding.
         assert_eq!([v(24), v(25), v(26), v(27)], [24.0, 30.0, 0.0, 0.0]);
-        assert!(pack_map_f16(&(map * 1e5)).unwrap_err().to_string().contains("f16"));
+        let b = float_bytes(&f, Precision::F16, "the map").unwrap();
+        assert_eq!(half::f16::from_bits(u16::from_le_bytes([b[40], b[41]])).to_f32(), 23.0);
+        assert_eq!(float_bytes(&f, Precision::F32, "the map").unwrap()[80..84], 24f32.to_le_bytes());
+        let e = float_bytes(&[1e5], Precision::F16, "the map").unwrap_err().to_string();
+        assert!(e.contains("the map cannot be stored as f16"), "{e}");
     }
 
     #[test]
@@ -482,23 +660,42 @@ mod tests {
     #[test]
     fn page_embeds_everything_and_reports_the_error() {
         let m = random_material(9, 16);
-        let opts = ViewerOptions { map_bits: MapBits::Sixteen, initial: NeuralMaterial::identity_config(), relight_input: "m</script>.nmat".into() };
+        let opts = ViewerOptions {
+            map_bits: Bits::Sixteen,
+            weight_bits: Bits::Sixteen,
+            initial: NeuralMaterial::identity_config(),
+            relight_input: "m</script>.nmat".into(),
+        };
         let (page, report) = build_page(&m, &opts).unwrap();
-        assert_eq!(report.encoding, MapEncoding::F16);
-        assert!(report.max_error < 1.0 && report.mean_error <= report.max_error, "{report:?}");
+        assert_eq!((report.map, report.weights), (Precision::F16, Precision::F16));
+        assert!(report.mean_error <= report.max_error, "{report:?}");
         assert_eq!(report.bytes, page.len());
         assert!(!page.contains("{{"), "placeholder left in the page");
         assert!(page.contains("#version 300 es") && page.contains("getContext(\"webgl2\""));
         // The file name cannot close the script element.
         assert_eq!(page.matches("</script>").count(), page.matches("<script").count());
         assert!(page.contains("m\\u003c/script\\u003e.nmat"));
+        let block = |page: &str, id: &str| page.split(&format!("id=\"{id}\">")).nth(1).unwrap().split('<').next().unwrap().len();
         // Map: 16 channels = 4 layers of 16 x 16 RGBA f16 = 8192 bytes -> base64 of 10924 chars.
-        let map_block = page.split("id=\"flashmat-map\">").nth(1).unwrap().split('<').next().unwrap();
-        assert_eq!(map_block.len(), 8192usize.div_ceil(3) * 4);
-        let (_, r8) = build_page(&m, &ViewerOptions { map_bits: MapBits::Eight, ..opts.clone() }).unwrap();
-        assert_eq!(r8.encoding, MapEncoding::U8);
+        assert_eq!(block(&page, "flashmat-map"), 8192usize.div_ceil(3) * 4);
+        // Exact storage: f32 map and weights, no error at all.
+        let exact = ViewerOptions { map_bits: Bits::ThirtyTwo, weight_bits: Bits::ThirtyTwo, ..opts.clone() };
+        let (page32, r32) = build_page(&m, &exact).unwrap();
+        assert_eq!((r32.max_error, r32.map, r32.weights), (0.0, Precision::F32, Precision::F32));
+        assert_eq!(block(&page32, "flashmat-map"), 16384usize.div_ceil(3) * 4);
+        let n = pack_weights(&m).unwrap().data.len();
+        assert_eq!(block(&page, "flashmat-weights"), (2 * n).div_ceil(3) * 4);
+        assert_eq!(block(&page32, "flashmat-weights"), (4 * n).div_ceil(3) * 4);
+        let (_, r8) = build_page(&m, &ViewerOptions { map_bits: Bits::Eight, ..opts.clone() }).unwrap();
+        assert_eq!(r8.map, Precision::U8);
         assert!(r8.bytes < report.bytes);
         assert!(r8.max_error >= report.max_error, "8 bits ({}) closer than f16 ({})?", r8.max_error, report.max_error);
         assert!(report.summary().contains("16-bit floats"));
+        // Auto keeps the render within the budget, refusing what does not.
+        let (_, ra) = build_page(&m, &ViewerOptions { map_bits: Bits::Auto, weight_bits: Bits::Auto, ..opts.clone() }).unwrap();
+        assert!(ra.max_error < ERROR_BUDGET, "{ra:?}");
+        assert!(ra.refused.iter().all(|r| r.2 >= WEIGHT_ERROR_BUDGET), "{ra:?}");
+        assert!(ra.map == Precision::U8 || ra.refused.iter().any(|r| r.0 == "the map" && r.1 == Precision::U8), "{ra:?}");
+        assert!(build_page(&m, &ViewerOptions { weight_bits: Bits::Eight, ..opts }).unwrap_err().to_string().contains("16 or 32 bits"));
     }
 }

@@ -58,12 +58,12 @@
     const C = meta.channels, mapG = Math.ceil(C / 4);
     const W0 = meta.width, H0 = meta.height;
     const wBytes = decodeBase64("flashmat-weights");
-    const weights = new Uint16Array(wBytes.buffer, 0, wBytes.length / 2);
-    const [TW, TH] = meta.weightTexture;
-    if (TW > maxTex || TH > maxTex) throw new Error(`the network's weight texture (${TW}x${TH}) exceeds this GPU's texture limit ${maxTex}`);
+    // f16 bits or f32 values (meta.weightBits)
+    const weights = meta.weightBits === 32 ? new Float32Array(wBytes.buffer, 0, wBytes.length / 4) : new Uint16Array(wBytes.buffer, 0, wBytes.length / 2);
+    const TW = meta.weightTable[0]; // texels (4 weights) per row of the packed table
     const mapBytes = decodeBase64("flashmat-map");
-    const u8 = meta.map.bits === 8;
-    let mapData = u8 ? mapBytes : new Uint16Array(mapBytes.buffer, 0, mapBytes.length / 2);
+    const u8 = meta.map.bits === 8, f32 = meta.map.bits === 32;
+    let mapData = u8 ? mapBytes : f32 ? new Float32Array(mapBytes.buffer, 0, mapBytes.length / 4) : new Uint16Array(mapBytes.buffer, 0, mapBytes.length / 2);
     const photoBytes = decodeBase64("flashmat-photo");
     let photoData = new Uint16Array(photoBytes.buffer, 0, photoBytes.length / 2);
 
@@ -113,9 +113,37 @@
       for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST);
       return t;
     }
-    const wTex = texture2D(gl.RGBA16F, TW, TH, gl.RGBA, gl.HALF_FLOAT, weights);
+    // Weights: one uniform buffer per pass of up to `maxDraw` groups of 4 output
+    // channels, as many as the GPU's uniform block size holds.
+    const NW = Math.min(4096, Math.floor(gl.getParameter(gl.MAX_UNIFORM_BLOCK_SIZE) / 16));
+    const halfToFloat = (h) => {
+      const e = (h >> 10) & 31, m = h & 1023, sign = h & 0x8000 ? -1 : 1;
+      if (e === 0) return sign * m * Math.pow(2, -24);
+      if (e === 31) return m ? NaN : sign * Infinity;
+      return sign * (1024 + m) * Math.pow(2, e - 25);
+    };
+    const plans = layers.map((L) => {
+      const inG = L.inPad / 4, groups = L.outPad / 4;
+      const per = Math.min(maxDraw, Math.floor(NW / (4 * inG)));
+      if (per < 1) throw new Error(`layer ${L.name} (${L.inPad} inputs) does not fit this GPU's uniform block size (${NW * 16} bytes)`);
+      const passes = [];
+      for (let g0 = 0; g0 < groups; g0 += per) {
+        const n = Math.min(per, groups - g0);
+        const data = new Float32Array(NW * 4);
+        for (let r = 0; r < 4 * n; r++) {
+          const src = (L.row + 4 * g0 + r) * TW * 4;
+          for (let c = 0; c < 4 * inG; c++) data[r * inG * 4 + c] = meta.weightBits === 32 ? weights[src + c] : halfToFloat(weights[src + c]);
+        }
+        const ubo = gl.createBuffer();
+        gl.bindBuffer(gl.UNIFORM_BUFFER, ubo);
+        gl.bufferData(gl.UNIFORM_BUFFER, data, gl.STATIC_DRAW);
+        passes.push({ g0, n, ubo });
+      }
+      return { inG, passes };
+    });
     const mapTex = u8 ? textureArray(gl.RGBA8, W, H, mapG, gl.RGBA, gl.UNSIGNED_BYTE, mapData)
-                      : textureArray(gl.RGBA16F, W, H, mapG, gl.RGBA, gl.HALF_FLOAT, mapData);
+      : f32 ? textureArray(gl.RGBA32F, W, H, mapG, gl.RGBA, gl.FLOAT, mapData)
+      : textureArray(gl.RGBA16F, W, H, mapG, gl.RGBA, gl.HALF_FLOAT, mapData);
     const photoTex = texture2D(gl.RGB16F, W, H, gl.RGB, gl.HALF_FLOAT, photoData);
     const acts = [0, 1].map(() => textureArray(gl.RGBA32F, T, T, actLayers, gl.RGBA, gl.FLOAT, null));
     const outFull = texture2D(gl.RGBA32F, W, H, gl.RGBA, gl.FLOAT, null);
@@ -150,14 +178,19 @@
     function layerProgram(mode, nout) {
       const key = mode + ":" + nout;
       if (!programs.has(key)) {
-        let outs = "", writes = "";
+        let outs = "", declare = "", accumulate = "", write = "";
         for (let i = 0; i < nout; i++) {
-          outs += `layout(location = ${i}) out vec4 o${i};\n`;
-          writes += `o${i} = max(acc[${i}], uSlope * acc[${i}]);\n`;
+          outs += ` layout(location = ${i}) out vec4 o${i};`;
+          declare += ` vec4 a${i} = vec4(0.0);`;
+          accumulate += ` ACC(${i}, a${i})`;
+          write += ` o${i} = max(a${i}, uSlope * a${i});`;
         }
-        const defines = `#define NOUT ${nout}\n#define MODE ${mode}\n#define FREQ ${meta.frequencies}\n#define MAPG ${mapG}\n`;
-        const src = layerSource.replace(/^(#version[^\n]*\n)/, "$1" + defines).replace("OUTPUTS", outs).replace("WRITES", writes);
-        programs.set(key, program(src));
+        const defines = [`NOUT ${nout}`, `MODE ${mode}`, `FB ${Math.ceil(meta.frequencies / 4)}`, `MAPG ${mapG}`, `NW ${NW}`,
+          `OUTPUTS${outs}`, `DECLARE${declare}`, `ACCUMULATE${accumulate}`, `WRITE${write}`].map((d) => `#define ${d}\n`).join("");
+        const src = layerSource.replace(/^(#version[^\n]*\n)/, "$1" + defines);
+        const prog = program(src);
+        gl.uniformBlockBinding(prog.p, gl.getUniformBlockIndex(prog.p, "Weights"), 0);
+        programs.set(key, prog);
       }
       return programs.get(key);
     }
@@ -198,11 +231,10 @@
         const L = layers[li];
         const last = li === layers.length - 1;
         const mode = li === 0 ? 0 : L.name === "m_render.0" ? 2 : 1;
-        const groups = L.outPad / 4;
         const dst = 1 - src;
-        for (let g0 = 0; g0 < groups; g0 += maxDraw) {
-          const n = Math.min(maxDraw, groups - g0);
+        for (const { g0, n, ubo } of plans[li].passes) {
           const { p, loc } = layerProgram(mode, n);
+          gl.bindBufferBase(gl.UNIFORM_BUFFER, 0, ubo);
           gl.useProgram(p);
           if (last) {
             gl.bindFramebuffer(gl.FRAMEBUFFER, textureTarget(out));
@@ -215,18 +247,15 @@
             gl.viewport(0, 0, w, h);
             gl.uniform2i(loc.uTarget0, 0, 0);
           }
-          gl.activeTexture(gl.TEXTURE0); gl.bindTexture(gl.TEXTURE_2D, wTex);
           gl.activeTexture(gl.TEXTURE1); gl.bindTexture(gl.TEXTURE_2D_ARRAY, acts[src]);
           gl.activeTexture(gl.TEXTURE2); gl.bindTexture(gl.TEXTURE_2D_ARRAY, mapTex);
-          gl.uniform1i(loc.uW, 0);
           if (loc.uIn) gl.uniform1i(loc.uIn, 1);
           if (loc.uMap) {
             gl.uniform1i(loc.uMap, 2);
             gl.uniform4fv(loc.uMapOffset, mapOffset);
             gl.uniform4fv(loc.uMapScale, mapScale);
           }
-          gl.uniform1i(loc.uRow0, L.row + 4 * g0);
-          gl.uniform1i(loc.uInGroups, mode === 2 ? (L.inPad - 4 * mapG) / 4 : L.inPad / 4);
+          gl.uniform1i(loc.uInGroups, plans[li].inG);
           gl.uniform1f(loc.uSlope, L.slope);
           gl.uniform2i(loc.uTile, x0, y0);
           gl.uniform2i(loc.uRender, RW, RH);
@@ -416,7 +445,7 @@
       $("exposure-value").textContent = `${state.exposure >= 0 ? "+" : ""}${Number(state.exposure).toFixed(1)} stops`;
       $("photo").classList.toggle("on", state.showPhoto);
       $("photo").textContent = state.showPhoto ? "Show neural render (P)" : "Show input photo (P)";
-      $("command").textContent = `flashmat relight ${/[\s"'$]/.test(meta.relightInput) ? JSON.stringify(meta.relightInput) : meta.relightInput} --light ${fmt(state.light)} --view ${fmt(state.view)} -o view.png`;
+      $("command").textContent = `flashmat relight ${/[\s"'$]/.test(meta.relightInput) ? JSON.stringify(meta.relightInput) : meta.relightInput} --light=${fmt(state.light)} --view=${fmt(state.view)} -o view.png`;
       const h = `#light=${fmt(state.light)}&view=${fmt(state.view)}` + (state.exposure ? `&exposure=${state.exposure}` : "") + (state.showPhoto ? "&show=photo" : "");
       if (location.hash !== h) history.replaceState(null, "", h);
     }
@@ -494,7 +523,7 @@
     $("name").textContent = meta.source;
     $("info").textContent = `${meta.preset} preset (${meta.modelId}), ${C}-channel ${W0}x${H0} neural map` +
       (f > 1 ? ` shown at ${W}x${H} (GPU texture limit ${maxTex})` : "") +
-      `, ${meta.map.bits === 8 ? "8-bit" : "f16"} map; ${(macsPerPixel / 1000).toFixed(1)}k multiply-adds per pixel, ` +
+      `, ${meta.map.bits}-bit map, ${meta.weightBits}-bit weights; ${(macsPerPixel / 1000).toFixed(1)}k multiply-adds per pixel, ` +
       `${(macsPerPixel * W * H / 1e9).toFixed(2)} G per full frame; d = ${d.toFixed(4)}`;
     updateText();
     status("");
