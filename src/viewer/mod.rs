@@ -3,9 +3,8 @@
 //! mouse. See docs/VIEWER.md.
 //!
 //! The page embeds (base64, no network):
-//! - the ND_enc + M_render weights as one table of RGBA entries: each
-//!   layer's `[out, in]` matrix padded to multiples of 4 in both
-//!   dimensions, entry (row, g) = `W[row][4g..4g+4]`, layers stacked by rows
+//! - the ND_enc + M_render weights, layer after layer, each `[out, in]`
+//!   matrix padded to multiples of 4 in both dimensions and row-major
 //!   ([`pack_weights`]); f16, or f32 where f16 would move the render by
 //!   half a display level or more ([`Precision`]);
 //! - the neural map as a texture array of ceil(C/4) RGBA layers, 8-bit
@@ -87,7 +86,7 @@ impl Bits {
 pub const ERROR_BUDGET: f64 = 1.0;
 pub const WEIGHT_ERROR_BUDGET: f64 = 0.5;
 
-/// One network layer in the packed weight texture.
+/// One network layer in the packed weights.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PackedLayer {
     /// `nd_enc.0` .. `m_render.6`.
@@ -98,19 +97,17 @@ pub struct PackedLayer {
     /// Padded sizes: multiples of 4 (M_render 0: ceil4(C) + ceil4(enc_out)).
     pub out_pad: usize,
     pub in_pad: usize,
-    /// First texture row of the layer.
-    pub row: usize,
+    /// Index of the layer's first value in [`PackedWeights::data`].
+    pub offset: usize,
     /// LeakyReLU slope after the layer (1 = no activation).
     pub slope: f64,
 }
 
-/// ND_enc + M_render as one table of RGBA entries.
+/// ND_enc + M_render as one array of values.
 #[derive(Clone, Debug)]
 pub struct PackedWeights {
-    /// Table width in entries (4 values each) and height in rows.
-    pub width: usize,
-    pub height: usize,
-    /// Values `[height, width, 4]` row-major (zero padding).
+    /// The layers one after the other, each `[out_pad, in_pad]` row-major
+    /// (zero padding), from its `offset`.
     pub data: Vec<f32>,
     pub layers: Vec<PackedLayer>,
 }
@@ -149,7 +146,7 @@ pub fn pack_weights(m: &NeuralMaterial) -> Result<PackedWeights> {
     ensure!(f <= MAX_FREQUENCIES, "the viewer supports up to {MAX_FREQUENCIES} encoding frequencies, this material has {f}");
     let mut layers = Vec::new();
     let mut mats = Vec::new();
-    let mut row = 0;
+    let mut offset = 0;
     for (name, w, slope) in layer_matrices(m) {
         let s = w.size();
         ensure!(s.len() == 2, "layer {name} must be a matrix, got shape {s:?}");
@@ -164,13 +161,11 @@ pub fn pack_weights(m: &NeuralMaterial) -> Result<PackedWeights> {
             ceil4(inp)
         };
         let out_pad = ceil4(out);
-        layers.push(PackedLayer { name, out, inp, out_pad, in_pad, row, slope });
-        row += out_pad;
+        layers.push(PackedLayer { name, out, inp, out_pad, in_pad, offset, slope });
+        offset += out_pad * in_pad;
         mats.push(w);
     }
-    let width = layers.iter().map(|l| l.in_pad / 4).max().unwrap_or(1);
-    let height = row;
-    let mut data = vec![0f32; height * width * 4];
+    let mut data = vec![0f32; offset];
     for (l, w) in layers.iter().zip(&mats) {
         let vals: Vec<f32> = Vec::try_from(w.contiguous().view([-1]))?;
         for o in 0..l.out {
@@ -180,11 +175,11 @@ pub fn pack_weights(m: &NeuralMaterial) -> Result<PackedWeights> {
                     "m_render.0" if i >= c => ceil4(c) + (i - c),
                     _ => i,
                 };
-                data[(l.row + o) * width * 4 + col] = vals[o * l.inp + i];
+                data[l.offset + o * l.in_pad + col] = vals[o * l.inp + i];
             }
         }
     }
-    Ok(PackedWeights { width, height, data, layers })
+    Ok(PackedWeights { data, layers })
 }
 
 /// Largest encoding frequency count the shader supports (phases scale by `1 << k` in 32-bit ints).
@@ -504,7 +499,7 @@ pub fn build_page(m: &NeuralMaterial, opts: &ViewerOptions) -> Result<(String, V
     let layers: Vec<serde_json::Value> = weights
         .layers
         .iter()
-        .map(|l| serde_json::json!({"name": l.name, "out": l.out, "in": l.inp, "outPad": l.out_pad, "inPad": l.in_pad, "row": l.row, "slope": l.slope}))
+        .map(|l| serde_json::json!({"name": l.name, "out": l.out, "in": l.inp, "outPad": l.out_pad, "inPad": l.in_pad, "offset": l.offset, "slope": l.slope}))
         .collect();
     let meta = serde_json::json!({
         "format": VIEWER_FORMAT,
@@ -522,7 +517,6 @@ pub fn build_page(m: &NeuralMaterial, opts: &ViewerOptions) -> Result<(String, V
         "view": opts.initial.view,
         "relightInput": opts.relight_input,
         "layers": layers,
-        "weightTable": [weights.width, weights.height],
         "weightBits": weight_precision.bits(),
         "map": {"bits": stored.precision.bits(), "offset": offset, "scale": scale},
         "check": {"meanError": mean_error, "maxError": max_error},
@@ -576,32 +570,31 @@ mod tests {
         let names: Vec<&str> = p.layers.iter().map(|l| l.name.as_str()).collect();
         assert_eq!(names, ["nd_enc.0", "nd_enc.1", "nd_enc.2", "m_render.0", "m_render.1", "m_render.2", "m_render.3", "m_render.4", "m_render.5", "m_render.6"]);
         let l0 = &p.layers[0];
-        assert_eq!((l0.out, l0.inp, l0.out_pad, l0.in_pad, l0.row), (32, 297, 32, 300, 0));
-        assert_eq!(p.width, 75);
+        assert_eq!((l0.out, l0.inp, l0.out_pad, l0.in_pad, l0.offset), (32, 297, 32, 300, 0));
+        assert_eq!(p.layers[1].offset, 32 * 300);
         let last = p.layers.last().unwrap();
         assert_eq!((last.out, last.out_pad, last.slope), (3, 4, RENDER_FINAL_SLOPE));
         assert_eq!(p.layers[2].slope, 1.0);
         assert_eq!(p.layers[3].slope, 1.0);
         assert_eq!(p.layers[4].slope, RENDER_SLOPE);
-        assert_eq!(p.height, 32 + 32 + 8 + 16 * 5 + 8 + 4);
-        assert_eq!(p.data.len(), p.height * p.width * 4);
-        let get = |row: usize, col: usize| p.data[row * p.width * 4 + col];
+        // nd_enc: 32 x 300, 32 x 32, 8 x 32; m_render: 16 x 24, 4 x 16 x 16, 8 x 16, 4 x 8.
+        assert_eq!(p.data.len(), 32 * 300 + 32 * 32 + 8 * 32 + 16 * 24 + 4 * 16 * 16 + 8 * 16 + 4 * 8);
+        let get = |l: usize, row: usize, col: usize| p.data[p.layers[l].offset + row * p.layers[l].in_pad + col];
         let at = |t: &Tensor, o: i64, i: i64| t.double_value(&[o, i]) as f32;
         // ND_enc 0, element [5, 296] (cos of h.z at k = 15): column 12 + 72 * 3 + 68 + 3.
         let w0 = &m.renderer.nd_enc.layers[0];
-        assert_eq!(get(5, 299), at(w0, 5, 296));
-        assert_eq!(get(5, 4), at(w0, 5, 4));
-        assert!((9..12).all(|c| get(5, c) == 0.0));
+        assert_eq!(get(0, 5, 299), at(w0, 5, 296));
+        assert_eq!(get(0, 5, 4), at(w0, 5, 4));
+        assert!((9..12).all(|c| get(0, 5, c) == 0.0));
         // M_render 0 [out 16, in 16 + 8]: its code columns start at ceil4(16) = 16, and row 2 of it.
         let m0 = &m.renderer.m_render.layers[0];
-        let r0 = p.layers[3].row;
-        assert_eq!(get(r0 + 2, 16 + 3), at(m0, 2, 19));
+        assert_eq!(get(3, 2, 16 + 3), at(m0, 2, 19));
         // Every weight is placed once: the table sums to the weights' sum.
         let total: f64 = p.data.iter().map(|&v| v as f64).sum();
         let expect: f64 = m.renderer_vs.variables().values().map(|t| t.sum(Kind::Double).double_value(&[])).sum();
         assert!((total - expect).abs() < 1e-3, "{total} vs {expect}");
         // The last layer's padding row (3) is zero.
-        assert!((0..p.width * 4).all(|c| get(last.row + 3, c) == 0.0));
+        assert!((0..last.in_pad).all(|c| get(9, 3, c) == 0.0));
     }
 
     #[test]
@@ -636,8 +629,8 @@ mod tests {
         // Layer 1, pixel 0: channels 4, 5, then padding.
         assert_eq!([v(24), v(25), v(26), v(27)], [24.0, 30.0, 0.0, 0.0]);
         let b = float_bytes(&f, Precision::F16, "the map").unwrap();
-        assert_eq!(half::f16::from_bits(u16::from_le_bytes([b[40], b[41]])).to_f32(), 23.0);
-        assert_eq!(float_bytes(&f, Precision::F32, "the map").unwrap()[80..84], 24f32.to_le_bytes());
+        assert_eq!(half::f16::from_bits(u16::from_le_bytes([b[46], b[47]])).to_f32(), 23.0);
+        assert_eq!(float_bytes(&f, Precision::F32, "the map").unwrap()[96..100], 24f32.to_le_bytes());
         let e = float_bytes(&[1e5], Precision::F16, "the map").unwrap_err().to_string();
         assert!(e.contains("the map cannot be stored as f16"), "{e}");
     }

@@ -60,7 +60,6 @@
     const wBytes = decodeBase64("flashmat-weights");
     // f16 bits or f32 values (meta.weightBits)
     const weights = meta.weightBits === 32 ? new Float32Array(wBytes.buffer, 0, wBytes.length / 4) : new Uint16Array(wBytes.buffer, 0, wBytes.length / 2);
-    const TW = meta.weightTable[0]; // texels (4 weights) per row of the packed table
     const mapBytes = decodeBase64("flashmat-map");
     const u8 = meta.map.bits === 8, f32 = meta.map.bits === 32;
     let mapData = u8 ? mapBytes : f32 ? new Float32Array(mapBytes.buffer, 0, mapBytes.length / 4) : new Uint16Array(mapBytes.buffer, 0, mapBytes.length / 2);
@@ -131,7 +130,7 @@
         const n = Math.min(per, groups - g0);
         const data = new Float32Array(NW * 4);
         for (let r = 0; r < 4 * n; r++) {
-          const src = (L.row + 4 * g0 + r) * TW * 4;
+          const src = L.offset + (4 * g0 + r) * L.inPad; // layer rows of inPad values
           for (let c = 0; c < 4 * inG; c++) data[r * inG * 4 + c] = meta.weightBits === 32 ? weights[src + c] : halfToFloat(weights[src + c]);
         }
         const ubo = gl.createBuffer();
