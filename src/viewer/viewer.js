@@ -34,9 +34,9 @@
     return v;
   }
 
-  // Positions are kept at 4 decimals, so the printed command reproduces the view exactly.
-  const round4 = (v) => Math.round(v * 1e4) / 1e4;
-  const fmt = (p) => p.map((x) => String(round4(x))).join(",");
+  // Positions are kept at 6 decimals, so the printed command reproduces the view exactly.
+  const round6 = (v) => Math.round(v * 1e6) / 1e6;
+  const fmt = (p) => p.map((x) => String(round6(x))).join(",");
 
   function main() {
     const meta = JSON.parse($("flashmat-meta").textContent);
@@ -327,7 +327,7 @@
       gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, one); // warm-up: compiles the shaders
       const t0 = performance.now();
       for (let i = 0; i < benchFrames; i++) {
-        state.light[0] = round4(Math.cos(i) * 0.5); // a moving light: nothing cached
+        state.light[0] = round6(Math.cos(i) * 0.5); // a moving light: nothing cached
         renderFull();
         gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, one);
       }
@@ -434,8 +434,8 @@
     const d = meta.identity[2];
     const heightEl = $("height"), exposureEl = $("exposure");
     function updateText() {
-      state.light = state.light.map(round4);
-      state.view = state.view.map(round4);
+      state.light = state.light.map(round6);
+      state.view = state.view.map(round6);
       $("light-pos").textContent = `(${fmt(state.light)})`;
       $("view-pos").textContent = `(${fmt(state.view)})`;
       heightEl.value = state.light[2];
