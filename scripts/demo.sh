@@ -7,6 +7,8 @@
 #   grid.png       input | neural map norm | neural map PCA | identity render,
 #                  and the material under four lights
 #   orbit.gif      a light circling the material
+#   material.html  the material live in a browser (flashmat view; open it by
+#                  double-click: the mouse moves the light)
 # Usage: scripts/demo.sh [PHOTO ...] [-- extra estimate options]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -37,5 +39,6 @@ for photo in "${photos[@]}"; do
     $FLASHMAT estimate "$photo" -o "$dir/material.nmat" "${fov[@]}" "$@"
     $FLASHMAT show "$dir/material.nmat" -o "$dir/grid.png"
     $FLASHMAT relight "$dir/material.nmat" --orbit "$FRAMES" -o "$dir/orbit.gif"
+    $FLASHMAT view "$dir/material.nmat" -o "$dir/material.html"
 done
-echo "done in $((SECONDS - start)) s: out/<photo>/{material.nmat,grid.png,orbit.gif}"
+echo "done in $((SECONDS - start)) s: out/<photo>/{material.nmat,grid.png,orbit.gif,material.html}"

@@ -12,6 +12,10 @@ export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # Each test runs in its own process under nextest: libtorch's random
 # generator is process-global, and tests that check bit-exact determinism
 # must not share it with tests running in parallel.
+# Headless Chromium for the browser test of `flashmat view` (tests/viewer.rs):
+# Debian's package, installed once when missing (the test skips, saying so,
+# only where it cannot be installed).
+bash scripts/install-chromium.sh >/dev/null || true
 rust_rc=0
 if cargo nextest --version >/dev/null 2>&1; then
   cargo nextest run --all-targets --no-fail-fast 2>&1 || rust_rc=$?

@@ -17,6 +17,7 @@ pub mod optim;
 pub mod spaces;
 pub mod svbrdf;
 pub mod train;
+pub mod viewer;
 pub mod viz;
 
 /// Environment variable naming the folder that holds flashmat's bundled

@@ -13,6 +13,7 @@ const LAYERS: &[(&str, u32)] = &[
     ("cli", 8),
     ("train", 7),
     ("eval", 7),
+    ("viewer", 7),
     ("infer", 6),
     ("baselines", 6),
     ("model", 5),

@@ -7,6 +7,7 @@ pub mod infer;
 pub mod materials;
 pub mod nmat_rows;
 pub mod train;
+pub mod view;
 
 
 use flashmat::geometry::LightView;
@@ -40,6 +41,8 @@ pub enum Command {
     Relight(infer::RelightArgs),
     /// One picture of a neural material: photo, neural map (norm, PCA), identity render, relit views.
     Show(infer::ShowArgs),
+    /// Write a neural material (or a photo, estimated first) as one self-contained HTML page that relights it live (WebGL2).
+    View(view::ViewArgs),
     /// Score models (flashmat and baseline model files) and the print-out baseline against GGX renders (Reflect / Identity / Hemisphere).
     Eval(eval::EvalArgs),
     /// The shadows experiment: score models on shadowed GGX renders (height-field shadows) against the un-shadowed GGX of the true maps.
@@ -258,6 +261,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Estimate(a) => infer::estimate(&a),
         Command::Relight(a) => infer::relight(&a),
         Command::Show(a) => infer::show(&a),
+        Command::View(a) => view::view(&a),
         Command::NmatRows(a) => nmat_rows::nmat_rows(&a),
         Command::Train(a) => train::train(&a),
         Command::TrainTeacher(a) => train::train_teacher(&a),
