@@ -211,14 +211,40 @@ pub fn neural_targets(material: &NeuralMaterial, wi: &Tensor, wo: &Tensor, mut o
     Ok(Tensor::cat(&parts, 0))
 }
 
-/// ln(1 + R) of GGX maps for direction pairs shared by all pixels (the
-/// fit's forward model: [`crate::svbrdf::render::render_directions`] with
-/// the directions broadcast over the pixels).
+/// ln(1 + R) of GGX maps for direction pairs shared by all pixels: the
+/// equations of [`crate::svbrdf::render::render_directions`] (REFERENCE
+/// section 2) arranged for shared directions, which the fit evaluates
+/// hundreds of times: the half vector and Fresnel weight are computed once
+/// per pair, the three cosines as one matrix product each, and
+/// R = kd NoL + S (ks (1 - Fw) + Fw) with S = D G / (4 NoL NoV) NoL pi
+/// (a test checks it against `render_directions`).
 /// maps: `[N, 10, H, W]`; wi, wo: `[S, 3]` -> `[N, S, 3, H, W]`.
 pub fn ggx_log(maps: &Tensor, wi: &Tensor, wo: &Tensor) -> Tensor {
+    const DOT_EPS: f64 = 1e-8;
+    let ms = maps.size();
+    let (n, h, w) = (ms[0], ms[2], ms[3]);
     let s = wi.size()[0];
-    let dirs = |t: &Tensor| t.to_kind(maps.kind()).to_device(maps.device()).view([1, s, 3, 1, 1]);
-    crate::spaces::to_log(&crate::svbrdf::render::render_directions(maps, &dirs(wi), &dirs(wo)))
+    let dir = |t: &Tensor| t.to_kind(maps.kind()).to_device(maps.device());
+    let (wi, wo) = (dir(wi), dir(wo));
+    let half = crate::geometry::normalize_channels(&(&wi + &wo)); // [S, 3]
+    let v_dot_h = (&wo * &half).sum_dim_intlist([1i64].as_slice(), false, maps.kind()).clamp_min(DOT_EPS); // [S]
+    let fresnel = ((&v_dot_h * -5.55473 - 6.98316) * &v_dot_h * std::f64::consts::LN_2).exp().view([1, s, 1, 1]);
+    let flat = maps.reshape([n, 10, h * w]);
+    let normal = flat.narrow(1, 7, 3); // [N, 3, HW]
+    let cosines = |d: &Tensor| d.matmul(&normal).clamp_min(DOT_EPS).unsqueeze(2); // [N, S, 1, HW]
+    let (n_dot_h, n_dot_v, n_dot_l) = (cosines(&half), cosines(&wo), cosines(&wi));
+    let alpha = flat.narrow(1, 6, 1).square().unsqueeze(1); // [N, 1, 1, HW]
+    let a2 = alpha.square();
+    let denom = (n_dot_h.square() * (&a2 - 1.0) + 1.0).clamp_min(1e-8);
+    let d = &a2 / (denom.square() * std::f64::consts::PI);
+    let k = (&alpha / 2.0).clamp_min(1e-8);
+    let g1 = |x: &Tensor| x / (x * (1.0 - &k) + &k);
+    let g = g1(&n_dot_l) * g1(&n_dot_v);
+    let spec = d * g / (&n_dot_l * &n_dot_v * 4.0 + 1e-12) * &n_dot_l * std::f64::consts::PI; // [N, S, 1, HW]
+    let kd = flat.narrow(1, 0, 3).unsqueeze(1); // [N, 1, 3, HW]
+    let ks = flat.narrow(1, 3, 3).unsqueeze(1);
+    let radiance = kd * &n_dot_l + &spec * (ks * (1.0 - &fresnel) + &fresnel); // [N, S, 3, HW]
+    crate::spaces::to_log(&radiance).view([n, s, 3, h, w])
 }
 
 /// Unconstrained per-pixel parameters to GGX maps: kd, ks = sigmoid,
