@@ -45,7 +45,7 @@ pub const DIELECTRIC_F0: f64 = 0.04;
 /// Metallic values tried per pixel by [`to_metallic`].
 pub const METALLIC_STEPS: i64 = 101;
 /// Error (mean |ln(1+R) diff|) shown as the top of the heat map.
-pub const ERROR_SCALE: f64 = 0.25;
+pub const ERROR_SCALE: f64 = 0.1;
 /// The MatFusion index of the exported material (`0000001_diffuse.png` ...).
 pub const SVBRDF_INDEX: usize = 1;
 

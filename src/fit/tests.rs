@@ -31,8 +31,10 @@ fn mean_abs(a: &Tensor, b: &Tensor) -> f64 {
 }
 
 /// The fit recovers GGX maps from their own renders through the same
-/// sampling. Measured (32 pairs, 300 steps, 16x16): kd 0.0017, ks 0.0036,
-/// roughness 0.0061 mean absolute error, normals 0.25 degrees, render 0.0014.
+/// sampling. Measured (32 pairs, 300 steps, 16x16, no smoothness): mean
+/// absolute error kd 0.0001, ks 0.0002, roughness 0.0002, normals 0.008
+/// degrees, render |ln(1+R) diff| 0.00001 (grid start 0.11). Tolerances
+/// are 10-50x that.
 #[test]
 fn recovers_known_ggx_maps_from_their_own_renders() {
     let truth = known_maps(16);
@@ -49,11 +51,11 @@ fn recovers_known_ggx_maps_from_their_own_renders() {
     let angle = cos.acos().mean(Kind::Double).double_value(&[]).to_degrees();
     let err = fit.report.mean_error;
     eprintln!("kd {kd:.4} ks {ks:.4} roughness {r:.4} normal {angle:.3} deg, render {err:.5} (init {:.4})", fit.report.mean_error_init);
-    assert!(kd < 0.01, "kd error {kd}");
-    assert!(ks < 0.02, "ks error {ks}");
-    assert!(r < 0.02, "roughness error {r}");
-    assert!(angle < 1.0, "normal error {angle} degrees");
-    assert!(err < 0.005 && err < 0.2 * fit.report.mean_error_init, "render error {err} (init {})", fit.report.mean_error_init);
+    assert!(kd < 0.005, "kd error {kd}");
+    assert!(ks < 0.005, "ks error {ks}");
+    assert!(r < 0.005, "roughness error {r}");
+    assert!(angle < 0.25, "normal error {angle} degrees");
+    assert!(err < 0.0005 && err < 0.01 * fit.report.mean_error_init, "render error {err} (init {})", fit.report.mean_error_init);
     assert!((fit.error.mean(Kind::Double).double_value(&[]) - err).abs() < 1e-9);
 }
 
