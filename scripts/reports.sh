@@ -69,3 +69,10 @@ for I in 05 25 45; do
         --captures target/captures/test$I -o reports/refine/captures-test$I
 done
 cargo run --release --quiet --example refine_photos -- 100 reports/refine
+
+# The analytic export (reports/fit.md): the bundled model's neural material,
+# the GGX maps `flashmat fit` fits to it (40 steps), and the analytic
+# baseline network's maps, on HDR photos of the 50 held-out materials at
+# 128x128 (26 minutes on 2 shared cores; at 256 the neural renders alone take over an hour).
+$FLASHMAT eval --model $M/flashmat.safetensors --model $M/flashmat.safetensors+fit40 --model $M/baseline-analytic.safetensors \
+    --size 128 --configs "$CONFIGS" -o reports/fit/eval-128

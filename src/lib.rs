@@ -6,6 +6,7 @@ pub mod baselines;
 pub mod data;
 pub mod device;
 pub mod eval;
+pub mod fit;
 pub mod geometry;
 pub mod image;
 pub mod infer;

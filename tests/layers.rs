@@ -14,6 +14,7 @@ const LAYERS: &[(&str, u32)] = &[
     ("train", 7),
     ("eval", 7),
     ("viewer", 7),
+    ("fit", 7),
     ("infer", 6),
     ("baselines", 6),
     ("model", 5),

@@ -13,6 +13,7 @@ use std::path::PathBuf;
 #[derive(Args, Debug)]
 pub struct EvalArgs {
     /// A model file (flashmat export), or `printout` for the print-out baseline. Repeat to compare methods.
+    /// `FILE+fit` (or `FILE+fitSTEPS`): the flashmat model's estimates fitted with GGX maps (`flashmat fit`), relit by GGX.
     #[arg(long = "model", value_name = "FILE|printout", required_unless_present = "summarize")]
     pub models: Vec<String>,
     /// Score nothing: re-read the NAME.csv files in the -o folder (CSVs of runs with the same dataset, seed and

@@ -3,6 +3,7 @@
 
 pub mod bench;
 pub mod eval;
+pub mod fit;
 pub mod infer;
 pub mod materials;
 pub mod nmat_rows;
@@ -43,6 +44,8 @@ pub enum Command {
     Show(infer::ShowArgs),
     /// Write a neural material (or a photo, estimated first) as one self-contained HTML page that relights it live (WebGL2).
     View(view::ViewArgs),
+    /// Fit GGX maps per pixel to a neural material (or a photo, estimated first) and export them: PNG/EXR maps, glTF, MatFusion layout.
+    Fit(fit::FitArgs),
     /// Score models (flashmat and baseline model files) and the print-out baseline against GGX renders (Reflect / Identity / Hemisphere).
     Eval(eval::EvalArgs),
     /// The shadows experiment: score models on shadowed GGX renders (height-field shadows) against the un-shadowed GGX of the true maps.
@@ -262,6 +265,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Relight(a) => infer::relight(&a),
         Command::Show(a) => infer::show(&a),
         Command::View(a) => view::view(&a),
+        Command::Fit(a) => fit::fit(&a),
         Command::NmatRows(a) => nmat_rows::nmat_rows(&a),
         Command::Train(a) => train::train(&a),
         Command::TrainTeacher(a) => train::train_teacher(&a),

@@ -306,11 +306,15 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &
     let mut out: Vec<Box<dyn Method>> = Vec::new();
     let mut names: Vec<String> = Vec::new();
     for spec in specs {
+        // `FILE+fit[STEPS]`: the model's estimates fitted with GGX maps (`crate::fit::method`).
+        let fit = crate::fit::method::split_fit_spec(spec);
+        let file = fit.map_or(spec.as_str(), |(file, _)| file);
         let base = if spec == PRINTOUT {
             PRINTOUT.to_string()
         } else {
-            Path::new(spec).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| spec.clone())
+            Path::new(file).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| spec.clone())
         };
+        let base = fit.map_or(base.clone(), |(_, steps)| crate::fit::method::fitted_name(&base, steps));
         let mut name = base.clone();
         let mut n = 1;
         while names.contains(&name) {
@@ -320,6 +324,11 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &
         names.push(name.clone());
         if spec == PRINTOUT {
             out.push(Box::new(PrintoutMethod::default()));
+            continue;
+        }
+        if let Some((file, steps)) = fit {
+            let cfg = crate::fit::FitConfig { steps, ..Default::default() };
+            out.push(Box::new(crate::fit::method::FitMethod::load(Path::new(file), name, ldr_photo, device, cfg)?));
             continue;
         }
         let path = Path::new(spec);

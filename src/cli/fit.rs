@@ -1,0 +1,57 @@
+//! `flashmat fit`: GGX maps fitted to a neural material, exported as PBR
+//! texture sets (work done in `flashmat::fit`).
+
+use super::infer::{open_material, EstimateOptions};
+use flashmat::fit::export::{check_output_dir, write_fit, GLTF_DIR, GLTF_FILE, MAPS_DIR, SVBRDF_DIR};
+use flashmat::fit::{fit_material, FitConfig};
+use anyhow::Result;
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+
+#[derive(Args, Debug)]
+pub struct FitArgs {
+    /// A neural material (.nmat), or a flash photo (estimated first, as `relight` does, with the options below).
+    pub material: PathBuf,
+    /// Output folder (written whole or not at all; an earlier fit's folder is replaced).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Adam steps of the per-pixel fit.
+    #[arg(long, default_value_t = FitConfig::default().steps)]
+    pub steps: usize,
+    /// Light/view direction pairs shared by all pixels (each costs one neural render of the material).
+    #[arg(long, default_value_t = FitConfig::default().samples)]
+    pub samples: usize,
+    /// Adam step size in the unconstrained parameters (decayed to a tenth).
+    #[arg(long, value_name = "LR", default_value_t = FitConfig::default().learning_rate)]
+    pub fit_lr: f64,
+    /// Weight of the edge-aware smoothness of the fitted maps (0: none).
+    #[arg(long, value_name = "W", default_value_t = FitConfig::default().smooth_weight)]
+    pub smooth: f64,
+    /// Seed of the direction pairs.
+    #[arg(long, default_value_t = FitConfig::default().seed)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub estimate: EstimateOptions,
+}
+
+pub fn fit(a: &FitArgs) -> Result<()> {
+    let cfg = FitConfig { steps: a.steps, samples: a.samples, learning_rate: a.fit_lr, smooth_weight: a.smooth, seed: a.seed };
+    cfg.validate()?;
+    check_output_dir(&a.output)?;
+    let (material, summary) = open_material(&a.material, &a.estimate)?;
+    let bar = ProgressBar::new((cfg.samples + cfg.steps) as u64)
+        .with_style(ProgressStyle::with_template("fitting {bar:40} {pos}/{len} (direction pairs, then steps) ETA {eta}")?);
+    let result = fit_material(&material, &cfg, |done, _| bar.set_position(done as u64))?;
+    bar.finish_and_clear();
+    let report = write_fit(&a.output, &result, &a.material.display().to_string())?;
+    summary.iter().for_each(|l| eprintln!("{l}"));
+    eprintln!("{}", report.fit.summary());
+    eprintln!(
+        "glTF metallic-roughness conversion (mean metallic {:.3}) costs {:.4} in the same error",
+        report.mean_metallic, report.gltf_conversion_error
+    );
+    let d = a.output.display();
+    eprintln!("wrote {d}: {MAPS_DIR}/ (textures + README), {SVBRDF_DIR}/ (`flashmat render --svbrdf {d}/{SVBRDF_DIR}`), {GLTF_DIR}/{GLTF_FILE}, error.png, fit.json");
+    Ok(())
+}
