@@ -27,7 +27,6 @@
 //! near 1 where the material looks smooth and near 0 across its edges.
 
 pub mod export;
-pub mod method;
 
 use crate::infer::nmat::{NeuralMaterial, MAX_LOG_RADIANCE};
 use crate::optim::Adam;

@@ -3,6 +3,8 @@
 //! are opened as the method their metadata records (flashmat, analytic,
 //! relight-unet); `printout` needs no file.
 
+pub mod fit;
+
 use crate::baselines::{Baseline, BaselineNet, RelightEncoded, TrainMethod};
 use crate::geometry::{config_tensors, LightView, MODEL_FOV_DEG};
 use crate::image::Image;
@@ -306,15 +308,15 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &
     let mut out: Vec<Box<dyn Method>> = Vec::new();
     let mut names: Vec<String> = Vec::new();
     for spec in specs {
-        // `FILE+fit[STEPS]`: the model's estimates fitted with GGX maps (`crate::fit::method`).
-        let fit = crate::fit::method::split_fit_spec(spec);
-        let file = fit.map_or(spec.as_str(), |(file, _)| file);
+        // `FILE+fit[STEPS]`: the model's estimates fitted with GGX maps ([`fit`]).
+        let fit_spec = fit::split_fit_spec(spec);
+        let file = fit_spec.map_or(spec.as_str(), |(file, _)| file);
         let base = if spec == PRINTOUT {
             PRINTOUT.to_string()
         } else {
             Path::new(file).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| spec.clone())
         };
-        let base = fit.map_or(base.clone(), |(_, steps)| crate::fit::method::fitted_name(&base, steps));
+        let base = fit_spec.map_or(base.clone(), |(_, steps)| fit::fitted_name(&base, steps));
         let mut name = base.clone();
         let mut n = 1;
         while names.contains(&name) {
@@ -326,9 +328,9 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &
             out.push(Box::new(PrintoutMethod::default()));
             continue;
         }
-        if let Some((file, steps)) = fit {
+        if let Some((file, steps)) = fit_spec {
             let cfg = crate::fit::FitConfig { steps, ..Default::default() };
-            out.push(Box::new(crate::fit::method::FitMethod::load(Path::new(file), name, ldr_photo, device, cfg)?));
+            out.push(Box::new(fit::FitMethod::load(Path::new(file), name, ldr_photo, device, cfg)?));
             continue;
         }
         let path = Path::new(spec);

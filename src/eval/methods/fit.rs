@@ -5,8 +5,8 @@
 //! Hemisphere table shows what the analytic export loses against the
 //! neural material (row `NAME`) and the analytic baseline network.
 
-use super::{fit_material, FitConfig};
-use crate::eval::methods::{Method, ModelMethod};
+use super::{Method, ModelMethod};
+use crate::fit::{fit_material, FitConfig};
 use crate::geometry::LightView;
 use anyhow::{bail, ensure, Context, Result};
 use std::path::Path;
