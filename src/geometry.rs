@@ -21,7 +21,7 @@ pub fn length(v: Vec3) -> f64 {
 }
 
 pub fn normalize(v: Vec3) -> Vec3 {
-    let n = dot(v, v).sqrt().max(1e-12);
+    let n = length(v).max(1e-12);
     [v[0] / n, v[1] / n, v[2] / n]
 }
 

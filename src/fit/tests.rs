@@ -14,7 +14,7 @@ fn known_maps(size: usize) -> Tensor {
     for y in 0..size {
         for x in 0..size {
             let (kd, ks, r, s) = tiles[((y / 8) % 2) * 2 + (x / 8) % 2];
-            let n = crate::svbrdf::normalize3([s[0], s[1], 1.0]);
+            let n = crate::geometry::normalize3([s[0], s[1], 1.0]);
             for c in 0..3 {
                 m.diffuse.set(c, y, x, kd[c]);
                 m.specular.set(c, y, x, ks[c]);
