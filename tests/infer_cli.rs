@@ -228,8 +228,9 @@ fn bad_inputs_give_one_clear_line_and_no_output() {
     let text = d.join("notes.txt");
     std::fs::write(&text, b"hello").unwrap();
     assert_error(&est(&text, &[], &o("a.nmat")), &["notes.txt", "unsupported format"]);
-    // Too small after the FOV crop: says what is needed.
-    assert_error(&est(&photo, &[], &o("a.nmat")), &["p.png", "too small", "keeps 38x38", "--size 256", "at least 426 pixels"]);
+    // Too small after the FOV crop: says what is needed (no EXIF: the model's 28 degrees, the whole photo).
+    assert_error(&est(&photo, &[], &o("a.nmat")), &["p.png", "too small", "keeps 64x64", "--size 256", "at least 256 pixels"]);
+    assert_error(&est(&photo, &["--fov", "45"], &o("a.nmat")), &["p.png", "too small", "keeps 38x38", "--size 256", "at least 426 pixels"]);
     assert_error(&est(&photo, &["--fov", "28", "--size", "128"], &o("a.nmat")), &["too small", "at least 128 pixels"]);
     // NaN/Inf in an EXR.
     let nan = d.join("nan.exr");

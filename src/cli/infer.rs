@@ -156,7 +156,6 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
     let refine_cfg = opts.refine_config()?;
     let t0 = Instant::now();
     let prepared = infer::load_photo_with(photo, &infer::PhotoOptions { fov_deg: opts.fov, size: opts.size, exposure_ev: opts.exposure })?;
-    eprintln!("{}", prepared.camera_note);
     let t_photo = t0.elapsed().as_secs_f64();
     let loaded = infer::load_model(opts.model.as_deref(), device)?;
     // The bundled model serves both photo types by design: warn only for a chosen one.
@@ -186,6 +185,9 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
         prepared.fov_deg,
         loaded.model.model_id()
     );
+    // The photo's camera line comes with the timing, once the outputs are
+    // written: a failure stays a single error line.
+    let summary = format!("{}\n{summary}", prepared.camera_note);
     let summary = match &refine_cfg {
         Some(cfg) => format!("{summary}\n{}", refine_with_progress(&mut material, &prepared.linear.to_tensor(), prepared.ldr, cfg)?),
         None => summary,
