@@ -15,9 +15,6 @@ use tch::{Device, Tensor};
 /// Suffix of a `--model` value that selects the fitted variant.
 pub const FIT_SUFFIX: &str = "+fit";
 
-/// Configurations rendered per GGX call (bounds memory).
-const RENDER_CHUNK: usize = 8;
-
 /// Row name of a model's fitted variant: `NAME+fitSTEPS`.
 pub fn fitted_name(name: &str, steps: usize) -> String {
     format!("{name}{FIT_SUFFIX}{steps}")
@@ -75,17 +72,7 @@ impl Method for FitMethod {
     }
 
     fn render(&self, configs: &[LightView]) -> Result<Tensor> {
-        let Some(maps) = &self.maps else { bail!("{}: render before prepare", self.name) };
-        ensure!(!configs.is_empty(), "no light/view configuration to render");
-        let parts: Vec<Tensor> = configs
-            .chunks(RENDER_CHUNK)
-            .map(|c| {
-                let k = c.len() as i64;
-                let (l, v) = crate::geometry::config_tensors(c, self.device);
-                tch::no_grad(|| crate::svbrdf::render::render(maps, &l.view([1, k, 3]), &v.view([1, k, 3]))).get(0).to_device(Device::Cpu)
-            })
-            .collect();
-        Ok(Tensor::cat(&parts, 0))
+        super::render_ggx_maps(&self.name, self.maps.as_ref(), configs, self.device)
     }
 }
 

@@ -202,17 +202,24 @@ impl Method for AnalyticMethod {
     }
 
     fn render(&self, configs: &[LightView]) -> Result<Tensor> {
-        let Some(maps) = &self.maps else { bail!("{}: render before prepare", self.name) };
-        ensure!(!configs.is_empty(), "no light/view configuration to render");
-        let parts: Vec<Tensor> = configs
-            .chunks(RENDER_CHUNK)
-            .map(|c| {
-                let (l, v) = config_batch(c, self.device);
-                tch::no_grad(|| crate::svbrdf::render::render(maps, &l, &v)).get(0).to_device(Device::Cpu)
-            })
-            .collect();
-        Ok(Tensor::cat(&parts, 0))
+        render_ggx_maps(&self.name, self.maps.as_ref(), configs, self.device)
     }
+}
+
+/// Renders a method's GGX maps `[1, 10, H, W]` (the analytic baseline's,
+/// or maps fitted to a neural material) with the tensor GGX renderer, in
+/// chunks of configurations: `[K, 3, H, W]` linear on the CPU.
+pub(crate) fn render_ggx_maps(name: &str, maps: Option<&Tensor>, configs: &[LightView], device: Device) -> Result<Tensor> {
+    let Some(maps) = maps else { bail!("{name}: render before prepare") };
+    ensure!(!configs.is_empty(), "no light/view configuration to render");
+    let parts: Vec<Tensor> = configs
+        .chunks(RENDER_CHUNK)
+        .map(|c| {
+            let (l, v) = config_batch(c, device);
+            tch::no_grad(|| crate::svbrdf::render::render(maps, &l, &v)).get(0).to_device(Device::Cpu)
+        })
+        .collect();
+    Ok(Tensor::cat(&parts, 0))
 }
 
 /// The direct relighting U-Net baseline: the encoder runs once on the
