@@ -2,31 +2,9 @@
 //! (one clear line, non-zero exit, no partial files).
 
 use std::path::Path;
-use std::process::{Command, Output};
 
-fn flashmat(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_flashmat")).args(args).output().expect("run flashmat")
-}
-
-/// Asserts failure with exactly one stderr line containing every `needle`.
-fn assert_error(out: &Output, needles: &[&str]) {
-    assert!(!out.status.success(), "expected failure, stdout: {}", String::from_utf8_lossy(&out.stdout));
-    assert_eq!(out.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&out.stderr);
-    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
-    assert_eq!(lines.len(), 1, "expected one error line, got: {err}");
-    assert!(lines[0].starts_with("error: "), "{err}");
-    for n in needles {
-        assert!(lines[0].contains(n), "'{n}' not in: {err}");
-    }
-}
-
-fn no_temp_files(dir: &Path) {
-    for e in std::fs::read_dir(dir).unwrap() {
-        let name = e.unwrap().file_name().to_string_lossy().into_owned();
-        assert!(!name.contains(".tmp-"), "temporary file left behind: {name}");
-    }
-}
+mod common;
+use common::*;
 
 #[test]
 fn render_writes_exr_equal_to_the_cpu_renderer_and_png() {

@@ -8,43 +8,10 @@ use flashmat::geometry::LightView;
 use flashmat::image::Image;
 use flashmat::model::{Model, ModelConfig, ModelInfo};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 use tch::{Device, Kind, Tensor};
 
-fn flashmat(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_flashmat")).args(args).output().expect("run flashmat")
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-fn assert_ok(out: &Output) -> String {
-    assert!(out.status.success(), "flashmat failed: {}", stderr(out));
-    stderr(out)
-}
-
-/// Failure with exactly one stderr line containing every needle.
-fn assert_error(out: &Output, needles: &[&str]) {
-    let err = stderr(out);
-    assert_eq!(out.status.code(), Some(1), "expected exit code 1, stderr: {err}");
-    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
-    assert_eq!(lines.len(), 1, "expected one error line, got: {err}");
-    assert!(lines[0].starts_with("error: "), "{err}");
-    for n in needles {
-        assert!(lines[0].contains(n), "'{n}' not in: {err}");
-    }
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-fn entries(dir: &Path) -> Vec<String> {
-    let mut v: Vec<String> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
-    v.sort();
-    v
-}
+mod common;
+use common::*;
 
 /// A tiny random model and a 32x32 neural material estimated by it from a
 /// procedural material's flash render.
@@ -87,8 +54,8 @@ fn fit_writes_maps_that_flashmat_and_a_gltf_loader_read_back() {
     let out = d.join("fit");
     let err = assert_ok(&flashmat(&["fit", s(&nmat), "--steps", "40", "--samples", "16", "-o", s(&out)]));
     assert!(err.contains("fitted GGX in 40 steps over 16 direction pairs") && err.contains("mean error"), "{err}");
-    assert_eq!(entries(&out), ["error.exr", "error.png", "fit.json", "gltf", "maps", "svbrdf"]);
-    assert_eq!(entries(d).iter().filter(|n| n.contains(".tmp-")).count(), 0);
+    assert_eq!(files_in(&out), ["error.exr", "error.png", "fit.json", "gltf", "maps", "svbrdf"]);
+    assert_eq!(files_in(d).iter().filter(|n| n.contains(".tmp-")).count(), 0);
 
     // fit.json: the mean error is the error map's mean.
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("fit.json")).unwrap()).unwrap();
@@ -221,7 +188,7 @@ fn bad_inputs_give_one_line_and_leave_no_folder() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let (_, _, nmat) = material(d);
-    let before = entries(d);
+    let before = files_in(d);
 
     // A damaged .nmat (bytes flipped in the middle) and a truncated one.
     let mut bytes = std::fs::read(&nmat).unwrap();
@@ -244,11 +211,11 @@ fn bad_inputs_give_one_line_and_leave_no_folder() {
     std::fs::create_dir(&other).unwrap();
     std::fs::write(other.join("notes.txt"), b"keep me").unwrap();
     assert_error(&flashmat(&["fit", s(&nmat), "--steps", "1", "--samples", "8", "-o", s(&other)]), &["not an earlier fit"]);
-    assert_eq!(entries(&other), ["notes.txt"]);
+    assert_eq!(files_in(&other), ["notes.txt"]);
     // Bad settings.
     assert_error(&flashmat(&["fit", s(&nmat), "--samples", "2", "-o", s(&d.join("out"))]), &["--samples"]);
 
-    let mut after = entries(d);
+    let mut after = files_in(d);
     after.retain(|n| !["bad.nmat", "short.nmat", "blocker", "other"].contains(&n.as_str()));
     assert_eq!(after, before, "left behind: {after:?}");
 }

@@ -7,54 +7,10 @@ use flashmat::image::Image;
 use flashmat::infer::NeuralMaterial;
 use flashmat::model::{Model, ModelConfig, ModelInfo};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 use tch::Device;
 
-fn flashmat_env(args: &[&str], env: &[(&str, &str)]) -> Output {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_flashmat"));
-    cmd.args(args);
-    for (k, v) in env {
-        cmd.env(k, v);
-    }
-    cmd.output().expect("run flashmat")
-}
-
-fn flashmat(args: &[&str]) -> Output {
-    flashmat_env(args, &[])
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-fn assert_ok(out: &Output) -> String {
-    assert!(out.status.success(), "flashmat failed: {}", stderr(out));
-    stderr(out)
-}
-
-/// Asserts failure with exactly one stderr line containing every `needle`.
-fn assert_error(out: &Output, needles: &[&str]) {
-    let err = stderr(out);
-    assert_eq!(out.status.code(), Some(1), "expected exit code 1, stderr: {err}");
-    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
-    assert_eq!(lines.len(), 1, "expected one error line, got: {err}");
-    assert!(lines[0].starts_with("error: "), "{err}");
-    for n in needles {
-        assert!(lines[0].contains(n), "'{n}' not in: {err}");
-    }
-}
-
-fn files_in(dir: &Path) -> Vec<String> {
-    let mut v: Vec<String> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
-    v.sort();
-    v
-}
-
-fn no_temp_files(dir: &Path) {
-    for name in files_in(dir) {
-        assert!(!name.contains(".tmp-"), "temporary file left behind: {name}");
-    }
-}
+mod common;
+use common::*;
 
 /// A tiny randomly initialised model file.
 fn tiny_model(path: &Path, ldr_input: bool, seed: i64) -> PathBuf {
@@ -77,10 +33,6 @@ fn png_photo(path: &Path, width: usize, height: usize) -> PathBuf {
     let linear = flash_render(width, height);
     flashmat::io::write_png(path, &linear.map(flashmat::spaces::gamma_encode), flashmat::io::BitDepth::Eight).unwrap();
     path.to_path_buf()
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 fn gif_frames(path: &Path) -> (u16, u16, usize) {

@@ -8,7 +8,7 @@
 use super::{Method, ModelMethod};
 use crate::fit::{fit_material, FitConfig};
 use crate::geometry::LightView;
-use anyhow::{bail, ensure, Context, Result};
+use anyhow::{Context, Result};
 use std::path::Path;
 use tch::{Device, Tensor};
 
