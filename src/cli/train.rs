@@ -106,6 +106,10 @@ pub struct TrainArgs {
     /// Without it short runs settle on black renders: L1 pulls outputs down 1000x harder than it lifts them.
     #[arg(long)]
     pub straight_through_output: bool,
+    /// From step N on, M_est's BatchNorm uses its running statistics, frozen, instead of the batch's (paper: never).
+    /// With 2 materials a step, batch statistics subtract the colour the two share.
+    #[arg(long, value_name = "N")]
+    pub frozen_bn_from: Option<u64>,
     /// Start the adversarial term at step N (paper: 0).
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub adv_start: u64,
@@ -252,6 +256,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         grad_clip: a.grad_clip,
         warmup_steps: a.warmup_steps,
         adv_start: a.adv_start,
+        frozen_bn_from: a.frozen_bn_from,
         straight_through_output: a.straight_through_output,
         weight_lpips: a.lpips_weight,
         weight_adv: a.adv_weight,

@@ -102,6 +102,12 @@ pub struct TrainConfig {
     /// `MRender::straight_through_output`); inference is unchanged.
     #[serde(default)]
     pub straight_through_output: bool,
+    /// From this step on, M_est's BatchNorm normalises with its running
+    /// statistics (frozen) instead of the batch's (None: never, the paper).
+    /// With 2 materials a step, batch statistics take away what the two
+    /// share (their mean colour), which the network then cannot learn.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frozen_bn_from: Option<u64>,
     pub weight_l1: f64,
     pub weight_lpips: f64,
     pub weight_adv: f64,
@@ -146,6 +152,7 @@ impl Default for TrainConfig {
             warmup_steps: 0,
             adv_start: 0,
             straight_through_output: false,
+            frozen_bn_from: None,
             weight_l1: 1.0,
             weight_lpips: 0.01,
             weight_adv: 0.03,
@@ -177,6 +184,12 @@ impl TrainConfig {
         } else {
             self.weight_code * (1.0 - step as f64 / self.code_until as f64)
         }
+    }
+
+    /// Whether M_est's BatchNorm uses batch statistics (and updates its
+    /// running ones) at a step; false from `frozen_bn_from` on.
+    pub fn est_batch_stats_at(&self, step: u64) -> bool {
+        self.frozen_bn_from.is_none_or(|from| step < from)
     }
 
     /// Weight of the adversarial term at a step (0 before `adv_start`).

@@ -162,7 +162,7 @@ impl Trainer {
         let code = self.model.renderer.encode_maps(&b.out_wi, &b.out_wo)?;
 
         // 1. M_est update; the renderer takes part in the graph but is not stepped.
-        let neural = self.model.est.forward_t(&b.est_input, true)?;
+        let neural = self.model.est.forward_t(&b.est_input, cfg.est_batch_stats_at(self.step))?;
         let pred = self.model.renderer.render_code(&neural, &code.detach())?;
         let l1 = (&pred - &target_log).abs().mean(tch::Kind::Float);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
@@ -242,7 +242,7 @@ impl Trainer {
         let target_log = crate::spaces::to_log(&b.targets);
         let photo_log = b.est_input.narrow(1, 0, 3);
         self.zero_all();
-        let neural = self.model.est.forward_t(&b.est_input, true)?;
+        let neural = self.model.est.forward_t(&b.est_input, cfg.est_batch_stats_at(self.step))?;
         let pred = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
         let param_norm = losses::mean_param_norm(&neural);
         let mut nets = [&mut self.opt_est, &mut self.opt_render];

@@ -420,3 +420,32 @@ fn teacher_codes_supervise_m_est_and_fade_out() {
     // A code weight without a teacher is refused.
     assert!(TrainConfig { weight_code: 1.0, ..tiny_config() }.validate().is_err());
 }
+
+#[test]
+fn frozen_batch_norm_keeps_running_statistics_and_still_trains_m_est() {
+    let cfg = TrainConfig { frozen_bn_from: Some(1), weight_lpips: 0.0, weight_adv: 0.0, ..tiny_config() };
+    assert_eq!((cfg.est_batch_stats_at(0), cfg.est_batch_stats_at(1)), (true, false));
+    assert!(TrainConfig::default().est_batch_stats_at(1_000_000));
+    let mut t = Trainer::new(cfg, tch::Device::Cpu).unwrap();
+    let m = procedural::generate_family(Family::Tiles, 3, 32);
+    let sample = SampleConfig { outputs_per_material: 2, ..Default::default() };
+    let batch = make_batch(&[m.clone(), m], &sample, &mut Pcg64::seed_from_u64(1), tch::Device::Cpu).unwrap();
+    let snapshot = |t: &Trainer, stats: bool| -> Vec<(String, Tensor)> {
+        let mut v: Vec<_> = t.model.est_vs.variables().into_iter().filter(|(_, v)| v.requires_grad() != stats).map(|(k, v)| (k, v.copy())).collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v
+    };
+    let changed = |a: &[(String, Tensor)], b: &[(String, Tensor)]| a.iter().zip(b).filter(|(x, y)| !x.1.equal(&y.1)).count();
+    let (stats0, weights0) = (snapshot(&t, true), snapshot(&t, false));
+    assert!(stats0.len() > 10, "BatchNorm buffers: {}", stats0.len());
+    t.train_step(&batch).unwrap();
+    let (stats1, weights1) = (snapshot(&t, true), snapshot(&t, false));
+    // Step 0 uses batch statistics: the running ones move.
+    assert!(changed(&stats0, &stats1) > stats0.len() / 2, "{} of {}", changed(&stats0, &stats1), stats0.len());
+    t.train_step(&batch).unwrap();
+    let (stats2, weights2) = (snapshot(&t, true), snapshot(&t, false));
+    // From step 1 they are frozen, while M_est's weights keep learning.
+    assert_eq!(changed(&stats1, &stats2), 0);
+    assert!(changed(&weights0, &weights1) > weights0.len() / 2);
+    assert!(changed(&weights1, &weights2) > weights1.len() / 2, "{} of {}", changed(&weights1, &weights2), weights1.len());
+}
