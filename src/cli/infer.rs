@@ -28,9 +28,13 @@ pub struct EstimateOptions {
     /// Exposure change in stops applied to the linearised photo (+1 doubles it).
     #[arg(long, value_name = "EV", allow_negative_numbers = true)]
     pub exposure: Option<f64>,
-    /// Model resolution in pixels (a multiple of 8); the cropped photo is shrunk to it.
+    /// Model resolution in pixels of the shorter side (a multiple of 8); the cropped photo is shrunk to it and
+    /// the longer side follows the photo's aspect (rounded down to a multiple of 8).
     #[arg(long, default_value_t = 256)]
     pub size: usize,
+    /// Keep only the centre square of the photo (before rectangles, every photo was estimated this way).
+    #[arg(long)]
+    pub square: bool,
     /// cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -155,7 +159,7 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
     let device = flashmat::device::parse_device(&opts.device)?;
     let refine_cfg = opts.refine_config()?;
     let t0 = Instant::now();
-    let prepared = infer::load_photo_with(photo, &infer::PhotoOptions { fov_deg: opts.fov, size: opts.size, exposure_ev: opts.exposure })?;
+    let prepared = infer::load_photo_with(photo, &infer::PhotoOptions { fov_deg: opts.fov, size: opts.size, exposure_ev: opts.exposure, square: opts.square })?;
     let t_photo = t0.elapsed().as_secs_f64();
     let loaded = infer::load_model(opts.model.as_deref(), device)?;
     // The bundled model serves both photo types by design: warn only for a chosen one.
@@ -176,8 +180,8 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
         t_photo,
         t0.elapsed().as_secs_f64() - t_photo - t_est,
         t_est,
-        c.side,
-        c.side,
+        c.width,
+        c.height,
         c.x0,
         c.y0,
         c.source_width,

@@ -19,9 +19,14 @@ use std::collections::HashMap;
 use std::path::Path;
 use tch::{nn, Device, Tensor};
 
-/// Format tag and version of `.nmat` files.
+/// Format tag and version of `.nmat` files. Version 2 allows rectangular
+/// maps (the shorter side spans [-1, 1]) and stores the crop's width and
+/// height; version-1 files (square, `side`) are still read.
 pub const NMAT_FORMAT: &str = "flashmat-nmat";
-pub const NMAT_VERSION: u32 = 1;
+pub const NMAT_VERSION: u32 = 2;
+
+/// Older versions this flashmat still reads.
+pub const NMAT_READABLE_VERSIONS: &[u32] = &[1, 2];
 
 /// Largest ln(1 + R) turned into radiance: exp(80) = 5.5e34 stays finite in
 /// f32, so renders of untrained or diverged models can still be written
@@ -132,7 +137,7 @@ impl NeuralMaterial {
     /// other-version files, and inconsistent contents, are refused with a
     /// message naming the file.
     pub fn load(path: &Path, device: Device) -> Result<Self> {
-        let a = Archive::load(path, NMAT_FORMAT, NMAT_VERSION).context("cannot load neural material")?;
+        let a = Archive::load_versions(path, NMAT_FORMAT, NMAT_READABLE_VERSIONS).context("cannot load neural material")?;
         Self::from_archive(&a, device).with_context(|| format!("neural material {}", path.display()))
     }
 
@@ -222,7 +227,7 @@ pub(crate) mod tests {
         let meta = NmatMeta {
             model_id: cfg.model_id(),
             fov_deg: 45.0,
-            crop: Crop { x0: 3, y0: 0, side: 20, source_width: 26, source_height: 20 },
+            crop: Crop { x0: 3, y0: 0, width: 20, height: 20, source_width: 26, source_height: 20 },
             source: "photo é.png".into(),
             ldr_input: true,
             model_info: ModelInfo { ldr_input: true, steps: 7 },
@@ -294,10 +299,20 @@ pub(crate) mod tests {
 
         // Another version of the format.
         let mut a = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
-        let v2 = dir.path().join("v2.nmat");
-        a.save(&v2, NMAT_FORMAT, 2).unwrap();
-        let e = err(&v2);
-        assert!(e.contains("v2.nmat") && e.contains("version 2 is not supported"), "{e}");
+        let v3 = dir.path().join("v3.nmat");
+        a.save(&v3, NMAT_FORMAT, 3).unwrap();
+        let e = err(&v3);
+        assert!(e.contains("v3.nmat") && e.contains("version 3 is not supported (this flashmat reads version 1 and 2)"), "{e}");
+        // A version-1 file (square crop stored as `side`) is still read.
+        let mut v1 = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+        v1.set_meta("crop", r#"{"x0":3,"y0":0,"side":20,"source_width":26,"source_height":20}"#.to_string());
+        let old = dir.path().join("v1.nmat");
+        v1.save(&old, NMAT_FORMAT, 1).unwrap();
+        let back = NeuralMaterial::load(&old, Device::Cpu).unwrap();
+        assert_eq!((back.meta.crop.width, back.meta.crop.height, back.meta.crop.x0), (20, 20, 3));
+        v1.set_meta("crop", r#"{"x0":3,"y0":0,"width":20,"source_width":26,"source_height":20}"#.to_string());
+        v1.save(&old, NMAT_FORMAT, 1).unwrap();
+        assert!(err(&old).contains("width and height"), "{}", err(&old));
 
         // Consistent checksum but inconsistent contents.
         a.insert("neural_map", &Tensor::zeros([3, 8, 8], (tch::Kind::Float, Device::Cpu)));
