@@ -28,10 +28,10 @@ fn flash_render(width: usize, height: usize) -> Image {
     flashmat::svbrdf::render::render_material(&m, &[LightView::colocated(28.0)]).unwrap().remove(0)
 }
 
-/// An 8-bit display-encoded PNG "phone photo".
+/// An 8-bit sRGB-encoded PNG "phone photo".
 fn png_photo(path: &Path, width: usize, height: usize) -> PathBuf {
     let linear = flash_render(width, height);
-    flashmat::io::write_png(path, &linear.map(flashmat::spaces::gamma_encode), flashmat::io::BitDepth::Eight).unwrap();
+    flashmat::io::write_png(path, &linear.map(flashmat::spaces::srgb_encode), flashmat::io::BitDepth::Eight).unwrap();
     path.to_path_buf()
 }
 

@@ -238,8 +238,8 @@ pub fn prepare_image(linear: &Image, fov_deg: f64, size: usize) -> Result<(Image
     prepare_image_with(linear, fov_deg, size, false)
 }
 
-/// Reads and prepares a photo: PNG/JPEG are LDR and gamma-decoded to
-/// linear (^2.2, REFERENCE section 3), EXR is linear HDR (NaN/Inf refused
+/// Reads and prepares a photo: PNG/JPEG are LDR and decoded to linear with
+/// the exact sRGB curve ([`crate::spaces::photo_decode`]), EXR is linear HDR (NaN/Inf refused
 /// by the reader). The field of view comes from `fov_deg`, else the EXIF's
 /// focal length, else it is the model's own (no crop). Errors name the file.
 pub fn load_photo(path: &Path, fov_deg: Option<f64>, size: usize) -> Result<PreparedPhoto> {
@@ -260,7 +260,7 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
     let ldr = !format.is_float();
     let camera = if ldr { super::camera::read_camera(path, image.width, image.height)? } else { super::camera::CameraInfo { orientation: 1, ..Default::default() } };
     let rgb = crate::io::to_rgb(&image).oriented(camera.orientation);
-    let mut linear = if ldr { rgb.map(crate::spaces::gamma_decode) } else { rgb };
+    let mut linear = if ldr { rgb.map(crate::spaces::photo_decode) } else { rgb };
     if let Some(ev) = opts.exposure_ev {
         let gain = 2f32.powf(ev as f32);
         linear = linear.map(|v| v * gain);

@@ -104,8 +104,9 @@ impl FoldedHa {
         }
     }
 
-    /// x: `[N, C, H, W]` -> `[N, P, H/s, W/s]` = bn(ha(x)).
-    fn forward(&self, x: &Tensor) -> Tensor {
+    /// x: `[N, C, H, W]` -> `[N, P, H/s, W/s]` = bn(ha(x)); the instance
+    /// norm takes its statistics as `norm` says.
+    fn forward(&self, x: &Tensor, norm: &mut NormStats) -> Tensor {
         let (p, half, s) = (self.out, self.out / 2, self.stride);
         let xp = pad_rep(x, 1);
         let m = conv(&xp, &self.merged, Some(&self.merged_bias), s);
@@ -115,7 +116,7 @@ impl FoldedHa {
             Some(wa) => (conv(&xp, wa, None, 1), m.narrow(1, p, half)),
         };
         let b = conv_rep(&a, &self.incep_b, Some(&self.incep_b_bias), s);
-        let mut feat = leaky(&conv_rep(&instance_norm(x), &self.feat, None, s), HA_FEAT_SLOPE);
+        let mut feat = leaky(&conv_rep(&norm.normalize(x), &self.feat, None, s), HA_FEAT_SLOPE);
         if let Some(sc) = &self.feat_scale {
             feat *= sc;
         }
@@ -162,8 +163,9 @@ impl FoldedRes {
         }
     }
 
-    fn forward(&self, x: &Tensor) -> Tensor {
-        let out = self.ha2.forward(&self.ha1.forward(x).relu());
+    fn forward(&self, x: &Tensor, norm: &mut NormStats) -> Tensor {
+        let h1 = self.ha1.forward(x, norm).relu();
+        let out = self.ha2.forward(&h1, norm);
         let id = match &self.skip {
             Some(s) => conv(x, &s.w, Some(&s.b), self.stride),
             None => x.shallow_clone(),
@@ -206,14 +208,21 @@ impl FoldedMEst {
     /// x: `[N, 4, H, W]`, H and W multiples of 8 -> `[N, neural_channels, H, W]`.
     /// Runs without autograd.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.forward_with(x, &mut NormStats::default())
+    }
+
+    /// [`FoldedMEst::forward`] with the instance norms' statistics taken
+    /// (and recorded) as `norm` says. x: `[N, 4, H, W]`.
+    pub fn forward_with(&self, x: &Tensor, norm: &mut NormStats) -> Result<Tensor> {
         check_est_input(x)?;
+        norm.start(x);
         Ok(tch::no_grad(|| {
             let x = if self.channels_last { to_channels_last(x) } else { x.shallow_clone() };
             let mut h = conv_rep(&x, &self.stem, None, 1);
             let mut skips = Vec::with_capacity(4);
             for stage in &self.enc {
                 for b in stage {
-                    h = b.forward(&h);
+                    h = b.forward(&h, norm);
                 }
                 skips.push(h.shallow_clone());
             }
@@ -226,7 +235,7 @@ impl FoldedMEst {
                     h = u.forward(&h);
                 }
                 for b in &st.blocks {
-                    h = b.forward(&h);
+                    h = b.forward(&h, norm);
                 }
             }
             conv_rep(&h, &self.head, None, 1).contiguous()
@@ -272,5 +281,266 @@ impl FoldedMEst {
                 }
             }
         }
+    }
+}
+
+/// Where the instance norms of the HA layers take their statistics. M_est's
+/// BatchNorms are folded (running statistics, no batch dependence), but
+/// every HA layer normalises its input over the whole image (InstanceNorm):
+/// a tile normalised by its own statistics would differ from the whole
+/// image and show seams. Tiled inference therefore records each layer's
+/// statistics over the tiles' cores (the pixels each tile owns), combines
+/// them into whole-image statistics and runs the tiles again with those
+/// ([`FoldedMEst::forward_tiled`]).
+#[derive(Debug, Default)]
+pub struct NormStats {
+    /// Normalise with `fixed` instead of the input's own statistics.
+    use_fixed: bool,
+    /// Accumulate each layer's sums over `core` into `sums`.
+    record: bool,
+    /// Per HA layer (in forward order): mean and biased variance `[1, C, 1, 1]`.
+    fixed: Vec<(Tensor, Tensor)>,
+    /// Per HA layer: per-channel sum and sum of squares `[C]` (f64), count.
+    sums: Vec<(Tensor, Tensor, f64)>,
+    /// The region whose pixels are recorded (top, left, height, width) in
+    /// input pixels; multiples of 8 so every layer's resolution divides it.
+    core: (i64, i64, i64, i64),
+    input_hw: (i64, i64),
+    layer: usize,
+}
+
+impl NormStats {
+    /// Record statistics over `core` (top, left, height, width; input
+    /// pixels) while normalising with the input's own (`fixed` None) or with
+    /// the given whole-image statistics.
+    pub fn recording(core: (i64, i64, i64, i64), fixed: Option<&NormStats>) -> Self {
+        let (use_fixed, fixed) = match fixed {
+            Some(f) => (true, f.fixed.iter().map(|(m, v)| (m.shallow_clone(), v.shallow_clone())).collect()),
+            None => (false, vec![]),
+        };
+        Self { use_fixed, record: true, fixed, core, ..Default::default() }
+    }
+
+    /// Continue recording into `self` over another core (next tile).
+    pub fn next_core(&mut self, core: (i64, i64, i64, i64)) {
+        self.core = core;
+    }
+
+    /// The recorded sums as whole-image statistics to normalise with.
+    pub fn finish(&self) -> NormStats {
+        let fixed = self
+            .sums
+            .iter()
+            .map(|(s, q, n)| {
+                let mean = s / *n;
+                let var = (q / *n - mean.square()).clamp_min(0.0);
+                let c = mean.size()[0];
+                (mean.to_kind(Kind::Float).view([1, c, 1, 1]), var.to_kind(Kind::Float).view([1, c, 1, 1]))
+            })
+            .collect();
+        NormStats { use_fixed: true, fixed, ..Default::default() }
+    }
+
+    /// Number of normalised layers seen (recorded or fixed).
+    pub fn layers(&self) -> usize {
+        self.fixed.len().max(self.sums.len())
+    }
+
+    fn start(&mut self, x: &Tensor) {
+        let s = x.size();
+        self.input_hw = (s[2], s[3]);
+        self.layer = 0;
+    }
+
+    /// x: `[N, C, h, w]` (one HA layer's input) -> normalised per channel.
+    fn normalize(&mut self, x: &Tensor) -> Tensor {
+        let i = self.layer;
+        self.layer += 1;
+        if self.record {
+            let s = x.size();
+            let (fy, fx) = (self.input_hw.0 / s[2], self.input_hw.1 / s[3]);
+            let (t, l, h, w) = self.core;
+            let core = x.narrow(2, t / fy, h / fy).narrow(3, l / fx, w / fx).to_kind(Kind::Double);
+            let dims = [0i64, 2, 3];
+            let sum = core.sum_dim_intlist(dims.as_slice(), false, Kind::Double);
+            let sq = core.square().sum_dim_intlist(dims.as_slice(), false, Kind::Double);
+            let n = (s[0] * (h / fy) * (w / fx)) as f64;
+            match self.sums.get_mut(i) {
+                Some(acc) => {
+                    acc.0 += sum;
+                    acc.1 += sq;
+                    acc.2 += n;
+                }
+                None => self.sums.push((sum, sq, n)),
+            }
+        }
+        if self.use_fixed {
+            let (m, v) = &self.fixed[i];
+            (x - m) * (v + 1e-5).rsqrt()
+        } else {
+            instance_norm(x)
+        }
+    }
+}
+
+/// One tile along an axis: the core it owns and the tile that computes it
+/// (the core plus a margin on each side, within the image); input pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TileSpan {
+    pub core_start: i64,
+    pub core_len: i64,
+    pub start: i64,
+    pub len: i64,
+}
+
+/// Splits `len` pixels into cores of `core` pixels (the last may be
+/// shorter) with tiles reaching `margin` further each way. All multiples
+/// of 8 when `len`, `core` and `margin` are.
+pub fn tile_spans(len: i64, core: i64, margin: i64) -> Vec<TileSpan> {
+    let mut out = vec![];
+    let mut c = 0;
+    while c < len {
+        let core_len = core.min(len - c);
+        let start = (c - margin).max(0);
+        let end = (c + core_len + margin).min(len);
+        out.push(TileSpan { core_start: c, core_len, start, len: end - start });
+        c += core_len;
+    }
+    out
+}
+
+/// Blending weights `[len]` of a tile along one axis: 1 inside, and across
+/// each side shared with a neighbour (not an image border) a linear ramp
+/// from 0 at `margin / 2` from the tile's edge to 1 at `3 margin / 2`, so
+/// the outermost half-margin (nearest the tile's replicate padding) is
+/// never used and two neighbours' weights sum to 1 across their overlap.
+pub fn blend_weights(span: &TileSpan, image_len: i64, margin: i64) -> Vec<f32> {
+    let m = margin.max(1) as f64;
+    let ramp = |d: f64| ((d - m / 2.0) / m).clamp(0.0, 1.0);
+    (0..span.len)
+        .map(|p| {
+            let mut w = 1.0f64;
+            if span.start > 0 {
+                w = w.min(ramp(p as f64 + 0.5));
+            }
+            if span.start + span.len < image_len {
+                w = w.min(ramp((span.len - p) as f64 - 0.5));
+            }
+            w as f32
+        })
+        .collect()
+}
+
+/// How [`FoldedMEst::forward_tiled`] splits an image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TilePlan {
+    /// Core side (pixels each tile owns), a multiple of 8.
+    pub core: i64,
+    /// Extra pixels each tile computes on each side, a multiple of 8.
+    pub margin: i64,
+    /// Passes over the tiles that gather the instance norms' whole-image
+    /// statistics before the final pass (1: layers normalised by the
+    /// tile's own statistics while recording; 2: once more with the first
+    /// pass's statistics, closer to the whole-image forward).
+    pub stat_passes: usize,
+}
+
+impl FoldedMEst {
+    /// M_est over overlapping tiles: the same result as [`FoldedMEst::forward`]
+    /// up to the tiles' limited context, with memory for one tile plus the
+    /// output. Instance-norm statistics are gathered over the whole image
+    /// first ([`NormStats`]); outputs are blended with [`blend_weights`].
+    /// x: `[1, 4, H, W]` (H, W multiples of 8) -> `[1, neural_channels, H, W]`.
+    pub fn forward_tiled(&self, x: &Tensor, plan: &TilePlan, mut on_tile: impl FnMut()) -> Result<Tensor> {
+        let (h, w) = check_est_input(x)?;
+        ensure!(x.size()[0] == 1, "tiled M_est takes one image, got a batch of {}", x.size()[0]);
+        ensure!(plan.core >= 8 && plan.core % 8 == 0 && plan.margin >= 0 && plan.margin % 8 == 0, "tile core and margin must be multiples of 8, got {plan:?}");
+        let (ys, xs) = (tile_spans(h, plan.core, plan.margin), tile_spans(w, plan.core, plan.margin));
+        let tile = |ty: &TileSpan, tx: &TileSpan| x.narrow(2, ty.start, ty.len).narrow(3, tx.start, tx.len);
+        let mut stats: Option<NormStats> = None;
+        for _ in 0..plan.stat_passes.max(1) {
+            let mut rec = NormStats::recording((0, 0, 0, 0), stats.as_ref());
+            for ty in &ys {
+                for tx in &xs {
+                    rec.next_core((ty.core_start - ty.start, tx.core_start - tx.start, ty.core_len, tx.core_len));
+                    let _ = self.forward_with(&tile(ty, tx), &mut rec)?;
+                    on_tile();
+                }
+            }
+            stats = Some(rec.finish());
+        }
+        let mut fixed = stats.expect("at least one pass");
+        let mut out: Option<Tensor> = None;
+        let wsum = Tensor::zeros([1, 1, h, w], (Kind::Float, x.device()));
+        for ty in &ys {
+            for tx in &xs {
+                let y = self.forward_with(&tile(ty, tx), &mut fixed)?.to_kind(Kind::Float);
+                on_tile();
+                let wy = Tensor::from_slice(&blend_weights(ty, h, plan.margin)).to_device(x.device()).view([1, 1, ty.len, 1]);
+                let wx = Tensor::from_slice(&blend_weights(tx, w, plan.margin)).to_device(x.device()).view([1, 1, 1, tx.len]);
+                let wt = wy * wx; // [1, 1, th, tw]
+                let acc = out.get_or_insert_with(|| Tensor::zeros([1, y.size()[1], h, w], (Kind::Float, x.device())));
+                let _ = acc.narrow(2, ty.start, ty.len).narrow(3, tx.start, tx.len).g_add_(&(&y * &wt));
+                let _ = wsum.narrow(2, ty.start, ty.len).narrow(3, tx.start, tx.len).g_add_(&wt);
+            }
+        }
+        Ok(out.expect("at least one tile") / wsum)
+    }
+}
+
+#[cfg(test)]
+mod tiled_tests {
+    use super::*;
+    use crate::model::{Model, ModelConfig};
+    use tch::Device;
+
+    #[test]
+    fn spans_and_weights_partition_the_image() {
+        let s = tile_spans(40, 16, 8);
+        assert_eq!(
+            s,
+            vec![
+                TileSpan { core_start: 0, core_len: 16, start: 0, len: 24 },
+                TileSpan { core_start: 16, core_len: 16, start: 8, len: 32 },
+                TileSpan { core_start: 32, core_len: 8, start: 24, len: 16 },
+            ]
+        );
+        // Weights of neighbours sum to 1 everywhere when every core is at least a
+        // margin long (48 = 3 x 16); margin 8: ramps over 4..12 from an inner edge.
+        // (A shorter last core overlaps more: the blend divides by the sum anyway.)
+        let sums = |len: i64| {
+            let mut sum = vec![0f32; len as usize];
+            for sp in &tile_spans(len, 16, 8) {
+                for (p, w) in blend_weights(sp, len, 8).iter().enumerate() {
+                    sum[sp.start as usize + p] += w;
+                }
+            }
+            sum
+        };
+        assert!(sums(48).iter().all(|v| (v - 1.0).abs() < 1e-6), "{:?}", sums(48));
+        assert!(sums(40).iter().all(|v| (1.0..=2.0).contains(v)), "{:?}", sums(40));
+        let w = blend_weights(&s[1], 40, 8);
+        assert_eq!((w[0], w[3], w[31]), (0.0, 0.0, 0.0));
+        assert!((w[8] - 0.5).abs() < 1e-6 && w[12] == 1.0 && (w[4] - 0.0625).abs() < 1e-6);
+    }
+
+    /// Statistics recorded over the whole image reproduce the plain forward;
+    /// tiles that each cover the whole image (margin >= side) are exact.
+    #[test]
+    fn whole_image_statistics_reproduce_the_forward() {
+        tch::manual_seed(2);
+        let model = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+        let est = model.est.fold_batchnorm();
+        let x = Tensor::rand([1, 4, 32, 48], (Kind::Float, Device::Cpu));
+        let plain = est.forward(&x).unwrap();
+        let mut rec = NormStats::recording((0, 0, 32, 48), None);
+        let _ = est.forward_with(&x, &mut rec).unwrap();
+        let mut fixed = rec.finish();
+        assert!(fixed.layers() > 10);
+        let again = est.forward_with(&x, &mut fixed).unwrap();
+        let scale = 1.0 + plain.abs().max().double_value(&[]);
+        assert!((&again - &plain).abs().max().double_value(&[]) < 1e-4 * scale);
+        let tiled = est.forward_tiled(&x, &TilePlan { core: 16, margin: 48, stat_passes: 1 }, || ()).unwrap();
+        assert!((&tiled - &plain).abs().max().double_value(&[]) < 1e-4 * scale);
     }
 }
