@@ -211,3 +211,29 @@ fn srgb_photos_are_decoded_with_the_exact_curve() {
     // The two decodes differ (dark codes most: 10/255 -> 0.00304 sRGB, 0.00081 ^2.2).
     assert!((exact[0] - gamma[0]).abs() + (exact[1] - gamma[1]).abs() > 1e-5, "{exact:?} {gamma:?}");
 }
+
+/// M_est layer by layer over tiles (each instance norm with its whole
+/// input's statistics) against the whole forward on a 512 x 512 photo,
+/// bundled model, tiles of 128 (4 x 4 at full resolution): identity renders
+/// compared in ln(1 + R). Measured: mean 5.4e-8, max 1.7e-6 (float
+/// rounding only); bound 1e-4 on the max.
+#[test]
+fn tiled_estimate_matches_the_whole_estimate() {
+    use flashmat::data::procedural::{generate, test_seeds, ProceduralConfig};
+    use flashmat::infer::{estimate_planned, EstPlan};
+    let m = generate(test_seeds()[7], &ProceduralConfig::with_size(512));
+    let identity = LightView::colocated(flashmat::geometry::MODEL_FOV_DEG);
+    let photo = flashmat::svbrdf::render::render_material(&m, &[identity]).unwrap().remove(0).map(|v| v.clamp(0.0, 1.0));
+    let prepared = flashmat::infer::PreparedPhoto::at_model_view(photo, true, "p.png");
+    let loaded = flashmat::infer::load_model(None, tch::Device::Cpu).unwrap();
+    let log_render = |plan: &EstPlan| {
+        let nm = estimate_planned(&loaded.model, &loaded.info, &prepared, plan, || ()).unwrap();
+        nm.render(&[identity]).unwrap().log1p()
+    };
+    let whole = log_render(&EstPlan::Whole);
+    let tiled = log_render(&EstPlan::Tiled(128));
+    let d = (&tiled - &whole).abs();
+    let (mean, max) = (d.mean(tch::Kind::Double).double_value(&[]), d.max().double_value(&[]));
+    eprintln!("layer-wise tiles of 128 vs whole, 512 x 512: identity ln(1+R) difference mean {mean:.2e} max {max:.2e}");
+    assert!(max < 1e-4, "mean {mean:.2e} max {max:.2e}");
+}

@@ -182,9 +182,9 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
     let c = prepared.crop;
     let how = match plan {
         infer::EstPlan::Whole => "whole".to_string(),
-        infer::EstPlan::Tiled(p) => {
-            let n = |len: usize| infer::tiles::tile_count(len, p.core);
-            format!("{} tiles of {} + {} px margins under --max-memory {}", n(h) * n(w), p.core, p.margin, opts.max_memory)
+        infer::EstPlan::Tiled(core) => {
+            let n = |len: usize| infer::tiles::tile_count(len, core);
+            format!("layer by layer in {} tiles of {core} px (--max-memory {})", n(h) * n(w), opts.max_memory)
         }
     };
     let peak = super::bench::peak_memory_gib().map(|g| format!(", peak memory {g:.2} GiB")).unwrap_or_default();

@@ -122,7 +122,7 @@ pub fn estimate(model: &Model, info: &ModelInfo, photo: &PreparedPhoto) -> Resul
 }
 
 /// [`estimate`] on the whole photo or in tiles ([`tiles::plan_estimate`]
-/// chooses under a memory bound); `on_tile` is called after each tile pass.
+/// chooses under a memory bound); `on_tile` is called after each layer-wise block.
 pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, plan: &EstPlan, on_tile: impl FnMut()) -> Result<NeuralMaterial> {
     ensure!(photo.linear.channels == 3, "the prepared photo must have 3 channels, got {}", photo.linear.channels);
     let device = model.device();
@@ -132,7 +132,7 @@ pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, 
     let est = model.est.fold_batchnorm();
     let map = match plan {
         EstPlan::Whole => est.forward(&x)?,
-        EstPlan::Tiled(p) => est.forward_tiled(&x, p, on_tile)?,
+        EstPlan::Tiled(core) => est.forward_layerwise(&x, *core, on_tile)?,
     }; // [1, C, H, W]
     ensure!(crate::image::all_finite(&map), "M_est produced NaN/Inf values for this photo (the model's weights have diverged?)");
     let meta = NmatMeta {

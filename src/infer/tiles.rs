@@ -1,11 +1,10 @@
 //! Memory-bounded inference: M_est runs on the whole photo when its
-//! activations fit in `--max-memory`, else in overlapping tiles
-//! (`model::m_est::FoldedMEst::forward_tiled`: instance-norm
-//! statistics gathered over the whole image first, tiles blended with
-//! linear ramps in their overlap); relighting streams row bands
-//! (M_render is per pixel, so bands are exact).
+//! activations fit in `--max-memory`, else layer by layer over tiles
+//! (`model::m_est::FoldedMEst::forward_layerwise`: exact up to float
+//! rounding, because every layer's instance norm takes the statistics of
+//! its whole input; no seams, no blending needed); relighting streams row
+//! bands (M_render is per pixel, so bands are exact).
 
-use crate::model::m_est::TilePlan;
 use crate::model::ModelConfig;
 use anyhow::{bail, ensure, Result};
 
@@ -15,30 +14,69 @@ pub const DEFAULT_MAX_MEMORY: u64 = 8 << 30;
 /// Smallest accepted `--max-memory`: 64 MiB.
 pub const MIN_MAX_MEMORY: u64 = 64 << 20;
 
-/// Margin each tile computes beyond the pixels it owns, on every side.
-/// M_est's context is large (three halvings, ~20 3x3 layers per path), so
-/// a tile's edge pixels are never used: blending ramps over the middle of
-/// the overlap. 64 pixels keeps tiled and whole inference within the bound
-/// that `tests` state (measured there).
-pub const TILE_MARGIN: i64 = 64;
+/// Largest tile core of the layer-wise forward (larger tiles only cost
+/// memory; 512 is already few calls per layer).
+pub const MAX_TILE_CORE: i64 = 512;
 
-/// Bytes per pixel that bound memory which does not depend on tiling:
-/// the input (4 channels), the neural map (C) and the blend accumulator,
-/// all f32, plus the linear photo and its copies (3 x 3).
+/// Smallest tile core worth running.
+pub const MIN_TILE_CORE: i64 = 64;
+
+/// Bytes per pixel beside M_est's activations, either way: the linear
+/// photo and its copies (3 x 3), the input (4), the neural map (C), f32.
 fn fixed_bytes_per_pixel(cfg: &ModelConfig) -> f64 {
-    4.0 * (4.0 + 2.0 * cfg.neural_channels as f64 + 1.0 + 9.0)
+    4.0 * (9.0 + 4.0 + cfg.neural_channels as f64)
 }
 
-/// Peak bytes per pixel of one M_est forward (folded, no autograd), f32:
-/// the skip connections (W + 2W/4 + 4W/16 + 8W/64 = 1.875 W) plus the
+/// Peak bytes per pixel of the whole M_est forward (folded, no autograd),
+/// f32: the skip tensors (W + 2W/4 + 4W/16 + 8W/64 = 1.875 W) plus the
 /// widest full-resolution layer's working set (decoder block 1 reads 3W
-/// channels: padded input, merged gate/inception convs of 2.5 x its W
-/// outputs, the instance-normalised copy, the features; ~24 W), and the
-/// head's C outputs. Calibrated against measured peaks (see
-/// `flashmat bench estimate`): compact (W = 16) at 1024 x 1024 measured
-/// MEASURED_1024.
+/// channels: padded input, merged gate/inception convs of 2.5 x its
+/// outputs, the instance-normalised copy, the features; about 24 W) and the
+/// head's C outputs. Checked against measured peaks (README, `flashmat
+/// estimate` prints its peak).
 pub fn est_bytes_per_pixel(cfg: &ModelConfig) -> f64 {
     4.0 * (26.0 * cfg.est_width as f64 + cfg.neural_channels as f64)
+}
+
+/// Bytes per pixel of the layer-wise forward besides one tile: the skip
+/// tensors (1.875 W), and at the widest step (decoder block 1) the
+/// previous and the concatenated input (2W + 3W), the block's two
+/// outputs and its identity path (3W), and the head's C outputs.
+pub fn layerwise_bytes_per_pixel(cfg: &ModelConfig) -> f64 {
+    4.0 * (10.0 * cfg.est_width as f64 + cfg.neural_channels as f64)
+}
+
+/// How M_est will run on an `h x w` input.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum EstPlan {
+    Whole,
+    /// Layer by layer over tiles of this core side (a multiple of 8).
+    Tiled(i64),
+}
+
+/// Whole when the forward fits in `max_memory`; else layer-wise tiles
+/// with the largest core (multiple of 8, up to [`MAX_TILE_CORE`]) whose
+/// tile working set fits beside the layer-wise tensors. Errors with the
+/// memory needed when even [`MIN_TILE_CORE`] does not fit.
+pub fn plan_estimate(cfg: &ModelConfig, h: usize, w: usize, max_memory: u64) -> Result<EstPlan> {
+    let px = (h * w) as f64;
+    let fixed = fixed_bytes_per_pixel(cfg) * px;
+    let budget = max_memory as f64;
+    if fixed + est_bytes_per_pixel(cfg) * px <= budget {
+        return Ok(EstPlan::Whole);
+    }
+    let left = budget - fixed - layerwise_bytes_per_pixel(cfg) * px;
+    let tile_side = if left > 0.0 { (left / est_bytes_per_pixel(cfg)).sqrt() as i64 } else { 0 };
+    let core = ((tile_side - 2 * crate::model::m_est::LAYER_HALO) / 8 * 8).min(MAX_TILE_CORE);
+    if core < MIN_TILE_CORE {
+        let need = fixed + layerwise_bytes_per_pixel(cfg) * px + est_bytes_per_pixel(cfg) * ((MIN_TILE_CORE + 16) as f64).powi(2);
+        bail!(
+            "--max-memory {:.2} GiB is too small for a {w}x{h} estimate: it needs at least {:.2} GiB; lower --size or raise --max-memory",
+            budget / (1u64 << 30) as f64,
+            need / (1u64 << 30) as f64
+        );
+    }
+    Ok(EstPlan::Tiled(core))
 }
 
 /// Parses a memory size: bytes, or a number with K, M, G or T (powers of
@@ -60,38 +98,6 @@ pub fn parse_memory(s: &str) -> Result<u64> {
     ensure!(bytes >= MIN_MAX_MEMORY as f64, "--max-memory {s} is below the smallest workable {} MiB", MIN_MAX_MEMORY >> 20);
     ensure!(bytes <= (1u64 << 50) as f64, "--max-memory {s} is absurdly large (more than 1 PiB)");
     Ok(bytes as u64)
-}
-
-/// How M_est will run on an `h x w` input.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum EstPlan {
-    Whole,
-    Tiled(TilePlan),
-}
-
-/// Whole when the forward fits in `max_memory`, else the largest square
-/// tile core (a multiple of 8) whose tile (core + 2 margins) fits beside
-/// the fixed per-pixel memory. Errors when even a small tile does not fit.
-pub fn plan_estimate(cfg: &ModelConfig, h: usize, w: usize, max_memory: u64) -> Result<EstPlan> {
-    let px = (h * w) as f64;
-    let fixed = fixed_bytes_per_pixel(cfg) * px;
-    let per = est_bytes_per_pixel(cfg);
-    if fixed + per * px <= max_memory as f64 {
-        return Ok(EstPlan::Whole);
-    }
-    let left = max_memory as f64 - fixed;
-    let side = if left > 0.0 { (left / per).sqrt() as i64 } else { 0 };
-    let core = (side - 2 * TILE_MARGIN) / 8 * 8;
-    if core < 64 {
-        let need = fixed + per * ((64 + 2 * TILE_MARGIN) as f64).powi(2);
-        bail!(
-            "--max-memory {:.2} GiB is too small for a {w}x{h} estimate: it needs at least {:.2} GiB (the neural map alone takes {:.2} GiB); lower --size or raise --max-memory",
-            max_memory as f64 / (1u64 << 30) as f64,
-            need / (1u64 << 30) as f64,
-            fixed / (1u64 << 30) as f64
-        );
-    }
-    Ok(EstPlan::Tiled(TilePlan { core, margin: TILE_MARGIN, stat_passes: 1 }))
 }
 
 /// Peak bytes per pixel and light/view configuration of a neural render:
@@ -135,17 +141,20 @@ mod tests {
     #[test]
     fn plans_whole_when_it_fits_else_tiles() {
         let cfg = ModelConfig::preset("compact").unwrap();
-        // compact: (26 x 16 + 64) x 4 = 1920 B/px for M_est, (4 + 128 + 10) x 4 = 568 B/px fixed.
-        assert_eq!(est_bytes_per_pixel(&cfg), 1920.0);
+        // compact (W = 16, C = 64): whole (26 x 16 + 64) x 4 = 1920 B/px, layer-wise
+        // (10 x 16 + 64) x 4 = 896 B/px, fixed (13 + 64) x 4 = 308 B/px.
+        assert_eq!((est_bytes_per_pixel(&cfg), layerwise_bytes_per_pixel(&cfg)), (1920.0, 896.0));
+        // 1024^2: 1.05 M px x 2228 B = 2.18 GiB: whole.
         assert_eq!(plan_estimate(&cfg, 1024, 1024, DEFAULT_MAX_MEMORY).unwrap(), EstPlan::Whole);
-        // 2048 x 2048: 4.19 M px x 2488 B = 9.72 GiB > 8 GiB: tiles. Left 8 GiB - 2.22 GiB
-        // = 5.78 GiB / 1920 B = 3.23 M px -> side 1798 -> core 1798 - 128 -> 1664.
-        match plan_estimate(&cfg, 2048, 2048, DEFAULT_MAX_MEMORY).unwrap() {
-            EstPlan::Tiled(p) => assert_eq!((p.core, p.margin), (1664, TILE_MARGIN)),
-            other => panic!("{other:?}"),
-        }
+        // 2048^2: 4.19 M px x 2228 B = 8.70 GiB > 8 GiB: layer-wise, 4.19 M px x 1204 B
+        // = 4.70 GiB, tiles of up to 512 in the rest.
+        assert_eq!(plan_estimate(&cfg, 2048, 2048, DEFAULT_MAX_MEMORY).unwrap(), EstPlan::Tiled(512));
+        // 2048 x 3072 in 8 GiB: 7.05 GiB layer-wise; 0.95 GiB / 1920 B -> 727 px tiles -> 512.
+        assert_eq!(plan_estimate(&cfg, 2048, 3072, DEFAULT_MAX_MEMORY).unwrap(), EstPlan::Tiled(512));
+        // 2048^2 in 4.8 GiB: 0.097 GiB left / 1920 B -> side 232 -> core 232 - 16 -> 216.
+        assert_eq!(plan_estimate(&cfg, 2048, 2048, (4.8 * (1u64 << 30) as f64) as u64).unwrap(), EstPlan::Tiled(216));
         let e = plan_estimate(&cfg, 2048, 2048, 1 << 30).unwrap_err().to_string();
-        assert!(e.contains("too small") && e.contains("--max-memory"), "{e}");
+        assert!(e.contains("too small") && e.contains("needs at least 4.7") && e.contains("--max-memory"), "{e}");
         assert!(render_band_rows(&cfg, 2048, 1) >= 8);
     }
 }
