@@ -3,14 +3,15 @@
 //! ```text
 //! photo file ──► photo::load_photo ──► estimate (M_est) ──► NeuralMaterial ──► .nmat
 //!  (PNG/JPEG:     (linear, FOV crop,     (BatchNorm folded,   (neural map +       (nmat)
-//!   gamma ^2.2;    area resize to S)      no autograd)         ND_enc/M_render)
-//!   EXR: linear)                                                  │
+//!   sRGB curve;    area resize: S on     no autograd; whole    ND_enc/M_render)
+//!   EXR: linear)   the shorter side)     or layer-wise tiles)     │
 //!                                                                 ▼
 //!                                           render / orbit / show (linear radiance)
 //! ```
 //!
 //! The model's input view is fixed: light and camera co-located at
-//! (0, 0, fov_to_distance(28)) over the material square [-1,1]^2. Photos
+//! (0, 0, fov_to_distance(28)) over the material, whose shorter side spans
+//! [-1, 1] (a rectangle's longer side [-a, a], `geometry::half_extents`). Photos
 //! with a wider lens are cropped to that view ([`photo`]), so the identity
 //! configuration of every material is [`NeuralMaterial::identity_config`].
 
