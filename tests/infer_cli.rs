@@ -199,6 +199,9 @@ fn bad_inputs_give_one_clear_line_and_no_output() {
     assert_error(&est(&photo, &["--size", "60"], &o("a.nmat")), &["--size", "multiple of 8"]);
     assert_error(&est(&photo, &["--fov", "20"], &o("a.nmat")), &["--fov", "between 28 and"]);
     assert_error(&est(&photo, &["--device", "tpu"], &o("a.nmat")), &["--device"]);
+    assert_error(&est(&photo, &["--fov", "28", "--size", "32", "--max-memory", "lots"], &o("a.nmat")), &["--max-memory", "8G"]);
+    assert_error(&est(&photo, &["--fov", "28", "--size", "32", "--max-memory", "1K"], &o("a.nmat")), &["--max-memory 1K", "64 MiB"]);
+    assert_error(&est(&photo, &["--fov", "28", "--size", "32", "--max-memory", "5000000T"], &o("a.nmat")), &["--max-memory", "absurd"]);
     assert_error(&est(&photo, &["--fov", "28", "--size", "32"], &o("a.png")), &["a.png", ".nmat"]);
     // An output folder that cannot be written (a file stands in its way).
     std::fs::write(d.join("blocker"), b"x").unwrap();
