@@ -9,6 +9,7 @@
 #   orbit.gif      a light circling the material
 #   material.html  the material live in a browser (flashmat view; open it by
 #                  double-click: the mouse moves the light)
+#   out/large-3x2/ a large 3:2 photo estimated at full resolution (timed)
 # Usage: scripts/demo.sh [PHOTO ...] [-- extra estimate options]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -42,3 +43,20 @@ for photo in "${photos[@]}"; do
     $FLASHMAT view "$dir/material.nmat" -o "$dir/material.html"
 done
 echo "done in $((SECONDS - start)) s: out/<photo>/{material.nmat,grid.png,orbit.gif,material.html}"
+
+# One large non-square photo, as phones take them: a 3:2 flash render of a
+# held-out material (1536x1024, 8-bit), estimated at full resolution as a
+# 1024x1536 material (the shorter side spans [-1, 1]), then relit.
+# FLASHMAT_DEMO_LARGE=0 skips it; FLASHMAT_DEMO_LARGE=2048 uses a 3072x2048
+# photo (M_est then runs layer by layer over tiles under --max-memory 8G).
+large=${FLASHMAT_DEMO_LARGE:-1024}
+if [ "$large" != 0 ] && [ ${#photos[@]} -gt 0 ]; then
+    dir=out/large-3x2
+    mkdir -p "$dir"
+    echo "== $dir: a $((large * 3 / 2))x$large photo at full resolution"
+    $FLASHMAT render --svbrdf procedural-test:7 --size $((large * 3 / 2)) --rows "$large" -o "$dir/photo.png"
+    t=$SECONDS
+    $FLASHMAT estimate "$dir/photo.png" --fov 28 --size "$large" -o "$dir/material.nmat"
+    $FLASHMAT relight "$dir/material.nmat" --light 1.5,1,2.5 -o "$dir/relit.png"
+    echo "large 3:2 example: estimate + relight in $((SECONDS - t)) s: $dir/{photo.png,material.nmat,relit.png}"
+fi

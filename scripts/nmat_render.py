@@ -26,7 +26,7 @@ def read_nmat(path):
     meta = header.pop("__metadata__")
     if meta.get("flashmat.format") != "flashmat-nmat":
         sys.exit(f"{path}: not a flashmat-nmat file")
-    if meta.get("flashmat.version") != "1":
+    if meta.get("flashmat.version") not in ("1", "2"):
         sys.exit(f"{path}: unsupported version {meta.get('flashmat.version')}")
     body = data[8 + n :]
     crc = 0
@@ -74,8 +74,9 @@ def render(tensors, meta, light, view):
     """Linear radiance [3, H, W] for a point light and a camera (world units)."""
     nmap = tensors["neural_map"]
     c, h, w = nmap.shape
-    xs = 2.0 * (np.arange(w) + 0.5) / w - 1.0
-    ys = 1.0 - 2.0 * (np.arange(h) + 0.5) / h
+    # The shorter side spans [-1, 1], the longer [-a, a] (square pixels).
+    xs = (2.0 * (np.arange(w) + 0.5) / w - 1.0) * (w / min(h, w))
+    ys = (1.0 - 2.0 * (np.arange(h) + 0.5) / h) * (h / min(h, w))
     pos = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], np.zeros((h, w))), axis=-1).reshape(-1, 3)
     wi = normalize(np.asarray(light)[None, :] - pos)
     wo = normalize(np.asarray(view)[None, :] - pos)

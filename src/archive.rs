@@ -125,8 +125,20 @@ impl Archive {
         Self::from_bytes(&data, format, version).with_context(|| format!("{}", path.display()))
     }
 
+    /// [`Archive::load`] accepting any of `versions` (a format whose reader
+    /// still understands older files). Errors name the file.
+    pub fn load_versions(path: &Path, format: &str, versions: &[u32]) -> Result<Self> {
+        let data = crate::io::read_input(path).with_context(|| format!("{}: cannot read file", path.display()))?;
+        Self::from_bytes_versions(&data, format, versions).with_context(|| format!("{}", path.display()))
+    }
+
     /// [`Archive::load`] of a file's bytes (errors do not name it).
     pub fn from_bytes(data: &[u8], format: &str, version: u32) -> Result<Self> {
+        Self::from_bytes_versions(data, format, &[version])
+    }
+
+    /// [`Archive::load_versions`] of a file's bytes (errors do not name it).
+    pub fn from_bytes_versions(data: &[u8], format: &str, versions: &[u32]) -> Result<Self> {
         let (_, header) = SafeTensors::read_metadata(data).map_err(|e| anyhow::anyhow!("not a valid {format} file (damaged or truncated: {e})"))?;
         let meta: BTreeMap<String, String> = header.metadata().clone().unwrap_or_default().into_iter().collect();
         match meta.get(KEY_FORMAT) {
@@ -135,8 +147,9 @@ impl Archive {
             None => bail!("not a flashmat {format} file (no format tag)"),
         }
         let found: u32 = meta.get(KEY_VERSION).and_then(|v| v.parse().ok()).context("missing format version")?;
-        if found != version {
-            bail!("{format} version {found} is not supported (this flashmat reads version {version})");
+        if !versions.contains(&found) {
+            let list: Vec<String> = versions.iter().map(u32::to_string).collect();
+            bail!("{format} version {found} is not supported (this flashmat reads version {})", list.join(" and "));
         }
         // A damaged key name must not switch a check off.
         if let Some(k) = meta.keys().find(|k| k.starts_with("flashmat.") && ![KEY_FORMAT, KEY_VERSION, KEY_CRC, KEY_META_CRC].contains(&k.as_str())) {

@@ -103,16 +103,38 @@ pub fn fov_crop_ratio(fov_deg: f64) -> f64 {
     (MODEL_FOV_DEG.to_radians() / 2.0).tan() / (fov_deg.to_radians() / 2.0).tan()
 }
 
-/// Pixel centre of row i, column j on an H x W grid: (x, y, 0).
-pub fn pixel_center(i: usize, j: usize, h: usize, w: usize) -> [f64; 3] {
-    [2.0 * (j as f64 + 0.5) / w as f64 - 1.0, 1.0 - 2.0 * (i as f64 + 0.5) / h as f64, 0.0]
+/// Half-extents (a_x, a_y) of an H x W map in plane units: the shorter
+/// side spans [-1, 1], the longer one [-a, a] with a = long / short, so
+/// pixels are square (pitch 2 / min(H, W)) in both directions. (1, 1) for
+/// square maps.
+pub fn half_extents(h: usize, w: usize) -> (f64, f64) {
+    let s = h.min(w).max(1) as f64;
+    (w as f64 / s, h as f64 / s)
 }
 
-/// Surface positions of every pixel centre. Returns `[3, H, W]` (x, y, z=0)
-/// of the given kind (Float for training, Double for oracle checks).
+/// Pixel centre of row i, column j on an H x W grid: (x, y, 0), with
+/// x = (2 (j + 0.5) / W - 1) a_x, y = (1 - 2 (i + 0.5) / H) a_y (see
+/// [`half_extents`]). Square grids: a_x = a_y = 1, so the square formula
+/// of REFERENCE section 1 is computed bit for bit.
+pub fn pixel_center(i: usize, j: usize, h: usize, w: usize) -> [f64; 3] {
+    let (ax, ay) = half_extents(h, w);
+    [(2.0 * (j as f64 + 0.5) / w as f64 - 1.0) * ax, (1.0 - 2.0 * (i as f64 + 0.5) / h as f64) * ay, 0.0]
+}
+
+/// Surface positions of every pixel centre ([`pixel_center`]). Returns
+/// `[3, H, W]` (x, y, z=0) of the given kind (Float for training, Double
+/// for oracle checks).
 pub fn pixel_positions(h: usize, w: usize, opts: (Kind, Device)) -> Tensor {
-    let xs: Tensor = (Tensor::arange(w as i64, opts) + 0.5) * (2.0 / w as f64) - 1.0;
-    let ys: Tensor = (Tensor::arange(h as i64, opts) + 0.5) * (-2.0 / h as f64) + 1.0;
+    let (ax, ay) = half_extents(h, w);
+    let mut xs: Tensor = (Tensor::arange(w as i64, opts) + 0.5) * (2.0 / w as f64) - 1.0;
+    let mut ys: Tensor = (Tensor::arange(h as i64, opts) + 0.5) * (-2.0 / h as f64) + 1.0;
+    // Only rectangles are scaled: square maps stay bit-identical.
+    if ax != 1.0 {
+        xs *= ax;
+    }
+    if ay != 1.0 {
+        ys *= ay;
+    }
     let x = xs.view([1, w as i64]).expand([h as i64, w as i64], false);
     let y = ys.view([h as i64, 1]).expand([h as i64, w as i64], false);
     Tensor::stack(&[x, y, Tensor::zeros([h as i64, w as i64], opts)], 0)
@@ -263,6 +285,36 @@ mod tests {
                 assert!((v - c[k]).abs() < 1e-6);
             }
         }
+    }
+
+    /// A 3:2 grid of 4 x 6 pixels: the shorter side (4 rows) spans [-1, 1]
+    /// with pitch 2/4 = 0.5, the longer one [-1.5, 1.5] with the same pitch.
+    /// Corner centres at +-(a - 1/short) = +-(1.5 - 0.25) = +-1.25 and
+    /// +-(1 - 0.25) = +-0.75.
+    #[test]
+    fn rectangle_pixel_centres() {
+        assert_eq!(half_extents(4, 6), (1.5, 1.0));
+        assert_eq!(half_extents(6, 4), (1.0, 1.5));
+        let close = |a: [f64; 3], b: [f64; 3]| (0..3).all(|k| (a[k] - b[k]).abs() < 1e-12);
+        assert!(close(pixel_center(0, 0, 4, 6), [-1.25, 0.75, 0.0]));
+        assert!(close(pixel_center(3, 5, 4, 6), [1.25, -0.75, 0.0]));
+        assert!(close(pixel_center(1, 2, 4, 6), [-0.25, 0.25, 0.0]));
+        // Portrait: x is the shorter side.
+        assert!(close(pixel_center(0, 0, 6, 4), [-0.75, 1.25, 0.0]));
+        assert!(close(pixel_center(5, 3, 6, 4), [0.75, -1.25, 0.0]));
+        // Same pitch both ways; the tensor agrees.
+        let p = pixel_positions(4, 6, (Kind::Double, Device::Cpu));
+        for (i, j) in [(0, 0), (3, 5), (2, 1), (1, 4)] {
+            let c = pixel_center(i, j, 4, 6);
+            for k in 0..2 {
+                assert!((p.double_value(&[k as i64, i as i64, j as i64]) - c[k]).abs() < 1e-12);
+            }
+        }
+        let dx = p.double_value(&[0, 0, 1]) - p.double_value(&[0, 0, 0]);
+        let dy = p.double_value(&[1, 0, 0]) - p.double_value(&[1, 1, 0]);
+        assert!((dx - 0.5).abs() < 1e-12 && (dy - 0.5).abs() < 1e-12);
+        // Square grids keep the square formula exactly.
+        assert_eq!(pixel_center(2, 5, 8, 8), [2.0 * 5.5 / 8.0 - 1.0, 1.0 - 2.0 * 2.5 / 8.0, 0.0]);
     }
 
     #[test]

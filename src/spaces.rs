@@ -45,8 +45,11 @@ pub fn gamma_encode(v: f32) -> f32 {
     v.clamp(0.0, 1.0).powf(1.0 / GAMMA as f32)
 }
 
-/// Exact sRGB transfer decode (IEC 61966-2-1), offered for photos whose
-/// camera states sRGB; the paper's pipeline uses [`gamma_decode`].
+/// Exact sRGB transfer decode (IEC 61966-2-1): the linear toe v / 12.92 up
+/// to 0.04045, then ((v + 0.055) / 1.055)^2.4. How 8-bit photos are
+/// linearised for inference ([`photo_decode`]): cameras and phones write
+/// sRGB. Stored 8-bit diffuse/specular maps and capture folders keep
+/// [`gamma_decode`] (the paper's datasets were made with ^2.2).
 pub fn srgb_decode(v: f32) -> f32 {
     if v <= 0.04045 {
         v / 12.92
@@ -55,7 +58,16 @@ pub fn srgb_decode(v: f32) -> f32 {
     }
 }
 
-/// Exact sRGB transfer encode.
+/// 8-bit (and 16-bit) PNG/JPEG photo value in [0, 1] to linear, as
+/// `flashmat estimate` reads them: the exact sRGB curve. The models were
+/// trained on linear renders clamped to [0, 1] (`ldr_clamp`, no 8-bit
+/// encoding), so the decode only has to undo what the camera did.
+pub fn photo_decode(v: f32) -> f32 {
+    srgb_decode(v)
+}
+
+/// Exact sRGB transfer encode (inverse of [`srgb_decode`]), clamped to [0, 1]:
+/// how tests and demos write a linear render as a camera's 8-bit photo.
 pub fn srgb_encode(v: f32) -> f32 {
     let v = v.clamp(0.0, 1.0);
     if v <= 0.0031308 {
@@ -107,6 +119,17 @@ mod tests {
         for v in [0.0f32, 0.01, 0.2, 0.7, 1.0] {
             assert!((srgb_encode(srgb_decode(v)) - v).abs() < 1e-6);
         }
+        // IEC 61966-2-1: 1 -> 1; the linear toe v / 12.92 (0.02 -> 0.00154799);
+        // both pieces meet at 0.04045 <-> 0.0031308; encode 0.5 -> 0.735357.
+        assert!((srgb_decode(1.0) - 1.0).abs() < 1e-7 && srgb_decode(0.0) == 0.0);
+        assert!((srgb_decode(0.02) - 0.001_547_988).abs() < 1e-9);
+        assert!((srgb_decode(0.040_45) - (0.040_45f32 + 0.055).powf(2.4) / 1.055f32.powf(2.4)).abs() < 1e-7);
+        assert!((srgb_encode(0.003_130_8) - 0.040_45).abs() < 1e-6);
+        assert!((srgb_encode(0.5) - 0.735_357).abs() < 1e-6);
+        assert!((srgb_encode(0.001) - 0.012_92).abs() < 1e-7);
+        // 8-bit code 128 (0.50196): sRGB 0.215861, where ^2.2 gives 0.219520.
+        assert!((photo_decode(128.0 / 255.0) - 0.215_861).abs() < 1e-6);
+        assert!((gamma_decode(128.0 / 255.0) - 0.219_520).abs() < 1e-5);
         assert_eq!(quantize_u8(0.5), 128);
         assert_eq!(quantize_u8(2.0), 255);
     }

@@ -181,6 +181,19 @@ fn fit_estimates_a_photo_first() {
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("fit.json")).unwrap()).unwrap();
     assert_eq!(report["width"].as_u64(), Some(32));
     assert!(report["source"].as_str().unwrap().ends_with("photo.exr"));
+
+    // A 3:2 photo fits as a 32 x 48 material; the glTF quad keeps texels square.
+    let m = flashmat::data::procedural::generate(12, &flashmat::data::procedural::ProceduralConfig::with_size(48));
+    let m = m.crop(8, 0, 32, 48).unwrap();
+    let wide = d.join("wide.exr");
+    flashmat::io::write_exr(&wide, &flashmat::svbrdf::render::render_material(&m, &[LightView::colocated(28.0)]).unwrap()[0]).unwrap();
+    let out = d.join("from-wide");
+    assert_ok(&flashmat(&["fit", s(&wide), "--model", s(&model), "--size", "32", "--steps", "2", "--samples", "8", "-o", s(&out)]));
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("fit.json")).unwrap()).unwrap();
+    assert_eq!((report["width"].as_u64(), report["height"].as_u64()), (Some(48), Some(32)));
+    let gltf: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("gltf/material.gltf")).unwrap()).unwrap();
+    assert_eq!(gltf["accessors"][0]["max"], serde_json::json!([1.5, 1.0, 0.0]));
+    assert_eq!(gltf["accessors"][0]["min"], serde_json::json!([-1.5, -1.0, 0.0]));
 }
 
 #[test]

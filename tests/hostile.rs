@@ -694,7 +694,7 @@ fn mutated_nmat_files_are_refused_or_identical() {
     let meta = flashmat::infer::NmatMeta {
         model_id: cfg.model_id(),
         fov_deg: 45.0,
-        crop: flashmat::infer::Crop { x0: 3, y0: 0, side: 20, source_width: 26, source_height: 20 },
+        crop: flashmat::infer::Crop { x0: 3, y0: 0, width: 20, height: 20, source_width: 26, source_height: 20 },
         source: "photo.png".into(),
         ldr_input: true,
         model_info: ModelInfo { ldr_input: true, steps: 7 },

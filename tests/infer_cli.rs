@@ -28,10 +28,10 @@ fn flash_render(width: usize, height: usize) -> Image {
     flashmat::svbrdf::render::render_material(&m, &[LightView::colocated(28.0)]).unwrap().remove(0)
 }
 
-/// An 8-bit display-encoded PNG "phone photo".
+/// An 8-bit sRGB-encoded PNG "phone photo".
 fn png_photo(path: &Path, width: usize, height: usize) -> PathBuf {
     let linear = flash_render(width, height);
-    flashmat::io::write_png(path, &linear.map(flashmat::spaces::gamma_encode), flashmat::io::BitDepth::Eight).unwrap();
+    flashmat::io::write_png(path, &linear.map(flashmat::spaces::srgb_encode), flashmat::io::BitDepth::Eight).unwrap();
     path.to_path_buf()
 }
 
@@ -52,7 +52,8 @@ fn estimate_relight_orbit_show_from_a_phone_photo() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let model = tiny_model(&d.join("tiny-ldr.safetensors"), true, 1);
-    // 160x120 without EXIF: the model's 28 degrees, the 120-pixel centre square, shrunk to 64.
+    // 160x120 without EXIF: the model's 28 degrees, the whole 4:3 photo, shrunk to 64 rows and
+    // 85.3 -> 80 columns (a multiple of 8): the crop is trimmed to 120 x 80 / 64 = 150 columns.
     let photo = png_photo(&d.join("photo.png"), 160, 120);
     let nmat = d.join("out/m.nmat");
     let err = assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--size", "64", "-o", s(&nmat)]));
@@ -60,8 +61,8 @@ fn estimate_relight_orbit_show_from_a_phone_photo() {
     assert!(!err.contains("warning"), "{err}");
     assert!(err.contains("no focal length in the photo's EXIF") && err.contains("--fov"), "{err}");
     let m = NeuralMaterial::load(&nmat, Device::Cpu).unwrap();
-    assert_eq!(m.size(), (64, 64));
-    assert_eq!((m.meta.crop.x0, m.meta.crop.y0, m.meta.crop.side), (20, 0, 120));
+    assert_eq!(m.size(), (64, 80));
+    assert_eq!((m.meta.crop.x0, m.meta.crop.y0, m.meta.crop.width, m.meta.crop.height), (5, 0, 150, 120));
     assert_eq!((m.meta.crop.source_width, m.meta.crop.source_height), (160, 120));
     assert_eq!((m.meta.fov_deg, m.meta.ldr_input, m.meta.source.as_str()), (28.0, true, "photo.png"));
     assert_eq!(m.meta.model_id, ModelConfig::tiny().model_id());
@@ -71,7 +72,7 @@ fn estimate_relight_orbit_show_from_a_phone_photo() {
     let err = assert_ok(&flashmat(&["relight", s(&nmat), "--identity", "-o", s(&id)]));
     assert!(err.contains("rendered in "), "{err}");
     let im = flashmat::io::read_image(&id).unwrap();
-    assert_eq!((im.channels, im.height, im.width), (3, 64, 64));
+    assert_eq!((im.channels, im.height, im.width), (3, 64, 80));
     // Same picture when relight is given the photo itself (estimated on the fly).
     let id2 = d.join("id2.png");
     assert_ok(&flashmat(&["relight", s(&photo), "--identity", "--model", s(&model), "--size", "64", "-o", s(&id2)]));
@@ -88,13 +89,19 @@ fn estimate_relight_orbit_show_from_a_phone_photo() {
     let gif = d.join("orbit.gif");
     let err = assert_ok(&flashmat(&["relight", s(&nmat), "--orbit", "5", "-o", s(&gif)]));
     assert!(err.contains("rendered 5 frames in "), "{err}");
-    assert_eq!(gif_frames(&gif), (64, 64, 5));
+    assert_eq!(gif_frames(&gif), (80, 64, 5));
 
-    // Show: 2 rows x 4 columns of 64-pixel cells with 4-pixel gaps.
+    // Show: 2 rows x 4 columns of 64 x 80 cells with 4-pixel gaps.
     let grid = d.join("grid.png");
     assert_ok(&flashmat(&["show", s(&nmat), "-o", s(&grid)]));
     let g = flashmat::io::read_image(&grid).unwrap();
-    assert_eq!((g.channels, g.height, g.width), (3, 2 * 68 + 4, 4 * 68 + 4));
+    assert_eq!((g.channels, g.height, g.width), (3, 2 * 68 + 4, 4 * 84 + 4));
+
+    // --square keeps the centre square, as before rectangles.
+    let sq = d.join("sq.nmat");
+    assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--size", "64", "--square", "-o", s(&sq)]));
+    let m = NeuralMaterial::load(&sq, Device::Cpu).unwrap();
+    assert_eq!((m.size(), m.meta.crop.x0, m.meta.crop.width, m.meta.crop.height), ((64, 64), 20, 120, 120));
     no_temp_files(d);
     no_temp_files(&d.join("out"));
 }
@@ -111,7 +118,7 @@ fn exr_photos_default_to_28_degrees_and_mismatched_models_warn() {
     let err = assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&hdr_model), "--size", "32", "-o", s(&nmat)]));
     assert!(!err.contains("warning"), "{err}");
     let m = NeuralMaterial::load(&nmat, Device::Cpu).unwrap();
-    assert_eq!((m.meta.fov_deg, m.meta.ldr_input, m.meta.crop.side, m.size()), (28.0, false, 64, (32, 32)));
+    assert_eq!((m.meta.fov_deg, m.meta.ldr_input, m.meta.crop.width, m.size()), (28.0, false, 64, (32, 32)));
 
     let out = flashmat(&["estimate", s(&photo), "--model", s(&ldr_model), "--size", "32", "-o", s(&nmat)]);
     let err = assert_ok(&out);
@@ -192,6 +199,9 @@ fn bad_inputs_give_one_clear_line_and_no_output() {
     assert_error(&est(&photo, &["--size", "60"], &o("a.nmat")), &["--size", "multiple of 8"]);
     assert_error(&est(&photo, &["--fov", "20"], &o("a.nmat")), &["--fov", "between 28 and"]);
     assert_error(&est(&photo, &["--device", "tpu"], &o("a.nmat")), &["--device"]);
+    assert_error(&est(&photo, &["--fov", "28", "--size", "32", "--max-memory", "lots"], &o("a.nmat")), &["--max-memory", "8G"]);
+    assert_error(&est(&photo, &["--fov", "28", "--size", "32", "--max-memory", "1K"], &o("a.nmat")), &["--max-memory 1K", "64 MiB"]);
+    assert_error(&est(&photo, &["--fov", "28", "--size", "32", "--max-memory", "5000000T"], &o("a.nmat")), &["--max-memory", "absurd"]);
     assert_error(&est(&photo, &["--fov", "28", "--size", "32"], &o("a.png")), &["a.png", ".nmat"]);
     // An output folder that cannot be written (a file stands in its way).
     std::fs::write(d.join("blocker"), b"x").unwrap();

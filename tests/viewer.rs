@@ -147,15 +147,18 @@ fn compare(px: &[u8], w: usize, h: usize, png: &Path) -> (f64, u8) {
     (sum / (w * h * 3) as f64, max)
 }
 
-/// A tiny randomly initialised model and an estimate of a procedural flash photo with it.
+/// A tiny randomly initialised model and an estimate of a procedural flash
+/// photo with it: `size` rows, 3:2 (a rectangular map).
 fn tiny_material(dir: &Path, size: usize) -> PathBuf {
     tch::manual_seed(11);
     let model = dir.join("tiny.safetensors");
     Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(&model, &ModelInfo { ldr_input: true, steps: 1 }, false).unwrap();
-    let m = flashmat::data::procedural::generate(5, &flashmat::data::procedural::ProceduralConfig::with_size(size));
+    let wide = size * 3 / 2;
+    let m = flashmat::data::procedural::generate(5, &flashmat::data::procedural::ProceduralConfig::with_size(wide));
+    let m = m.crop((wide - size) / 2, 0, size, wide).unwrap();
     let linear = flashmat::svbrdf::render::render_material(&m, &[flashmat::geometry::LightView::colocated(28.0)]).unwrap().remove(0);
     let photo = dir.join("photo.png");
-    flashmat::io::write_png(&photo, &linear.map(flashmat::spaces::gamma_encode), flashmat::io::BitDepth::Eight).unwrap();
+    flashmat::io::write_png(&photo, &linear.map(flashmat::spaces::srgb_encode), flashmat::io::BitDepth::Eight).unwrap();
     let nmat = dir.join("tiny.nmat");
     ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--fov", "28", "--size", &size.to_string(), "-o", s(&nmat)]));
     nmat

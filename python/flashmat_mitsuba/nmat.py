@@ -13,12 +13,15 @@ from dataclasses import dataclass
 import numpy as np
 
 NMAT_FORMAT = "flashmat-nmat"
-NMAT_VERSION = "1"
+NMAT_VERSION = "2"
+# Version 2 allows rectangular maps (a renderer-side geometry change only:
+# per-pixel parameters and the network are read the same way), so both are read.
+NMAT_READABLE_VERSIONS = ("1", "2")
 CONFIG_INT_KEYS = ("neural_channels", "enc_frequencies", "enc_hidden", "enc_out", "render_hidden", "render_narrow")
 
 
 class NmatError(ValueError):
-    """A file that is not a readable flashmat .nmat (version 1)."""
+    """A file that is not a readable flashmat .nmat (version 1 or 2)."""
 
 
 @dataclass
@@ -97,8 +100,8 @@ def read_nmat(path):
     fmt = meta.get("flashmat.format")
     if fmt != NMAT_FORMAT:
         fail(f"not a flashmat .nmat file (format tag {fmt!r}, expected {NMAT_FORMAT!r})")
-    if meta.get("flashmat.version") != NMAT_VERSION:
-        fail(f"unsupported .nmat version {meta.get('flashmat.version')!r} (this reader knows version {NMAT_VERSION})")
+    if meta.get("flashmat.version") not in NMAT_READABLE_VERSIONS:
+        fail(f"unsupported .nmat version {meta.get('flashmat.version')!r} (this reader knows versions 1 and 2)")
     body = data[8 + n :]
     crc = 0
     tensors = {}

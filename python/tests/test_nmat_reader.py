@@ -65,9 +65,9 @@ def test_foreign_files(tmp_path):
 
 def test_other_version_and_shapes(tmp_path):
     t, meta = synthetic_tensors()
-    p = tmp_path / "v2.nmat"
-    write_nmat(p, t, {**meta, "flashmat.version": "2"})
-    expect_error(p, "unsupported .nmat version '2'")
+    p = tmp_path / "v3.nmat"
+    write_nmat(p, t, {**meta, "flashmat.version": "3"})
+    expect_error(p, "unsupported .nmat version '3'")
     t2 = dict(t)
     t2["renderer.m_render.6.weight"] = np.zeros((4, 8), np.float32)
     p = tmp_path / "shape.nmat"

@@ -28,9 +28,16 @@ pub struct EstimateOptions {
     /// Exposure change in stops applied to the linearised photo (+1 doubles it).
     #[arg(long, value_name = "EV", allow_negative_numbers = true)]
     pub exposure: Option<f64>,
-    /// Model resolution in pixels (a multiple of 8); the cropped photo is shrunk to it.
+    /// Model resolution in pixels of the shorter side (a multiple of 8); the cropped photo is shrunk to it and
+    /// the longer side follows the photo's aspect (rounded down to a multiple of 8).
     #[arg(long, default_value_t = 256)]
     pub size: usize,
+    /// Keep only the centre square of the photo (before rectangles, every photo was estimated this way).
+    #[arg(long)]
+    pub square: bool,
+    /// Memory M_est may use (e.g. 8G, 512M, or bytes): beyond it, M_est runs in overlapping tiles.
+    #[arg(long, value_name = "SIZE", default_value = "8G")]
+    pub max_memory: String,
     /// cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -154,30 +161,41 @@ fn require_extension(path: &Path, allowed: &[&str], what: &str) -> Result<()> {
 pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMaterial, String)> {
     let device = flashmat::device::parse_device(&opts.device)?;
     let refine_cfg = opts.refine_config()?;
+    let max_memory = infer::tiles::parse_memory(&opts.max_memory)?;
     let t0 = Instant::now();
-    let prepared = infer::load_photo_with(photo, &infer::PhotoOptions { fov_deg: opts.fov, size: opts.size, exposure_ev: opts.exposure })?;
+    let prepared = infer::load_photo_with(photo, &infer::PhotoOptions { fov_deg: opts.fov, size: opts.size, exposure_ev: opts.exposure, square: opts.square })?;
     let t_photo = t0.elapsed().as_secs_f64();
     let loaded = infer::load_model(opts.model.as_deref(), device)?;
     // The bundled model serves both photo types by design: warn only for a chosen one.
     if let Some(w) = opts.model.as_ref().and_then(|_| infer::input_mismatch_warning(&loaded.info, &loaded.path, prepared.ldr)) {
         eprintln!("{w}");
     }
+    let (h, w) = (prepared.linear.height, prepared.linear.width);
+    let plan = infer::plan_estimate(&loaded.model.config, h, w, max_memory).with_context(|| format!("{}", photo.display()))?;
     let t1 = Instant::now();
-    let mut material = infer::estimate(&loaded.model, &loaded.info, &prepared)
+    let mut material = infer::estimate_planned(&loaded.model, &loaded.info, &prepared, &plan, || ())
         .with_context(|| format!("estimating {} with model {}", photo.display(), loaded.path.display()))?;
     if let Device::Cuda(i) = device {
         tch::Cuda::synchronize(i as i64);
     }
     let t_est = t1.elapsed().as_secs_f64();
     let c = prepared.crop;
+    let how = match plan {
+        infer::EstPlan::Whole => "whole".to_string(),
+        infer::EstPlan::Tiled(core) => {
+            let n = |len: usize| infer::tiles::tile_count(len, core);
+            format!("layer by layer in {} tiles of {core} px (--max-memory {})", n(h) * n(w), opts.max_memory)
+        }
+    };
+    let peak = super::bench::peak_memory_gib().map(|g| format!(", peak memory {g:.2} GiB")).unwrap_or_default();
     let summary = format!(
-        "estimated in {:.2} s (photo {:.2} s, model load {:.2} s, M_est {:.2} s; {}x{} crop at ({}, {}) of the {}x{} photo, FOV {} deg, model {})",
+        "estimated in {:.2} s ({w}x{h} map; photo {:.2} s, model load {:.2} s, M_est {:.2} s {how}{peak}; {}x{} crop at ({}, {}) of the {}x{} photo, FOV {} deg, model {})",
         t0.elapsed().as_secs_f64(),
         t_photo,
         t0.elapsed().as_secs_f64() - t_photo - t_est,
         t_est,
-        c.side,
-        c.side,
+        c.width,
+        c.height,
         c.x0,
         c.y0,
         c.source_width,

@@ -63,6 +63,11 @@ pub fn render(args: &RenderArgs) -> Result<()> {
     let shadows = ShadowOptions { height_scale: args.height_scale, light_radius: args.light_radius, light_samples: args.light_samples };
     shadows.validate()?;
     let (_, mut material) = load_material(&args.material)?;
+    if let Some(rows) = args.rows {
+        let (h, w) = (material.height(), material.width());
+        anyhow::ensure!(rows >= 1 && rows <= h && w <= 4 * rows, "--rows must be between {} and the material's {h} rows, got {rows}", w.div_ceil(4));
+        material = material.crop((h - rows) / 2, 0, rows, w)?;
+    }
     let start = std::time::Instant::now();
     if args.shadows {
         ensure_height_field(&mut material)?;

@@ -160,6 +160,10 @@ pub struct RenderArgs {
     /// Renderer: the batched tensor ops or the f32 CPU renderer of the training data.
     #[arg(long, value_enum, default_value_t = Renderer::Tensor)]
     pub renderer: Renderer,
+    /// Keep only the centre ROWS rows of the material (a landscape rectangle: its shorter side, the rows,
+    /// spans [-1, 1], the longer one [-a, a]); default: all rows. Not with --shadows (square only).
+    #[arg(long, value_name = "ROWS", conflicts_with = "shadows")]
+    pub rows: Option<usize>,
 }
 
 /// Which implementation renders `flashmat render`.

@@ -236,7 +236,8 @@ values; normals are stored as (n + 1) / 2.
 Blender (Principled BSDF): `base_color.png` -> Base Color (sRGB);
 `metallic.png` -> Metallic, `roughness.png` -> Roughness (Non-Color);
 `normal.png` (Non-Color) -> Normal Map node (Tangent Space) -> Normal.
-The material square spans 2 x 2 units with its UV (0, 0) at the top left
+The material spans 2 x 2 units (a rectangle: 2 across its shorter side,
+2a across the longer) with its UV (0, 0) at the top left
 of the images (as glTF). Or import `../gltf/material.gltf`, which holds
 the same maps wired up.
 
@@ -263,9 +264,13 @@ fn write_gltf(dir: &Path, mr: &MetallicRoughness, name: &str) -> Result<()> {
     write_png(&dir.join("metallic_roughness.png"), &image(&orm)?, BitDepth::Eight)?;
     write_png(&dir.join("normal.png"), &encoded_normal(&mr.normal)?, BitDepth::Eight)?;
 
-    // The square [-1, 1]^2 at z = 0 facing +z; UV (0, 0) is the images' top left.
-    let positions: [[f32; 3]; 4] = [[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]];
-    let uvs: [[f32; 2]; 4] = positions.map(|p| [(p[0] + 1.0) / 2.0, (1.0 - p[1]) / 2.0]);
+    // The material at z = 0 facing +z: [-1, 1]^2 for square maps, else the
+    // shorter side [-1, 1] and the longer [-a, a] (geometry::half_extents),
+    // so texels stay square; UV (0, 0) is the images' top left.
+    let (ax, ay) = crate::geometry::half_extents(h as usize, w as usize);
+    let (ax, ay) = (ax as f32, ay as f32);
+    let positions: [[f32; 3]; 4] = [[-ax, -ay, 0.0], [ax, -ay, 0.0], [ax, ay, 0.0], [-ax, ay, 0.0]];
+    let uvs: [[f32; 2]; 4] = positions.map(|p| [(p[0] / ax + 1.0) / 2.0, (1.0 - p[1] / ay) / 2.0]);
     let indices: [u16; 6] = [0, 1, 2, 0, 2, 3];
     let mut bin: Vec<u8> = Vec::new();
     let mut views = Vec::new();
@@ -281,8 +286,8 @@ fn write_gltf(dir: &Path, mr: &MetallicRoughness, name: &str) -> Result<()> {
     push(indices.iter().flat_map(|i| i.to_le_bytes()).collect(), 34963);
     let accessor = |view: usize, count: usize, ty: &str, component: u32| json!({"bufferView": view, "componentType": component, "count": count, "type": ty});
     let mut position = accessor(0, 4, "VEC3", 5126);
-    position["min"] = json!([-1.0, -1.0, 0.0]);
-    position["max"] = json!([1.0, 1.0, 0.0]);
+    position["min"] = json!([-ax, -ay, 0.0]);
+    position["max"] = json!([ax, ay, 0.0]);
     let doc = json!({
         "asset": {"version": "2.0", "generator": format!("flashmat fit {}", env!("CARGO_PKG_VERSION"))},
         "scene": 0,

@@ -3,14 +3,15 @@
 //! ```text
 //! photo file ──► photo::load_photo ──► estimate (M_est) ──► NeuralMaterial ──► .nmat
 //!  (PNG/JPEG:     (linear, FOV crop,     (BatchNorm folded,   (neural map +       (nmat)
-//!   gamma ^2.2;    area resize to S)      no autograd)         ND_enc/M_render)
-//!   EXR: linear)                                                  │
+//!   sRGB curve;    area resize: S on     no autograd; whole    ND_enc/M_render)
+//!   EXR: linear)   the shorter side)     or layer-wise tiles)     │
 //!                                                                 ▼
 //!                                           render / orbit / show (linear radiance)
 //! ```
 //!
 //! The model's input view is fixed: light and camera co-located at
-//! (0, 0, fov_to_distance(28)) over the material square [-1,1]^2. Photos
+//! (0, 0, fov_to_distance(28)) over the material, whose shorter side spans
+//! [-1, 1] (a rectangle's longer side [-a, a], `geometry::half_extents`). Photos
 //! with a wider lens are cropped to that view ([`photo`]), so the identity
 //! configuration of every material is [`NeuralMaterial::identity_config`].
 
@@ -19,9 +20,11 @@ pub mod nmat;
 pub mod photo;
 pub mod refine;
 pub mod show;
+pub mod tiles;
 
 pub use nmat::{NeuralMaterial, NmatMeta, NMAT_FORMAT, NMAT_VERSION};
-pub use photo::{load_photo, load_photo_with, prepare_image, Crop, PhotoOptions, PreparedPhoto};
+pub use photo::{load_photo, load_photo_with, prepare_image, prepare_image_with, Crop, PhotoOptions, PreparedPhoto};
+pub use tiles::{plan_estimate, EstPlan};
 
 use crate::data::samples::photo_est_input;
 use crate::geometry::{fov_to_distance, LightView, MODEL_FOV_DEG};
@@ -116,12 +119,22 @@ pub fn input_mismatch_warning(info: &ModelInfo, model_path: &Path, ldr_photo: bo
 /// renderer. The photo is clamped to [0, 1] for LDR-input models (as in
 /// their training), and below at 0 otherwise.
 pub fn estimate(model: &Model, info: &ModelInfo, photo: &PreparedPhoto) -> Result<NeuralMaterial> {
+    estimate_planned(model, info, photo, &EstPlan::Whole, || ())
+}
+
+/// [`estimate`] on the whole photo or in tiles ([`tiles::plan_estimate`]
+/// chooses under a memory bound); `on_tile` is called after each layer-wise block.
+pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, plan: &EstPlan, on_tile: impl FnMut()) -> Result<NeuralMaterial> {
     ensure!(photo.linear.channels == 3, "the prepared photo must have 3 channels, got {}", photo.linear.channels);
     let device = model.device();
     let linear = photo.linear.to_tensor().unsqueeze(0).to_device(device); // [1, 3, H, W]
     let linear = if info.ldr_input { crate::spaces::ldr_clamp(&linear) } else { linear.clamp_min(0.0) };
     let x = photo_est_input(&photo.linear.to_tensor(), info.ldr_input, device); // [1, 4, H, W]
-    let map = model.est.fold_batchnorm().forward(&x)?; // [1, C, H, W]
+    let est = model.est.fold_batchnorm();
+    let map = match plan {
+        EstPlan::Whole => est.forward(&x)?,
+        EstPlan::Tiled(core) => est.forward_layerwise(&x, *core, on_tile)?,
+    }; // [1, C, H, W]
     ensure!(crate::image::all_finite(&map), "M_est produced NaN/Inf values for this photo (the model's weights have diverged?)");
     let meta = NmatMeta {
         model_id: model.model_id(),

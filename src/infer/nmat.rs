@@ -19,9 +19,14 @@ use std::collections::HashMap;
 use std::path::Path;
 use tch::{nn, Device, Tensor};
 
-/// Format tag and version of `.nmat` files.
+/// Format tag and version of `.nmat` files. Version 2 allows rectangular
+/// maps (the shorter side spans [-1, 1]) and stores the crop's width and
+/// height; version-1 files (square, `side`) are still read.
 pub const NMAT_FORMAT: &str = "flashmat-nmat";
-pub const NMAT_VERSION: u32 = 1;
+pub const NMAT_VERSION: u32 = 2;
+
+/// Older versions this flashmat still reads.
+pub const NMAT_READABLE_VERSIONS: &[u32] = &[1, 2];
 
 /// Largest ln(1 + R) turned into radiance: exp(80) = 5.5e34 stays finite in
 /// f32, so renders of untrained or diverged models can still be written
@@ -132,7 +137,7 @@ impl NeuralMaterial {
     /// other-version files, and inconsistent contents, are refused with a
     /// message naming the file.
     pub fn load(path: &Path, device: Device) -> Result<Self> {
-        let a = Archive::load(path, NMAT_FORMAT, NMAT_VERSION).context("cannot load neural material")?;
+        let a = Archive::load_versions(path, NMAT_FORMAT, NMAT_READABLE_VERSIONS).context("cannot load neural material")?;
         Self::from_archive(&a, device).with_context(|| format!("neural material {}", path.display()))
     }
 
@@ -176,13 +181,36 @@ impl NeuralMaterial {
     /// dip slightly below ln(1 + 0)) and, in log space, at
     /// [`MAX_LOG_RADIANCE`].
     pub fn render(&self, configs: &[LightView]) -> Result<Tensor> {
+        let rows = super::tiles::render_band_rows(&self.config, self.size().1, configs.len());
+        self.render_in_bands(configs, rows)
+    }
+
+    /// [`NeuralMaterial::render`] `rows` rows at a time. Returns `[K, 3, H, W]`.
+    pub fn render_in_bands(&self, configs: &[LightView], rows: usize) -> Result<Tensor> {
         ensure!(!configs.is_empty(), "no light/view configuration to render");
+        ensure!(rows > 0, "render bands need at least one row");
         for c in configs {
             crate::geometry::above_surface("light", c.light)?;
             crate::geometry::above_surface("camera", c.view)?;
         }
-        let (wi, wo) = self.direction_maps(configs);
-        let log = tch::no_grad(|| self.renderer.forward_maps(&self.neural_map.unsqueeze(0), &wi, &wo))?;
+        let (wi, wo) = self.direction_maps(configs); // [1, K, 3, H, W]
+        let h = self.size().0;
+        // Bands of rows bound the memory of large maps (M_render is per pixel: exact).
+        let map = self.neural_map.unsqueeze(0); // [1, C, H, W]
+        let log = tch::no_grad(|| -> Result<Tensor> {
+            if rows >= h {
+                return self.renderer.forward_maps(&map, &wi, &wo);
+            }
+            let bands = (0..h)
+                .step_by(rows)
+                .map(|r0| {
+                    let n = rows.min(h - r0) as i64;
+                    let r0 = r0 as i64;
+                    self.renderer.forward_maps(&map.narrow(2, r0, n), &wi.narrow(3, r0, n), &wo.narrow(3, r0, n))
+                })
+                .collect::<Result<Vec<_>>>()?;
+            Ok(Tensor::cat(&bands, 3))
+        })?;
         // Finite weights can still overflow to Inf - Inf = NaN, which the
         // clamps below would keep (Inf itself clamps to MAX_LOG_RADIANCE).
         ensure!(log.isnan().any().int64_value(&[]) == 0, "M_render produced NaN values for this material (weights out of range?)");
@@ -222,7 +250,7 @@ pub(crate) mod tests {
         let meta = NmatMeta {
             model_id: cfg.model_id(),
             fov_deg: 45.0,
-            crop: Crop { x0: 3, y0: 0, side: 20, source_width: 26, source_height: 20 },
+            crop: Crop { x0: 3, y0: 0, width: 20, height: 20, source_width: 26, source_height: 20 },
             source: "photo é.png".into(),
             ldr_input: true,
             model_info: ModelInfo { ldr_input: true, steps: 7 },
@@ -294,10 +322,20 @@ pub(crate) mod tests {
 
         // Another version of the format.
         let mut a = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
-        let v2 = dir.path().join("v2.nmat");
-        a.save(&v2, NMAT_FORMAT, 2).unwrap();
-        let e = err(&v2);
-        assert!(e.contains("v2.nmat") && e.contains("version 2 is not supported"), "{e}");
+        let v3 = dir.path().join("v3.nmat");
+        a.save(&v3, NMAT_FORMAT, 3).unwrap();
+        let e = err(&v3);
+        assert!(e.contains("v3.nmat") && e.contains("version 3 is not supported (this flashmat reads version 1 and 2)"), "{e}");
+        // A version-1 file (square crop stored as `side`) is still read.
+        let mut v1 = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+        v1.set_meta("crop", r#"{"x0":3,"y0":0,"side":20,"source_width":26,"source_height":20}"#.to_string());
+        let old = dir.path().join("v1.nmat");
+        v1.save(&old, NMAT_FORMAT, 1).unwrap();
+        let back = NeuralMaterial::load(&old, Device::Cpu).unwrap();
+        assert_eq!((back.meta.crop.width, back.meta.crop.height, back.meta.crop.x0), (20, 20, 3));
+        v1.set_meta("crop", r#"{"x0":3,"y0":0,"width":20,"source_width":26,"source_height":20}"#.to_string());
+        v1.save(&old, NMAT_FORMAT, 1).unwrap();
+        assert!(err(&old).contains("width and height"), "{}", err(&old));
 
         // Consistent checksum but inconsistent contents.
         a.insert("neural_map", &Tensor::zeros([3, 8, 8], (tch::Kind::Float, Device::Cpu)));
@@ -312,6 +350,18 @@ pub(crate) mod tests {
 
         let e = err(&dir.path().join("missing.nmat"));
         assert!(e.contains("missing.nmat") && e.contains("No such file"), "{e}");
+    }
+
+    /// Rendering in bands of rows is the whole render (M_render is per
+    /// pixel); only BLAS blocking can differ, measured 0 on CPU.
+    #[test]
+    fn banded_render_equals_whole_render() {
+        let m = random_material(6, 16);
+        let whole = m.render_in_bands(&configs(), 16).unwrap();
+        let banded = m.render_in_bands(&configs(), 5).unwrap();
+        assert_eq!(banded.size(), [2, 3, 16, 16]);
+        let d = (&whole - &banded).abs().max().double_value(&[]);
+        assert!(d <= 1e-5 * (1.0 + whole.abs().max().double_value(&[])), "{d}");
     }
 
     #[test]

@@ -1,12 +1,18 @@
 //! Photos in: decoding to linear radiance, the field-of-view crop and the
 //! anti-aliased resize to the model resolution.
 //!
-//! The model's input camera sees the material square [-1,1]^2 with a 28
-//! degree field of view from straight above (REFERENCE section 1). A photo
-//! taken with a wider lens shows more: its centre square is cropped to the
-//! fraction `fov_crop_ratio(fov)` = tan(14 deg) / tan(fov / 2) of its side,
-//! so the kept pixels span the same view angles as the model's camera, and
-//! then shrunk to the model resolution.
+//! The model's input camera sees the material from straight above with a
+//! 28 degree field of view across the photo's shorter side, which spans
+//! [-1, 1]; the longer side spans [-a, a], a = long / short, with the same
+//! pixel pitch (REFERENCE section 1, `geometry::half_extents`). A photo
+//! taken with a wider lens shows more: its centre is cropped to the
+//! fraction `fov_crop_ratio(fov)` = tan(14 deg) / tan(fov / 2) of both
+//! sides (a centred rectangle of the photo's aspect), so the kept pixels
+//! span the same view angles as the model's camera, and then shrunk to the
+//! model resolution: `--size` pixels on the shorter side, the longer side
+//! rounded down to a multiple of [`SIZE_MULTIPLE`] (M_est halves three
+//! times) with the crop trimmed to match, so pixels stay square. With
+//! `--square` ([`PhotoOptions::square`]) only the centre square is kept.
 
 use crate::geometry::{fov_crop_ratio, MODEL_FOV_DEG};
 use crate::image::Image;
@@ -18,24 +24,67 @@ use std::path::Path;
 /// Widest accepted field of view (the crop ratio vanishes at 180 degrees).
 pub const MAX_FOV_DEG: f64 = 170.0;
 
+/// Longest accepted aspect ratio (long side / short side) of a photo
+/// estimated as a rectangle: beyond it, crop the photo or pass `--square`.
+pub const MAX_ASPECT: f64 = 4.0;
+
+/// M_est's input sides must be multiples of this (three stride-2 stages).
+pub const SIZE_MULTIPLE: usize = 8;
+
 /// Where the model's view was cut from the source photo, in source pixels.
+/// Stored in `.nmat` files as JSON (`x0, y0, width, height, source_width,
+/// source_height`); version-1 files stored a square `side`, still read.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(try_from = "CropRecord")]
 pub struct Crop {
     /// Left column of the crop.
     pub x0: usize,
     /// Top row of the crop.
     pub y0: usize,
-    /// Side of the square crop.
-    pub side: usize,
+    /// Columns of the crop.
+    pub width: usize,
+    /// Rows of the crop.
+    pub height: usize,
     pub source_width: usize,
     pub source_height: usize,
+}
+
+/// A crop as stored: version 2 (`width`, `height`) or version 1 (`side`).
+#[derive(Deserialize)]
+struct CropRecord {
+    x0: usize,
+    y0: usize,
+    side: Option<usize>,
+    width: Option<usize>,
+    height: Option<usize>,
+    source_width: usize,
+    source_height: usize,
+}
+
+impl TryFrom<CropRecord> for Crop {
+    type Error = String;
+    fn try_from(r: CropRecord) -> std::result::Result<Self, String> {
+        let (width, height) = match (r.width, r.height, r.side) {
+            (Some(w), Some(h), _) => (w, h),
+            (None, None, Some(s)) => (s, s),
+            _ => return Err("a crop needs width and height (or the side of a square)".into()),
+        };
+        Ok(Crop { x0: r.x0, y0: r.y0, width, height, source_width: r.source_width, source_height: r.source_height })
+    }
+}
+
+impl Crop {
+    /// The whole of a `width x height` photo.
+    pub fn whole(width: usize, height: usize) -> Self {
+        Crop { x0: 0, y0: 0, width, height, source_width: width, source_height: height }
+    }
 }
 
 /// A photo ready for M_est.
 #[derive(Clone, Debug)]
 pub struct PreparedPhoto {
-    /// Linear RGB `[3, S, S]` at the model resolution. 8-bit photos are
-    /// gamma-decoded (^2.2) and lie in [0, 1]; EXR values are kept as-is.
+    /// Linear RGB `[3, H, W]` at the model resolution. 8-bit photos are
+    /// sRGB-decoded and lie in [0, 1]; EXR values are kept as-is.
     pub linear: Image,
     /// The photo is a display-encoded 8/16-bit PNG or JPEG (LDR) rather
     /// than a linear EXR (HDR).
@@ -51,15 +100,15 @@ pub struct PreparedPhoto {
 }
 
 impl PreparedPhoto {
-    /// A square linear photo `[3, S, S]` already at the model's 28 degree
+    /// A linear photo `[3, H, W]` already at the model's 28 degree
     /// co-located view (renders, evaluation photos): no crop.
     pub fn at_model_view(linear: Image, ldr: bool, source: impl Into<String>) -> Self {
-        let (side, width, height) = (linear.width, linear.width, linear.height);
+        let crop = Crop::whole(linear.width, linear.height);
         Self {
             linear,
             ldr,
             fov_deg: crate::geometry::MODEL_FOV_DEG,
-            crop: Crop { x0: 0, y0: 0, side, source_width: width, source_height: height },
+            crop,
             source: source.into(),
             camera_note: String::new(),
         }
@@ -68,12 +117,15 @@ impl PreparedPhoto {
 
 /// How a photo is read: the field of view (None: from the EXIF, else the
 /// model's own), the model resolution, and an exposure change in stops.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
 pub struct PhotoOptions {
     pub fov_deg: Option<f64>,
+    /// Pixels of the model input's shorter side.
     pub size: usize,
     /// Multiplies the linearised photo by 2^EV.
     pub exposure_ev: Option<f64>,
+    /// Keep only the centre square (the behaviour before rectangles).
+    pub square: bool,
 }
 
 /// Largest `--exposure` change, in stops.
@@ -96,7 +148,14 @@ pub fn check_fov(fov_deg: f64) -> Result<()> {
     Ok(())
 }
 
-/// The centre crop of a `width x height` photo that a `fov_deg` camera
+/// The integer nearest to `exact` (<= `len`) of the same parity as `len`,
+/// so that a centred cut of it is exactly centred.
+fn centred_length(len: usize, exact: f64) -> usize {
+    let n = (len as f64 - 2.0 * ((len as f64 - exact) / 2.0).round()).max(0.0) as usize;
+    n.min(len)
+}
+
+/// The centre square of a `width x height` photo that a `fov_deg` camera
 /// shares with the model's 28 degree camera: the centred square of the
 /// shorter side, scaled by [`fov_crop_ratio`]. The side is rounded to the
 /// parity of the square so the crop stays exactly centred (at most 1 pixel
@@ -104,40 +163,87 @@ pub fn check_fov(fov_deg: f64) -> Result<()> {
 pub fn fov_crop(width: usize, height: usize, fov_deg: f64) -> Result<Crop> {
     check_fov(fov_deg)?;
     let q = width.min(height);
-    let exact = q as f64 * fov_crop_ratio(fov_deg).min(1.0);
-    // Nearest integer of the same parity as q.
-    let side = (q as f64 - 2.0 * ((q as f64 - exact) / 2.0).round()).max(0.0) as usize;
-    let side = side.min(q);
-    Ok(Crop { x0: (width - side) / 2, y0: (height - side) / 2, side, source_width: width, source_height: height })
+    let side = centred_length(q, q as f64 * fov_crop_ratio(fov_deg).min(1.0));
+    Ok(Crop { x0: (width - side) / 2, y0: (height - side) / 2, width: side, height: side, source_width: width, source_height: height })
+}
+
+/// The centred rectangle of a `width x height` photo that a `fov_deg`
+/// camera shares with the model's camera: both sides scaled by
+/// [`fov_crop_ratio`] (the FOV is across the shorter side), each rounded to
+/// its own parity so the crop stays exactly centred.
+pub fn fov_crop_rect(width: usize, height: usize, fov_deg: f64) -> Result<Crop> {
+    check_fov(fov_deg)?;
+    let r = fov_crop_ratio(fov_deg).min(1.0);
+    let (cw, ch) = (centred_length(width, width as f64 * r), centred_length(height, height as f64 * r));
+    Ok(Crop { x0: (width - cw) / 2, y0: (height - ch) / 2, width: cw, height: ch, source_width: width, source_height: height })
+}
+
+/// Model resolution (H, W) for a crop of `crop_w x crop_h` pixels: the
+/// shorter side is `size`, the longer one `size * long / short` rounded
+/// down to a multiple of [`SIZE_MULTIPLE`].
+pub fn model_shape(crop_w: usize, crop_h: usize, size: usize) -> (usize, usize) {
+    let (short, long) = (crop_w.min(crop_h).max(1), crop_w.max(crop_h));
+    let out_long = ((size as f64 * long as f64 / short as f64 + 1e-9) as usize / SIZE_MULTIPLE * SIZE_MULTIPLE).max(size);
+    if crop_w >= crop_h {
+        (size, out_long)
+    } else {
+        (out_long, size)
+    }
 }
 
 /// Crops a linear `[C, H, W]` photo to the model's view and shrinks it to
-/// `size x size`. Errors when the crop has fewer than `size` pixels across,
-/// saying how large a photo is needed.
-pub fn prepare_image(linear: &Image, fov_deg: f64, size: usize) -> Result<(Image, Crop)> {
+/// `size` pixels on the shorter side: a rectangle of the photo's aspect
+/// ([`model_shape`]; the crop's longer side is trimmed, centred, by less
+/// than [`SIZE_MULTIPLE`] model pixels so pixels stay square), or with
+/// `square` its centre square. Returns `[C, H, W]` and the crop. Errors
+/// when the crop has fewer than `size` pixels across, saying how large a
+/// photo is needed, or when the photo is longer than [`MAX_ASPECT`].
+pub fn prepare_image_with(linear: &Image, fov_deg: f64, size: usize, square: bool) -> Result<(Image, Crop)> {
     check_size(size)?;
-    let crop = fov_crop(linear.width, linear.height, fov_deg)?;
-    if crop.side < size {
+    let mut crop = if square { fov_crop(linear.width, linear.height, fov_deg)? } else { fov_crop_rect(linear.width, linear.height, fov_deg)? };
+    let short = crop.width.min(crop.height);
+    if short < size {
         // Smallest shorter side whose crop still holds `size` pixels.
         let need = (size as f64 / fov_crop_ratio(fov_deg) - 1e-9).ceil() as usize;
         bail!(
-            "the photo is too small: {}x{} pixels, cropped to the model's {MODEL_FOV_DEG} degree view (--fov {fov_deg}), keeps {}x{} pixels, but --size {size} needs at least {size}x{size} (a photo whose shorter side is at least {need} pixels)",
+            "the photo is too small: {}x{} pixels, cropped to the model's {MODEL_FOV_DEG} degree view (--fov {fov_deg}), keeps {}x{} pixels, but --size {size} needs at least {size} on the shorter side (a photo whose shorter side is at least {need} pixels)",
             linear.width,
             linear.height,
-            crop.side,
-            crop.side
+            crop.width,
+            crop.height
         );
     }
-    let cut = linear.crop(crop.y0, crop.x0, crop.side, crop.side)?;
-    Ok((cut.resize_area(size, size), crop))
+    let aspect = crop.width.max(crop.height) as f64 / short as f64;
+    ensure!(
+        aspect <= MAX_ASPECT + 1e-9,
+        "the photo's aspect ratio is {aspect:.2}:1, beyond {MAX_ASPECT}:1: crop it, or pass --square to keep its centre square"
+    );
+    let (h, w) = model_shape(crop.width, crop.height, size);
+    // Trim the longer side so the crop has exactly the output's aspect.
+    if crop.width > crop.height {
+        let cw = centred_length(crop.width, crop.height as f64 * w as f64 / h as f64);
+        crop.x0 += (crop.width - cw) / 2;
+        crop.width = cw;
+    } else if crop.height > crop.width {
+        let ch = centred_length(crop.height, crop.width as f64 * h as f64 / w as f64);
+        crop.y0 += (crop.height - ch) / 2;
+        crop.height = ch;
+    }
+    let cut = linear.crop(crop.y0, crop.x0, crop.height, crop.width)?;
+    Ok((cut.resize_area(h, w), crop))
 }
 
-/// Reads and prepares a photo: PNG/JPEG are LDR and gamma-decoded to
-/// linear (^2.2, REFERENCE section 3), EXR is linear HDR (NaN/Inf refused
+/// [`prepare_image_with`] keeping the photo's aspect (not `--square`).
+pub fn prepare_image(linear: &Image, fov_deg: f64, size: usize) -> Result<(Image, Crop)> {
+    prepare_image_with(linear, fov_deg, size, false)
+}
+
+/// Reads and prepares a photo: PNG/JPEG are LDR and decoded to linear with
+/// the exact sRGB curve ([`crate::spaces::photo_decode`]), EXR is linear HDR (NaN/Inf refused
 /// by the reader). The field of view comes from `fov_deg`, else the EXIF's
 /// focal length, else it is the model's own (no crop). Errors name the file.
 pub fn load_photo(path: &Path, fov_deg: Option<f64>, size: usize) -> Result<PreparedPhoto> {
-    load_photo_with(path, &PhotoOptions { fov_deg, size, exposure_ev: None })
+    load_photo_with(path, &PhotoOptions { fov_deg, size, ..Default::default() })
 }
 
 /// [`load_photo`] with every option: the EXIF orientation is applied, the
@@ -154,7 +260,7 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
     let ldr = !format.is_float();
     let camera = if ldr { super::camera::read_camera(path, image.width, image.height)? } else { super::camera::CameraInfo { orientation: 1, ..Default::default() } };
     let rgb = crate::io::to_rgb(&image).oriented(camera.orientation);
-    let mut linear = if ldr { rgb.map(crate::spaces::gamma_decode) } else { rgb };
+    let mut linear = if ldr { rgb.map(crate::spaces::photo_decode) } else { rgb };
     if let Some(ev) = opts.exposure_ev {
         let gain = 2f32.powf(ev as f32);
         linear = linear.map(|v| v * gain);
@@ -180,7 +286,7 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
     if let Some(ev) = opts.exposure_ev {
         note.push_str(&format!("; --exposure {ev:+} EV"));
     }
-    let (linear, crop) = prepare_image(&linear, fov, opts.size).map_err(|e| anyhow::anyhow!("{}: {e:#}", path.display()))?;
+    let (linear, crop) = prepare_image_with(&linear, fov, opts.size, opts.square).map_err(|e| anyhow::anyhow!("{}: {e:#}", path.display()))?;
     let source = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     Ok(PreparedPhoto { linear, ldr, fov_deg: fov, crop, source, camera_note: note })
 }
@@ -195,14 +301,24 @@ mod tests {
     #[test]
     fn crop_geometry() {
         // 28 degrees keeps the whole centre square.
-        assert_eq!(fov_crop(300, 200, 28.0).unwrap(), Crop { x0: 50, y0: 0, side: 200, source_width: 300, source_height: 200 });
+        assert_eq!(fov_crop(300, 200, 28.0).unwrap(), Crop { x0: 50, y0: 0, width: 200, height: 200, source_width: 300, source_height: 200 });
         // 45 degrees keeps 0.6019 of the side; parity of the square kept.
         let c = fov_crop(638, 638, 45.0).unwrap();
-        assert_eq!((c.x0, c.y0, c.side), (127, 127, 384));
+        assert_eq!((c.x0, c.y0, c.width, c.height), (127, 127, 384, 384));
         let c = fov_crop(1001, 2000, 45.0).unwrap();
-        assert_eq!(c.side % 2, 1);
-        assert!((c.side as f64 - 1001.0 * fov_crop_ratio(45.0)).abs() <= 1.0);
-        assert_eq!((c.x0, c.y0), ((1001 - c.side) / 2, (2000 - c.side) / 2));
+        assert_eq!(c.width % 2, 1);
+        assert!((c.width as f64 - 1001.0 * fov_crop_ratio(45.0)).abs() <= 1.0);
+        assert_eq!((c.x0, c.y0), ((1001 - c.width) / 2, (2000 - c.width) / 2));
+        // The rectangle: both sides scaled, each keeping its parity.
+        // 1001 x 0.601938 = 602.5 -> 603 (odd), 2000 x 0.601938 = 1203.9 -> 1204.
+        let r = fov_crop_rect(1001, 2000, 45.0).unwrap();
+        assert_eq!((r.x0, r.y0, r.width, r.height), (199, 398, 603, 1204));
+        assert_eq!(fov_crop_rect(300, 200, 28.0).unwrap(), Crop::whole(300, 200));
+        // Model shapes: 3:2 is exact, 4:3 rounds 341.3 down to 336, portrait swaps.
+        assert_eq!(model_shape(300, 200, 256), (256, 384));
+        assert_eq!(model_shape(400, 300, 256), (256, 336));
+        assert_eq!(model_shape(300, 400, 256), (336, 256));
+        assert_eq!(model_shape(64, 64, 32), (32, 32));
         assert!(fov_crop(100, 100, 20.0).unwrap_err().to_string().contains("between 28 and"));
         assert!(fov_crop(100, 100, f64::NAN).is_err());
         assert!(fov_crop(100, 100, 180.0).is_err());
@@ -212,10 +328,19 @@ mod tests {
     fn too_small_photo_says_what_is_needed() {
         let im = Image::filled(3, 300, 400, 0.5);
         let e = prepare_image(&im, 45.0, 256).unwrap_err().to_string();
-        // 300 * 0.6019 = 180.6 -> 180 (even) pixels kept; 256 / 0.6019 = 425.3.
-        assert!(e.contains("keeps 180x180") && e.contains("at least 426 pixels"), "{e}");
+        // 300 * 0.6019 = 180.6 -> 180 (even) rows and 400 * 0.6019 = 240.8 -> 240
+        // columns kept; 256 / 0.6019 = 425.3.
+        assert!(e.contains("keeps 240x180") && e.contains("at least 426 pixels"), "{e}");
+        // 400 x 300 at 256: 256 x 336 (341.3 rounded down to a multiple of 8); the crop
+        // is trimmed to 300 x 336 / 256 = 393.75 -> 394 columns (even, like 400), x0 = 3.
         let (p, c) = prepare_image(&im, 28.0, 256).unwrap();
-        assert_eq!((p.height, p.width, c.side, c.x0), (256, 256, 300, 50));
+        assert_eq!((p.height, p.width, c.width, c.height, c.x0, c.y0), (256, 336, 394, 300, 3, 0));
+        let (p, c) = prepare_image_with(&im, 28.0, 256, true).unwrap();
+        assert_eq!((p.height, p.width, c.width, c.height, c.x0), (256, 256, 300, 300, 50));
+        let long = Image::filled(3, 64, 320, 0.5);
+        let e = prepare_image(&long, 28.0, 32).unwrap_err().to_string();
+        assert!(e.contains("5.00:1") && e.contains("--square"), "{e}");
+        assert!(prepare_image_with(&long, 28.0, 32, true).is_ok());
         assert!(check_size(60).is_err() && check_size(0).is_err());
     }
 
@@ -249,7 +374,7 @@ mod tests {
         let maps = big.stacked().to_tensor().unsqueeze(0);
         let wide = Image::from_tensor(&render_window(&maps, t, [0.0, 0.0, d])).unwrap();
         let (prepared, crop) = prepare_image(&wide, 45.0, 64).unwrap();
-        assert_eq!((crop.x0, crop.y0, crop.side), (127, 127, 384));
+        assert_eq!((crop.x0, crop.y0, crop.width, crop.height), (127, 127, 384, 384));
 
         let centre = maps.narrow(2, 127, 384).narrow(3, 127, 384);
         let narrow = Image::from_tensor(&render_window(&centre, 1.0, [0.0, 0.0, d])).unwrap();
@@ -307,8 +432,11 @@ mod tests {
         let photo = load_photo(&p, None, 32).unwrap();
         assert!((photo.fov_deg - 53.0595).abs() < 0.01, "{}", photo.fov_deg);
         assert!(photo.camera_note.contains("FocalLengthIn35mmFilm 26 mm") && photo.camera_note.contains("1/60 s, f/1.8, ISO 100"), "{}", photo.camera_note);
-        // The crop is the model's 28 degrees of the 96-pixel side: tan(14)/tan(26.53) = 0.4994 -> 48.
-        assert_eq!((photo.crop.side, photo.crop.x0, photo.crop.y0), (48, 40, 24));
+        // The crop is the model's 28 degrees of the 96-pixel side: tan(14)/tan(26.53) = 0.4994 -> 48
+        // rows, 128 x 0.4994 -> 64 columns; at --size 32 the model sees 32 x 40 (42.7 rounded down),
+        // so the 64 columns are trimmed to 48 x 40 / 32 = 60, x0 = 32 + 2.
+        assert_eq!((photo.crop.width, photo.crop.height, photo.crop.x0, photo.crop.y0), (60, 48, 34, 24));
+        assert_eq!((photo.linear.height, photo.linear.width), (32, 40));
         // --fov wins over the EXIF.
         assert_eq!(load_photo(&p, Some(28.0), 32).unwrap().fov_deg, 28.0);
 
@@ -362,11 +490,11 @@ mod tests {
         let p = dir.path().join("p.png");
         crate::io::write_png(&p, &Image::filled(3, 32, 32, 0.5), crate::io::BitDepth::Eight).unwrap();
         let base = load_photo(&p, None, 32).unwrap();
-        let brighter = load_photo_with(&p, &PhotoOptions { fov_deg: None, size: 32, exposure_ev: Some(1.0) }).unwrap();
+        let brighter = load_photo_with(&p, &PhotoOptions { fov_deg: None, size: 32, exposure_ev: Some(1.0), square: false }).unwrap();
         let ratio = brighter.linear.get(1, 5, 5) / base.linear.get(1, 5, 5);
         assert!((ratio - 2.0).abs() < 1e-5, "{ratio}");
         assert!(brighter.camera_note.contains("--exposure +1 EV"), "{}", brighter.camera_note);
-        assert!(load_photo_with(&p, &PhotoOptions { fov_deg: None, size: 32, exposure_ev: Some(f64::NAN) }).is_err());
+        assert!(load_photo_with(&p, &PhotoOptions { fov_deg: None, size: 32, exposure_ev: Some(f64::NAN), square: false }).is_err());
         // A HEIC file (ftyp box, brand heic), whatever its name.
         let h = dir.path().join("IMG_0001.dat");
         std::fs::write(&h, [&[0, 0, 0, 24][..], b"ftypheic", &[0; 12]].concat()).unwrap();

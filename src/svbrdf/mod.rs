@@ -82,11 +82,12 @@ impl Svbrdf {
         })
     }
 
-    /// Crop of every map (and the height field). The crop spans [-1,1] again,
-    /// so its pixels are wider in plane units: heights are scaled by the width
-    /// ratio to keep the slopes the (unchanged) normals describe.
+    /// Crop of every map (and the height field). The crop's shorter side
+    /// spans [-1,1] again (`geometry::half_extents`), so its pixels are wider
+    /// in plane units: heights are scaled by the ratio of the shorter sides
+    /// to keep the slopes the (unchanged) normals describe.
     pub fn crop(&self, top: usize, left: usize, h: usize, w: usize) -> Result<Self> {
-        let scale = self.width() as f32 / w.max(1) as f32;
+        let scale = self.width().min(self.height()) as f32 / w.min(h).max(1) as f32;
         Ok(Self {
             diffuse: self.diffuse.crop(top, left, h, w)?,
             specular: self.specular.crop(top, left, h, w)?,

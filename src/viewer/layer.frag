@@ -30,6 +30,7 @@ uniform ivec2 uTile;           // render pixel (column, row from the top) of the
 uniform ivec2 uRender;         // render resolution (columns, rows)
 uniform ivec2 uMapSize;        // map columns, rows
 uniform vec2 uStep;            // (2 / W, -2 / H) as f32, as flashmat rounds them
+uniform vec2 uExtent;          // half-extents (W, H) / min(W, H): the shorter side spans [-1, 1]
 uniform vec3 uLight;
 uniform vec3 uView;
 
@@ -58,9 +59,10 @@ void main() {
     ivec2 mp = mapPixel(uTile + local);
     DECLARE
 #if MODE == 0
-    // wi, wo and h as flashmat computes them in f32: P = ((j, i) + 0.5) * step
-    // + (-1, 1); w = (X - P) / |X - P|; h = (wi + wo) / |wi + wo|.
-    vec3 p = vec3((vec2(mp) + 0.5) * uStep + vec2(-1.0, 1.0), 0.0);
+    // wi, wo and h as flashmat computes them in f32: P = (((j, i) + 0.5) * step
+    // + (-1, 1)) * extent (geometry::pixel_positions; extent (1, 1) for square
+    // maps); w = (X - P) / |X - P|; h = (wi + wo) / |wi + wo|.
+    vec3 p = vec3(((vec2(mp) + 0.5) * uStep + vec2(-1.0, 1.0)) * uExtent, 0.0);
     vec3 a = uLight - p;
     vec3 b = uView - p;
     vec3 wi = a / max(sqrt(a.x * a.x + a.y * a.y + a.z * a.z), 1e-12);

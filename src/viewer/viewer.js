@@ -57,6 +57,8 @@
     // ---- data -------------------------------------------------------------------------
     const C = meta.channels, mapG = Math.ceil(C / 4);
     const W0 = meta.width, H0 = meta.height;
+    // Rectangular maps: the shorter side spans [-1, 1], the longer [-a, a] (square pixels).
+    const extent = [W0 / Math.min(W0, H0), H0 / Math.min(W0, H0)];
     const wBytes = decodeBase64("flashmat-weights");
     // f16 bits or f32 values (meta.weightBits)
     const weights = meta.weightBits === 32 ? new Float32Array(wBytes.buffer, 0, wBytes.length / 4) : new Uint16Array(wBytes.buffer, 0, wBytes.length / 2);
@@ -260,6 +262,7 @@
           gl.uniform2i(loc.uRender, RW, RH);
           gl.uniform2i(loc.uMapSize, W, H);
           if (loc.uStep) gl.uniform2f(loc.uStep, 2 / W, -2 / H);
+          if (loc.uExtent) gl.uniform2f(loc.uExtent, extent[0], extent[1]);
           if (loc.uLight) gl.uniform3fv(loc.uLight, state.light);
           if (loc.uView) gl.uniform3fv(loc.uView, state.view);
           gl.drawArrays(gl.TRIANGLES, 0, 3);
@@ -456,7 +459,7 @@
     }
     function materialPoint(e) {
       const r = canvas.getBoundingClientRect();
-      return [2 * (e.clientX - r.left) / r.width - 1, 1 - 2 * (e.clientY - r.top) / r.height];
+      return [(2 * (e.clientX - r.left) / r.width - 1) * extent[0], (1 - 2 * (e.clientY - r.top) / r.height) * extent[1]];
     }
     let drag = null;
     canvas.addEventListener("pointerdown", (e) => {
