@@ -151,8 +151,12 @@ impl Archive {
             let list: Vec<String> = versions.iter().map(u32::to_string).collect();
             bail!("{format} version {found} is not supported (this flashmat reads version {})", list.join(" and "));
         }
-        // A damaged key name must not switch a check off.
-        if let Some(k) = meta.keys().find(|k| k.starts_with("flashmat.") && ![KEY_FORMAT, KEY_VERSION, KEY_CRC, KEY_META_CRC].contains(&k.as_str())) {
+        // A damaged key name must not switch a check off: an unknown
+        // `flashmat.` key, or any key one byte away from an integrity key
+        // (a bit flip in the prefix itself), is damage.
+        let integrity = [KEY_FORMAT, KEY_VERSION, KEY_CRC, KEY_META_CRC];
+        let one_byte_from = |k: &str, known: &str| k.len() == known.len() && k.bytes().zip(known.bytes()).filter(|(a, b)| a != b).count() == 1;
+        if let Some(k) = meta.keys().find(|k| !integrity.contains(&k.as_str()) && (k.starts_with("flashmat.") || integrity.iter().any(|known| one_byte_from(k, known)))) {
             bail!("unknown integrity field '{k}': the {format} file is damaged");
         }
         let st = SafeTensors::deserialize(data).map_err(|e| anyhow::anyhow!("damaged {format} file: {e}"))?;
@@ -332,6 +336,15 @@ mod tests {
         renamed[at] = b'n';
         std::fs::write(&p, &renamed).unwrap();
         assert!(format!("{:#}", Archive::load(&p, "test", 3).err().unwrap()).contains("unknown integrity field"));
+        // Also when the flip lands in the `flashmat.` prefix ('f' ^ 4 = 'b', 'h' ^ 4 = 'l').
+        let at = bytes.windows(19).position(|w| w == b"flashmat.meta_crc32").unwrap();
+        for (offset, mask) in [(0, 0x04), (4, 0x04), (8, 0x01)] {
+            let mut renamed = bytes.clone();
+            renamed[at + offset] ^= mask;
+            std::fs::write(&p, &renamed).unwrap();
+            let e = format!("{:#}", Archive::load(&p, "test", 3).err().unwrap());
+            assert!(e.contains("unknown integrity field"), "{offset}: {e}");
+        }
 
         // A file written before the header checksum (the bundled models): the tensor CRC alone.
         let tensors = [("net.b", vec![-0.5f32], vec![1]), ("net.w", vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0], vec![2, 3])];

@@ -97,6 +97,13 @@ def read_nmat(path):
     meta = header.pop("__metadata__", None)
     if not isinstance(meta, dict):
         fail("not a flashmat .nmat file (no metadata)")
+    # A damaged key name must not switch a check off: unknown `flashmat.`
+    # keys, or keys one byte away from an integrity key, are damage.
+    integrity = ("flashmat.format", "flashmat.version", "flashmat.crc32", "flashmat.meta_crc32")
+    for key in meta:
+        near = any(len(key) == len(k) and sum(a != b for a, b in zip(key, k)) == 1 for k in integrity)
+        if key not in integrity and (key.startswith("flashmat.") or near):
+            fail(f"unknown integrity field {key!r}: the file is damaged")
     fmt = meta.get("flashmat.format")
     if fmt != NMAT_FORMAT:
         fail(f"not a flashmat .nmat file (format tag {fmt!r}, expected {NMAT_FORMAT!r})")

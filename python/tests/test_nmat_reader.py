@@ -106,3 +106,8 @@ def test_header_checksum(tmp_path):
     bad = tmp_path / "swapped.nmat"
     write_nmat(bad, swapped, sealed)
     expect_error(bad, "header checksum mismatch")
+    # A flip in the checksum's key name, prefix included, is damage, not an old file.
+    for key in ("flashmat.meta_crc33", "blashmat.meta_crc32", "flaslmat.meta_crc32"):
+        renamed = tmp_path / "renamed.nmat"
+        write_nmat(renamed, t, {**meta, key: f"{header_crc(header, meta_all):08x}"})
+        expect_error(renamed, "unknown integrity field")
