@@ -215,28 +215,38 @@ impl FoldedMEst {
         check_est_input(x)?;
         Ok(tch::no_grad(|| {
             let x = if self.channels_last { to_channels_last(x) } else { x.shallow_clone() };
-            let mut h = conv_rep(&x, &self.stem, None, 1);
-            let mut skips = Vec::with_capacity(4);
-            for stage in &self.enc {
-                for b in stage {
-                    h = b.forward(&h, norm);
-                }
-                skips.push(h.shallow_clone());
-            }
-            h = h.arctan();
-            for (i, st) in self.dec.iter().enumerate() {
-                if i > 0 {
-                    h = Tensor::cat(&[&h, &skips[3 - i]], 1);
-                }
-                if let Some(u) = &st.up {
-                    h = u.forward(&h);
-                }
-                for b in &st.blocks {
-                    h = b.forward(&h, norm);
-                }
-            }
+            let h = self.walk(conv_rep(&x, &self.stem, None, 1), |b, h| b.forward(h, norm), |u, h| u.forward(h));
             conv_rep(&h, &self.head, None, 1).contiguous()
         }))
+    }
+
+    /// The U-Net between stem and head, one way of running a residual block
+    /// and an upsampling for both the whole and the layer-wise forward:
+    /// encoder stages (their outputs kept as skips), arctan bottleneck,
+    /// decoder stages (skip concatenated before each but the first).
+    /// stem_out: `[N, W, H, W]` -> `[N, W, H, W]` (the head's input).
+    fn walk(&self, stem_out: Tensor, mut block: impl FnMut(&FoldedRes, &Tensor) -> Tensor, mut up: impl FnMut(&FoldedUp, &Tensor) -> Tensor) -> Tensor {
+        let mut h = stem_out;
+        let mut skips = Vec::with_capacity(4);
+        for stage in &self.enc {
+            for b in stage {
+                h = block(b, &h);
+            }
+            skips.push(h.shallow_clone());
+        }
+        h = h.arctan();
+        for (i, st) in self.dec.iter().enumerate() {
+            if i > 0 {
+                h = Tensor::cat(&[&h, &skips[3 - i]], 1);
+            }
+            if let Some(u) = &st.up {
+                h = up(u, &h);
+            }
+            for b in &st.blocks {
+                h = block(b, &h);
+            }
+        }
+        h
     }
 
     /// Converts every weight to `kind` (e.g. Double for checks).
@@ -398,29 +408,14 @@ impl FoldedMEst {
         ensure!(x.size()[0] == 1, "tiled M_est takes one image, got a batch of {}", x.size()[0]);
         ensure!(core >= 8 && core % 8 == 0, "tile core must be a positive multiple of 8, got {core}");
         Ok(tch::no_grad(|| {
-            let mut h = map_tiles(&[x], core, (1, 1), |t| conv_rep(&t[0], &self.stem, None, 1));
-            let mut skips = Vec::with_capacity(4);
-            for stage in &self.enc {
-                for b in stage {
-                    h = b.forward_layerwise(&h, core);
-                    on_layer();
-                }
-                skips.push(h.shallow_clone());
-            }
-            h = h.arctan();
-            for (i, st) in self.dec.iter().enumerate() {
-                if i > 0 {
-                    h = Tensor::cat(&[&h, &skips[3 - i]], 1);
-                }
-                if let Some(u) = &st.up {
-                    h = map_tiles(&[&h], core, (2, 1), |t| u.forward(&t[0]));
-                }
-                for b in &st.blocks {
-                    h = b.forward_layerwise(&h, core);
-                    on_layer();
-                }
-            }
-            drop(skips);
+            let stem_out = map_tiles(&[x], core, (1, 1), |t| conv_rep(&t[0], &self.stem, None, 1));
+            let block = |b: &FoldedRes, h: &Tensor| {
+                let out = b.forward_layerwise(h, core);
+                on_layer();
+                out
+            };
+            // The skips are dropped when `walk` returns, before the head.
+            let h = self.walk(stem_out, block, |u, h| map_tiles(&[h], core, (2, 1), |t| u.forward(&t[0])));
             map_tiles(&[&h], core, (1, 1), |t| conv_rep(&t[0], &self.head, None, 1))
         }))
     }
