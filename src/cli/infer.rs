@@ -64,6 +64,9 @@ pub struct RefineWeights {
     /// Refinement: weight keeping each pixel's code norm within the estimate's largest.
     #[arg(long, value_name = "W", default_value_t = RefineConfig::default().range_weight)]
     pub refine_range: f64,
+    /// Refinement: weight keeping the renders under four other lights near the network's estimate.
+    #[arg(long, value_name = "W", default_value_t = RefineConfig::default().relight_weight)]
+    pub refine_relight: f64,
 }
 
 impl RefineWeights {
@@ -75,6 +78,7 @@ impl RefineWeights {
             pull_weight: self.refine_pull,
             smooth_weight: self.refine_smooth,
             range_weight: self.refine_range,
+            relight_weight: self.refine_relight,
         }
     }
 }

@@ -104,6 +104,15 @@ pub fn positive_number(s: &str) -> std::result::Result<f64, String> {
     }
 }
 
+/// clap parser of a probability: a number in [0, 1].
+pub fn fraction(s: &str) -> std::result::Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
+        Ok(v) => Err(format!("{v} is not a number from 0 to 1")),
+        Err(_) => Err(format!("'{s}' is not a number")),
+    }
+}
+
 /// clap parser of a count of items held in memory: 1 to
 /// [`flashmat::limits::COUNT`] (`--limit 0` would average nothing).
 pub fn count(s: &str) -> std::result::Result<usize, String> {

@@ -110,6 +110,10 @@ pub struct TrainArgs {
     /// With 2 materials a step, batch statistics subtract the colour the two share.
     #[arg(long, value_name = "N")]
     pub frozen_bn_from: Option<u64>,
+    /// Recolour this fraction of training materials (random hue turn, saturation x0.6-1.8 of the
+    /// diffuse and specular maps) so colour must be read from the photo (paper: 0).
+    #[arg(long, default_value_t = 0.0, value_name = "P", value_parser = super::fraction)]
+    pub colour_augment: f64,
     /// Start the adversarial term at step N (paper: 0).
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub adv_start: u64,
@@ -257,6 +261,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         warmup_steps: a.warmup_steps,
         adv_start: a.adv_start,
         frozen_bn_from: a.frozen_bn_from,
+        colour_augment: a.colour_augment,
         straight_through_output: a.straight_through_output,
         weight_lpips: a.lpips_weight,
         weight_adv: a.adv_weight,

@@ -135,6 +135,35 @@ impl Svbrdf {
         }
     }
 
+    /// The same material in another colour: the diffuse and specular maps'
+    /// chroma (in display space, gamma 2.2, where hue steps look even) is
+    /// turned by `hue_turns` of a full turn about the grey axis and scaled
+    /// by `saturation`; grey stays grey and every pixel keeps its display
+    /// mean. Results are clamped to [0, 1]. Training augmentation: chroma
+    /// must then be read from the photo, not guessed from the texture.
+    pub fn recolour(&self, hue_turns: f32, saturation: f32) -> Self {
+        let (sin, cos) = (std::f32::consts::TAU * hue_turns).sin_cos();
+        let recolour_map = |map: &Image| {
+            let n = map.height * map.width;
+            let mut out = map.clone();
+            for i in 0..n {
+                let display = [0, 1, 2].map(|c| map.data[c * n + i].max(0.0).powf(1.0 / 2.2));
+                let grey = (display[0] + display[1] + display[2]) / 3.0;
+                let chroma = display.map(|v| v - grey);
+                // Rodrigues about the unit grey axis a = (1,1,1)/sqrt(3); chroma is
+                // perpendicular to a, so R v = cos v + sin (a x v).
+                let k = 1.0 / 3f32.sqrt();
+                let cross = [k * (chroma[2] - chroma[1]), k * (chroma[0] - chroma[2]), k * (chroma[1] - chroma[0])];
+                for c in 0..3 {
+                    let turned = cos * chroma[c] + sin * cross[c];
+                    out.data[c * n + i] = (grey + saturation * turned).clamp(0.0, 1.0).powf(2.2);
+                }
+            }
+            out
+        };
+        Self { diffuse: recolour_map(&self.diffuse), specular: recolour_map(&self.specular), ..self.clone() }
+    }
+
     /// A uniform material (handy in tests and examples).
     pub fn uniform(h: usize, w: usize, kd: [f32; 3], ks: [f32; 3], roughness: f32) -> Self {
         Self {
@@ -225,6 +254,35 @@ pub fn normals_from_height(height: &Image) -> Image {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A third of a turn about the grey axis sends red to green to blue
+    /// (hand-derived: the rotation by 120 degrees about (1,1,1) permutes the
+    /// axes); grey and the specular F0 of a dielectric do not change;
+    /// saturation 0 makes every pixel its display grey.
+    #[test]
+    fn recolour_turns_hue_about_grey() {
+        let pixel = |m: &Image| [0, 1, 2].map(|c| m.get(c, 0, 0));
+        let red = Svbrdf::uniform(2, 2, [0.6, 0.0, 0.0], [0.04; 3], 0.5);
+        let turned = red.recolour(1.0 / 3.0, 1.0);
+        let got = pixel(&turned.diffuse);
+        for (g, want) in got.iter().zip([0.0, 0.6, 0.0]) {
+            assert!((g - want).abs() < 1e-5, "{got:?}");
+        }
+        assert_eq!(pixel(&turned.diffuse), pixel(&red.recolour(1.0 / 3.0, 1.0).diffuse));
+        let back = red.recolour(1.0, 1.0);
+        assert!(pixel(&back.diffuse).iter().zip([0.6, 0.0, 0.0]).all(|(g, w)| (g - w).abs() < 1e-5));
+        for c in pixel(&turned.specular) {
+            assert!((c - 0.04).abs() < 1e-6);
+        }
+        let grey = Svbrdf::uniform(1, 1, [0.3, 0.3, 0.3], [0.04; 3], 0.5).recolour(0.37, 1.6);
+        assert!(pixel(&grey.diffuse).iter().all(|c| (c - 0.3).abs() < 1e-6));
+        // Saturation 0: the display mean of (0.6, 0, 0) is 0.6^(1/2.2) / 3.
+        let flat = red.recolour(0.0, 0.0);
+        let want = (0.6f32.powf(1.0 / 2.2) / 3.0).powf(2.2);
+        assert!(pixel(&flat.diffuse).iter().all(|c| (c - want).abs() < 1e-6));
+        assert_eq!(flat.roughness.data, red.roughness.data);
+        assert_eq!(flat.normal.data, red.normal.data);
+    }
 
     /// Rendering a transformed material under transformed light and camera
     /// gives the transformed render, for all 8 symmetries (normals,

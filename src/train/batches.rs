@@ -46,8 +46,29 @@ impl MaterialStream {
         }
     }
 
-    /// The cropped materials of training step `step`.
+    /// The cropped (and, with `colour_augment`, recoloured) materials of
+    /// training step `step`.
     pub fn materials(&self, cfg: &TrainConfig, step: u64) -> Result<Vec<Svbrdf>> {
+        let crops = self.crops(cfg, step)?;
+        if cfg.colour_augment <= 0.0 {
+            return Ok(crops);
+        }
+        // Its own random stream: the crops and renders of a step stay those of a run without it.
+        let mut rng = step_rng(cfg.seed, step, 3);
+        Ok(crops
+            .into_iter()
+            .map(|m| {
+                let (recolour, hue_turns, log_saturation) = (rng.random::<f64>() < cfg.colour_augment, rng.random::<f32>(), rng.random_range(-0.5f32..0.6));
+                if recolour {
+                    m.recolour(hue_turns, log_saturation.exp())
+                } else {
+                    m
+                }
+            })
+            .collect())
+    }
+
+    fn crops(&self, cfg: &TrainConfig, step: u64) -> Result<Vec<Svbrdf>> {
         let mut rng = step_rng(cfg.seed, step, 1);
         let n = cfg.materials_per_batch as u64;
         let full: Vec<Svbrdf> = match self {

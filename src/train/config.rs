@@ -108,6 +108,13 @@ pub struct TrainConfig {
     /// share (their mean colour), which the network then cannot learn.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frozen_bn_from: Option<u64>,
+    /// Probability that a training material is recoloured (random hue turn
+    /// and saturation scale of its diffuse and specular maps,
+    /// `Svbrdf::recolour`); 0 is the paper's data. The procedural families
+    /// tie chroma to texture (wood is brown), so without it M_est can guess
+    /// colour from texture instead of reading it from the photo.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub colour_augment: f64,
     pub weight_l1: f64,
     pub weight_lpips: f64,
     pub weight_adv: f64,
@@ -121,6 +128,10 @@ pub struct TrainConfig {
     pub checkpoint_every: u64,
     pub preview_every: u64,
     pub seed: u64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 fn unit_height_scale() -> f64 {
@@ -153,6 +164,7 @@ impl Default for TrainConfig {
             adv_start: 0,
             straight_through_output: false,
             frozen_bn_from: None,
+            colour_augment: 0.0,
             weight_l1: 1.0,
             weight_lpips: 0.01,
             weight_adv: 0.03,

@@ -449,3 +449,37 @@ fn frozen_batch_norm_keeps_running_statistics_and_still_trains_m_est() {
     assert!(changed(&weights0, &weights1) > weights0.len() / 2);
     assert!(changed(&weights1, &weights2) > weights1.len() / 2, "{} of {}", changed(&weights1, &weights2), weights1.len());
 }
+
+/// `--colour-augment`: the crops are those of a run without it (geometry
+/// untouched), some materials come back recoloured at P = 1/2, every one at
+/// P = 1, and a recoloured material keeps its display brightness per pixel
+/// (hue turns and saturation scales move chroma only, up to clamping).
+#[test]
+fn colour_augment_recolours_the_crops_of_the_plain_stream() {
+    use super::batches::MaterialStream;
+    let plain_cfg = tiny_config();
+    let plain_stream = MaterialStream::open(&plain_cfg).unwrap();
+    let display_mean = |m: &crate::svbrdf::Svbrdf, i: usize| {
+        let n = m.diffuse.height * m.diffuse.width;
+        (0..3).map(|c| m.diffuse.data[c * n + i].powf(1.0 / 2.2)).sum::<f32>() / 3.0
+    };
+    for (p, lo, hi) in [(0.5, 1, 11), (1.0, 12, 12)] {
+        let cfg = TrainConfig { colour_augment: p, ..tiny_config() };
+        let stream = MaterialStream::open(&cfg).unwrap();
+        let mut recoloured = 0;
+        for step in 0..6 {
+            let plain = plain_stream.materials(&plain_cfg, step).unwrap();
+            for (a, b) in plain.iter().zip(stream.materials(&cfg, step).unwrap()) {
+                assert_eq!(a.normal.data, b.normal.data);
+                assert_eq!(a.roughness.data, b.roughness.data);
+                if a.diffuse.data != b.diffuse.data {
+                    recoloured += 1;
+                    let n = a.diffuse.height * a.diffuse.width;
+                    let unclamped = (0..n).filter(|&i| (display_mean(a, i) - display_mean(&b, i)).abs() < 1e-4).count();
+                    assert!(unclamped * 2 > n, "step {step}: brightness kept on {unclamped} of {n} pixels");
+                }
+            }
+        }
+        assert!((lo..=hi).contains(&recoloured), "P = {p}: {recoloured} of 12 recoloured");
+    }
+}

@@ -35,11 +35,15 @@ pub struct RefineConfig {
     pub pull_weight: f64,
     pub smooth_weight: f64,
     pub range_weight: f64,
+    /// Weight of the relight prior (renders under other lights stay the
+    /// network's); 0 in files written before it existed.
+    #[serde(default)]
+    pub relight_weight: f64,
 }
 
 impl Default for RefineConfig {
     fn default() -> Self {
-        Self { steps: DEFAULT_REFINE_STEPS, learning_rate: 0.02, pull_weight: 0.01, smooth_weight: 0.01, range_weight: 1.0 }
+        Self { steps: DEFAULT_REFINE_STEPS, learning_rate: 0.02, pull_weight: 0.01, smooth_weight: 0.01, range_weight: 1.0, relight_weight: 0.0 }
     }
 }
 
@@ -56,6 +60,7 @@ impl RefineConfig {
             ("pull weight", self.pull_weight),
             ("smoothness weight", self.smooth_weight),
             ("range weight", self.range_weight),
+            ("relight weight", self.relight_weight),
         ] {
             ensure!(v.is_finite() && v >= 0.0, "the refinement {name} must be a finite number >= 0, got {v}");
         }
