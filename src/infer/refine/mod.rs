@@ -33,7 +33,7 @@ use tch::{Kind, Tensor};
 
 pub mod settings;
 
-pub use settings::{RefineConfig, RefineReport, CLIP_LEVEL, DEFAULT_REFINE_STEPS, DEFAULT_REFINE_STEPS_ARG, EDGE_SCALE, MAX_REFINE_STEPS};
+pub use settings::{RefineConfig, RefineReport, CLIP_LEVEL, DEFAULT_REFINE_STEPS, DEFAULT_RELIGHT_WEIGHT, DEFAULT_REFINE_STEPS_ARG, EDGE_SCALE, MAX_REFINE_STEPS};
 
 /// Number of light/view configurations of the relight prior.
 pub const RELIGHT_PRIOR_CONFIGS: usize = 4;
@@ -214,6 +214,11 @@ mod tests {
         m
     }
 
+    /// The default settings without the relight prior: the photo's fit alone.
+    fn fit_only(steps: usize) -> RefineConfig {
+        RefineConfig { relight_weight: 0.0, ..RefineConfig::with_steps(steps) }
+    }
+
     fn estimate_from(model: &Model, info: &ModelInfo, photo: &crate::image::Image, ldr: bool) -> NeuralMaterial {
         estimate(model, info, &PreparedPhoto::at_model_view(photo.clone(), ldr, "test")).unwrap()
     }
@@ -233,7 +238,7 @@ mod tests {
         let before = (log_render(&unrefined, &NeuralMaterial::identity_config()) - &target).abs().mean(Kind::Float).double_value(&[]);
 
         let mut free = estimate_from(&model, &info, &truth[0], false);
-        let report = refine(&mut free, &photo, false, &RefineConfig::with_steps(60), |_| {}).unwrap();
+        let report = refine(&mut free, &photo, false, &fit_only(60), |_| {}).unwrap();
         assert!(report.stopped.is_none());
         assert!((report.identity_l1_before - before).abs() < 1e-4, "{} vs {before}", report.identity_l1_before);
         let after = (log_render(&free, &NeuralMaterial::identity_config()) - &target).abs().mean(Kind::Float).double_value(&[]);
@@ -244,7 +249,7 @@ mod tests {
 
         // A strong pull keeps the side-lit render near the unrefined one.
         let mut pulled = estimate_from(&model, &info, &truth[0], false);
-        let strong = RefineConfig { pull_weight: 100.0, ..RefineConfig::with_steps(60) };
+        let strong = RefineConfig { pull_weight: 100.0, ..fit_only(60) };
         refine(&mut pulled, &photo, false, &strong, |_| {}).unwrap();
         let side_unrefined = log_render(&unrefined, &side);
         let moved = |m: &NeuralMaterial| (log_render(m, &side) - &side_unrefined).abs().mean(Kind::Float).double_value(&[]);
@@ -278,7 +283,7 @@ mod tests {
         // (0.098 unrefined) fell to 0.026 without it and 0.027 / 0.032 / 0.040 / 0.056 with it.
         let (plain, moved_plain) = refined_with(0.0);
         let (prior, moved_prior) = refined_with(0.5);
-        assert_eq!(prior.config.relight_weight, 0.5);
+        assert_eq!(prior.config.relight_weight, DEFAULT_RELIGHT_WEIGHT);
         assert!(moved_prior < 0.6 * moved_plain, "other lights moved {moved_prior} with the prior, {moved_plain} without");
         assert!(prior.identity_l1_after < 0.5 * prior.identity_l1_before, "identity L1 {} -> {}", prior.identity_l1_before, prior.identity_l1_after);
         assert!(plain.identity_l1_after <= prior.identity_l1_after, "the prior can only cost identity fit");
@@ -288,6 +293,7 @@ mod tests {
     fn the_command_line_default_is_the_default() {
         assert_eq!(DEFAULT_REFINE_STEPS_ARG.parse::<usize>().unwrap(), DEFAULT_REFINE_STEPS);
         assert_eq!(RefineConfig::default().steps, DEFAULT_REFINE_STEPS);
+        assert_eq!(RefineConfig::default().relight_weight, DEFAULT_RELIGHT_WEIGHT);
     }
 
     #[test]
@@ -313,14 +319,14 @@ mod tests {
         assert!(bright.sum(Kind::Int64).int64_value(&[]) > 10, "the test needs a highlight above 1.5");
         // First make the render reproduce the HDR highlight, then refine on the 8-bit version.
         let mut m = estimate_from(&model, &info, &hdr, false);
-        refine(&mut m, &hdr_t, false, &RefineConfig::with_steps(80), |_| {}).unwrap();
+        refine(&mut m, &hdr_t, false, &fit_only(80), |_| {}).unwrap();
         let highlight = |m: &NeuralMaterial| m.render(&[NeuralMaterial::identity_config()]).unwrap().get(0).masked_select(&bright).mean(Kind::Float).double_value(&[]);
         let start = highlight(&m);
         assert!(start > 1.3, "the HDR-refined highlight is {start}");
         let ldr = hdr_t.clamp(0.0, 1.0);
         let refine_on = |clipped: bool| {
             let mut copy = NeuralMaterial::from_parts(m.neural_map.copy(), m.input_photo.copy(), &m.config, &m.renderer_vs.variables(), m.meta.clone()).unwrap();
-            refine(&mut copy, &ldr, clipped, &RefineConfig::with_steps(60), |_| {}).unwrap();
+            refine(&mut copy, &ldr, clipped, &fit_only(60), |_| {}).unwrap();
             highlight(&copy)
         };
         let (kept, pulled) = (refine_on(true), refine_on(false));
