@@ -60,13 +60,20 @@ done
 # materials, the default (100 steps) on the 50 held-out materials with LDR
 # photos (the unrefined rows equal reports/eval-4000-ldr-inputs: same seed and
 # configurations), the captures, and the bundled photos.
-$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 0,25,50,100,200 --limit 8 \
+$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 0,25,50,100,200 --refine-relight 0 --limit 8 \
     --configs "$CONFIGS" -o reports/refine/steps-ldr-8
-$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 0,100 --configs "$CONFIGS" -o reports/refine/ldr-50
-$FLASHMAT eval --model $M/flashmat.safetensors --refine 0,100 --limit 10 --configs "$CONFIGS" -o reports/refine/hdr-10
+$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 0,100 --refine-relight 0 --configs "$CONFIGS" -o reports/refine/ldr-50
+$FLASHMAT eval --model $M/flashmat.safetensors --refine 0,100 --refine-relight 0 --limit 10 --configs "$CONFIGS" -o reports/refine/hdr-10
 for I in 05 25 45; do
-    $FLASHMAT eval --model $M/flashmat.safetensors --refine 0,100 \
+    $FLASHMAT eval --model $M/flashmat.safetensors --refine 0,100 --refine-relight 0 \
         --captures target/captures/test$I -o reports/refine/captures-test$I
+done
+# The relight prior (the default weight of --refine since 2026-11-24; the rows above are without it).
+$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 100 --refine-relight 0.5 --limit 8 \
+    --configs "$CONFIGS" -o reports/refine/relight-ldr-8
+for I in 05 25; do
+    $FLASHMAT eval --model $M/flashmat.safetensors --refine 100 --refine-relight 0.5 \
+        --captures target/captures/test$I -o reports/refine/relight-captures-test$I
 done
 cargo run --release --quiet --example refine_photos -- 100 reports/refine
 
