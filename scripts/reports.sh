@@ -71,6 +71,8 @@ done
 # The relight prior (the default weight of --refine since 2026-11-24; the rows above are without it).
 $FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 100 --refine-relight 0.5 --limit 8 \
     --configs "$CONFIGS" -o reports/refine/relight-ldr-8
+$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 100 --refine-relight 0.5 \
+    --configs "$CONFIGS" -o reports/refine/relight-ldr-50
 for I in 05 25; do
     $FLASHMAT eval --model $M/flashmat.safetensors --refine 100 --refine-relight 0.5 \
         --captures target/captures/test$I -o reports/refine/relight-captures-test$I

@@ -26,11 +26,12 @@ pub const DEFAULT_REFINE_STEPS: usize = 100;
 /// [`DEFAULT_REFINE_STEPS`] as the command line's default text.
 pub const DEFAULT_REFINE_STEPS_ARG: &str = "100";
 
-/// Weight of the relight prior: on 8 held-out materials (LDR photos, 100
-/// steps) 0.5 lowered the relit log error against the prior-free
-/// refinement on 7 of 8 (Reflect) and 8 of 8 (Hemisphere) materials and
-/// Hemisphere LPIPS on 6 of 8 (0.364 -> 0.354), Reflect LPIPS unchanged,
-/// for an Identity LPIPS of 0.066 instead of 0.050 (reports/refine.md).
+/// Weight of the relight prior: on the 50 held-out materials (LDR photos,
+/// 100 steps) 0.5 lowered the relit log error against the prior-free
+/// refinement on 42 (Reflect) and 43 (Hemisphere) of 50 materials, back to
+/// the unrefined level (0.091 / 0.083 against 0.090 / 0.087), with Reflect
+/// and Hemisphere LPIPS unchanged, for an Identity LPIPS of 0.049 instead
+/// of 0.025 (reports/refine.md).
 pub const DEFAULT_RELIGHT_WEIGHT: f64 = 0.5;
 
 /// Settings of one refinement (recorded in the `.nmat`).
