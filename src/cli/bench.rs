@@ -139,21 +139,25 @@ fn bench_refine(args: &RefineBenchArgs) -> Result<()> {
     let linear = flashmat::svbrdf::render::render_material(&material, &[NeuralMaterial::identity_config()])?.remove(0);
     let photo = PreparedPhoto::at_model_view(linear.clone(), true, "bench");
     let info = flashmat::model::ModelInfo { ldr_input: true, steps: 0 };
-    let mut neural = flashmat::infer::estimate(&model, &info, &photo)?;
+    let neural = flashmat::infer::estimate(&model, &info, &photo)?;
     let render_ms = median_ms(device, 3, || neural.render(&[NeuralMaterial::identity_config()]).map(|_| ()))?;
     let photo_t = linear.to_tensor().clamp(0.0, 1.0);
-    let report = refine(&mut neural, &photo_t, true, &RefineConfig::with_steps(args.steps), |_| {})?;
-    let step_ms = report.seconds * 1000.0 / args.steps as f64;
     let default_steps = flashmat::infer::refine::DEFAULT_REFINE_STEPS;
-    println!(
-        "refine {} {}x{} on {:?}: {step_ms:.1} ms/step ({:.2}x one identity render of {render_ms:.1} ms); the default {default_steps} steps: {:.1} s",
-        args.preset,
-        args.size,
-        args.size,
-        device,
-        step_ms / render_ms,
-        step_ms * default_steps as f64 / 1000.0
-    );
+    // The default settings, then the same without the relight prior (its cost, in the same run).
+    for (what, cfg) in [("default", RefineConfig::with_steps(args.steps)), ("no relight prior", RefineConfig { relight_weight: 0.0, ..RefineConfig::with_steps(args.steps) })] {
+        let mut copy = NeuralMaterial::from_parts(neural.neural_map.copy(), neural.input_photo.copy(), &neural.config, &neural.renderer_vs.variables(), neural.meta.clone())?;
+        let report = refine(&mut copy, &photo_t, true, &cfg, |_| {})?;
+        let step_ms = report.seconds * 1000.0 / args.steps as f64;
+        println!(
+            "refine ({what}) {} {}x{} on {:?}: {step_ms:.1} ms/step ({:.2}x one identity render of {render_ms:.1} ms); {default_steps} steps: {:.1} s",
+            args.preset,
+            args.size,
+            args.size,
+            device,
+            step_ms / render_ms,
+            step_ms * default_steps as f64 / 1000.0
+        );
+    }
     Ok(())
 }
 
