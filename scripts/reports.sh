@@ -73,6 +73,8 @@ $FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 100 --refine
     --configs "$CONFIGS" -o reports/refine/relight-ldr-8
 $FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 100 --refine-relight 0.5 \
     --configs "$CONFIGS" -o reports/refine/relight-ldr-50
+$FLASHMAT eval --model $M/flashmat.safetensors --refine 100 --refine-relight 0.5 --limit 10 \
+    --configs "$CONFIGS" -o reports/refine/relight-hdr-10
 for I in 05 25; do
     $FLASHMAT eval --model $M/flashmat.safetensors --refine 100 --refine-relight 0.5 \
         --captures target/captures/test$I -o reports/refine/relight-captures-test$I
