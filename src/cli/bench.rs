@@ -145,7 +145,7 @@ fn bench_refine(args: &RefineBenchArgs) -> Result<()> {
     let default_steps = flashmat::infer::refine::DEFAULT_REFINE_STEPS;
     // The default settings, then the same without the relight prior (its cost, in the same run).
     for (what, cfg) in [("default", RefineConfig::with_steps(args.steps)), ("no relight prior", RefineConfig { relight_weight: 0.0, ..RefineConfig::with_steps(args.steps) })] {
-        let mut copy = NeuralMaterial::from_parts(neural.neural_map.copy(), neural.input_photo.copy(), &neural.config, &neural.renderer_vs.variables(), neural.meta.clone())?;
+        let mut copy = neural.duplicate()?;
         let report = refine(&mut copy, &photo_t, true, &cfg, |_| {})?;
         let step_ms = report.seconds * 1000.0 / args.steps as f64;
         println!(

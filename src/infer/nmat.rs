@@ -93,6 +93,12 @@ impl NeuralMaterial {
         Ok(Self { neural_map, input_photo, config: config.clone(), renderer, renderer_vs, meta })
     }
 
+    /// An independent copy (own map, photo and renderer weights): to try
+    /// several refinements of one estimate.
+    pub fn duplicate(&self) -> Result<Self> {
+        Self::from_parts(self.neural_map.copy(), self.input_photo.copy(), &self.config, &self.renderer_vs.variables(), self.meta.clone())
+    }
+
     /// (H, W) of the neural map.
     pub fn size(&self) -> (usize, usize) {
         let s = self.neural_map.size();

@@ -326,7 +326,7 @@ mod tests {
         assert!(start > 1.3, "the HDR-refined highlight is {start}");
         let ldr = hdr_t.clamp(0.0, 1.0);
         let refine_on = |clipped: bool| {
-            let mut copy = NeuralMaterial::from_parts(m.neural_map.copy(), m.input_photo.copy(), &m.config, &m.renderer_vs.variables(), m.meta.clone()).unwrap();
+            let mut copy = m.duplicate().unwrap();
             refine(&mut copy, &ldr, clipped, &fit_only(60), |_| {}).unwrap();
             highlight(&copy)
         };
