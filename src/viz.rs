@@ -51,9 +51,14 @@ pub struct Series {
     pub points: Vec<(f64, f64)>,
 }
 
-/// Renders loss curves (log-scaled y when all values are positive) to an
-/// RGB image of `width x height`.
+/// Renders loss curves against the step (log-scaled y when all values are
+/// positive and span a decade or more) to an RGB image of `width x height`.
 pub fn line_chart(title: &str, series: &[Series], width: usize, height: usize) -> Result<Image> {
+    line_chart_over(title, "step", series, width, height)
+}
+
+/// [`line_chart`] with `x_desc` naming the x axis.
+pub fn line_chart_over(title: &str, x_desc: &str, series: &[Series], width: usize, height: usize) -> Result<Image> {
     register_font();
     let mut buf = vec![255u8; width * height * 3];
     {
@@ -85,9 +90,9 @@ pub fn line_chart(title: &str, series: &[Series], width: usize, height: usize) -
                 let mut chart = $chart;
                 chart
                     .configure_mesh()
-                    .x_desc("step")
+                    .x_desc(x_desc)
                     .y_label_formatter(&|v| format!("{v:.3}"))
-                    .x_label_formatter(&|v| format!("{v:.0}"))
+                    .x_label_formatter(&|v| if (x1 - x0) >= 20.0 { format!("{v:.0}") } else { format!("{v:.1}") })
                     .label_style(("sans-serif", 12))
                     .draw()?;
                 for (i, s) in series.iter().enumerate() {
@@ -96,11 +101,17 @@ pub fn line_chart(title: &str, series: &[Series], width: usize, height: usize) -
                         .draw_series(LineSeries::new(s.points.iter().copied().filter($keep), color.stroke_width(2)))?
                         .label(s.name.clone())
                         .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+                    // Markers where a series has few points (measurements, not a curve).
+                    if s.points.len() <= 24 {
+                        chart.draw_series(s.points.iter().copied().filter($keep).map(|p| Circle::new(p, 3, color.filled())))?;
+                    }
                 }
                 chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).label_font(("sans-serif", 12)).draw()?;
             }};
         }
-        if y0 > 0.0 {
+        // A log axis only where the values span a decade or more: over a
+        // narrower range plotters draws no labels on it.
+        if y0 > 0.0 && y1 / y0 >= 10.0 {
             draw!(builder.build_cartesian_2d(x0..x1, (y0 * 0.9..y1 * 1.1).log_scale())?, |p: &(f64, f64)| p.1.is_finite() && p.1 > 0.0);
         } else {
             let pad = (y1 - y0) * 0.05;
@@ -173,6 +184,24 @@ mod tests {
         let n = im.height * im.width;
         let coloured = (0..n).filter(|&i| (im.data[i] - im.data[2 * n + i]).abs() > 0.3).count();
         assert!(coloured > 50, "{coloured}");
+    }
+
+    /// Dark pixels in the y-label area (left of the plot, below the caption).
+    fn y_label_ink(im: &Image) -> usize {
+        (40..im.height - 40).flat_map(|y| (12..55).map(move |x| (y, x))).filter(|&(y, x)| im.get(0, y, x) < 0.5).count()
+    }
+
+    #[test]
+    fn narrow_ranges_keep_their_axis_labels() {
+        // Held-out scores between 0.35 and 0.37: a log axis over so narrow a
+        // range would draw no labels, so the axis is linear and labelled.
+        let narrow = vec![Series { name: "lpips".into(), points: vec![(10.0, 0.37), (60.0, 0.36), (160.0, 0.35)] }];
+        let im = line_chart_over("held-out", "CPU minutes", &narrow, 320, 200).unwrap();
+        assert!(y_label_ink(&im) > 100, "{}", y_label_ink(&im));
+        // A loss falling over decades keeps its log axis, labelled too.
+        let wide = vec![Series { name: "l1".into(), points: (0..50).map(|i| (i as f64, 1.0 / (1.0 + i as f64 * i as f64))).collect() }];
+        let im = line_chart("loss", &wide, 320, 200).unwrap();
+        assert!(y_label_ink(&im) > 100, "{}", y_label_ink(&im));
     }
 
     #[test]

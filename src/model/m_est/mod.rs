@@ -272,17 +272,32 @@ impl MEst {
     /// neural map `[N, neural_channels, H, W]`. `train` selects BatchNorm
     /// batch statistics (and running-stat updates) vs running statistics.
     pub fn forward_t(&self, x: &Tensor, train: bool) -> Result<Tensor> {
+        self.forward_traced(x, train, None)
+    }
+
+    /// [`Self::forward_t`], also handing every stage's output to `trace`
+    /// as (stage name, `[N, C', H', W']`): the stem, each encoder block,
+    /// each decoder stage and the head. For probes of what the stages
+    /// carry (`examples/probe_layers.rs`).
+    pub fn forward_traced(&self, x: &Tensor, train: bool, mut trace: Option<&mut dyn FnMut(&str, &Tensor)>) -> Result<Tensor> {
         let (h, w) = check_est_input(x)?;
         let n = x.size()[0];
         ensure!(
             !train || n * (h / 8) * (w / 8) > 1,
             "training-mode BatchNorm needs more than one value per channel at 1/8 resolution: use a batch of 2 or inputs larger than 8x8 (got {n} x {h}x{w})"
         );
+        let mut record = |name: &str, t: &Tensor| {
+            if let Some(f) = trace.as_mut() {
+                f(name, t)
+            }
+        };
         let mut h = conv_rep(x, &self.stem, None, 1);
+        record("stem", &h);
         let mut skips = Vec::with_capacity(4);
-        for stage in &self.enc {
-            for b in stage {
+        for (si, stage) in self.enc.iter().enumerate() {
+            for (bi, b) in stage.iter().enumerate() {
                 h = b.forward_t(&h, train);
+                record(&format!("enc{}.{bi}", si + 1), &h);
             }
             skips.push(h.shallow_clone());
         }
@@ -293,8 +308,11 @@ impl MEst {
                 h = Tensor::cat(&[&h, &skips[3 - i]], 1);
             }
             h = st.forward_t(&h, train);
+            record(&format!("dec{}", 4 - i), &h);
         }
-        Ok(conv_rep(&h, &self.head, None, 1))
+        let out = conv_rep(&h, &self.head, None, 1);
+        record("head", &out);
+        Ok(out)
     }
 }
 
