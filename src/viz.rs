@@ -91,6 +91,9 @@ pub fn line_chart_over(title: &str, x_desc: &str, series: &[Series], width: usiz
                 chart
                     .configure_mesh()
                     .x_desc(x_desc)
+                    // One light line between labels: a denser mesh costs more ink than it reads.
+                    .x_max_light_lines(1)
+                    .y_max_light_lines(1)
                     .y_label_formatter(&|v| format!("{v:.3}"))
                     .x_label_formatter(&|v| if (x1 - x0) >= 20.0 { format!("{v:.0}") } else { format!("{v:.1}") })
                     .label_style(("sans-serif", 12))

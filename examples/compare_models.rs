@@ -1,0 +1,88 @@
+//! Before/after pictures of two models on the bundled real photos (the
+//! bundled model's replacement, issue 15):
+//!
+//! ```sh
+//! cargo run --release --example compare_models -- OLD_MODEL NEW_MODEL OUT.jpg
+//! ```
+//!
+//! A row per photo: photo | identity old | identity new | side light old |
+//! side light new, 96 pixels a cell; prints the identity L1 of log
+//! radiance against the photo per model, and the chromaticity error of the
+//! identity render's mean colour (a photo's own colour kept or lost).
+
+use anyhow::{bail, Result};
+use flashmat::geometry::LightView;
+use flashmat::image::Image;
+use flashmat::infer::{estimate, load_model, load_photo, overhead_camera, NeuralMaterial};
+use std::path::PathBuf;
+
+/// Cell size of the picture.
+const CELL: usize = 96;
+/// The side light of the comparison (as in `flashmat show`'s first orbit frame).
+const SIDE_LIGHT: [f64; 3] = [2.0, 0.0, 3.0];
+
+fn display(linear: &Image) -> Image {
+    linear.to_display().resize_to(CELL, CELL)
+}
+
+/// Mean |ln(1 + a) - ln(1 + b)| over pixels and channels of two `[3, H, W]` images.
+fn log_l1(a: &Image, b: &Image) -> f64 {
+    let n = a.data.len().min(b.data.len());
+    a.data.iter().zip(&b.data).map(|(x, y)| ((1.0 + x.max(0.0)).ln() - (1.0 + y.max(0.0)).ln()).abs() as f64).sum::<f64>() / n as f64
+}
+
+/// Distance between the chromaticities rgb / (r + g + b) of two `[3, H, W]` images' mean colours.
+fn chroma_error(a: &Image, b: &Image) -> f64 {
+    let chromaticity = |im: &Image| {
+        let plane = im.height * im.width;
+        let mean: Vec<f64> = (0..3).map(|c| im.data[c * plane..(c + 1) * plane].iter().map(|&v| v.max(0.0) as f64).sum::<f64>() / plane as f64).collect();
+        let sum = mean.iter().sum::<f64>().max(1e-12);
+        mean.iter().map(|m| m / sum).collect::<Vec<f64>>()
+    };
+    let (ca, cb) = (chromaticity(a), chromaticity(b));
+    ca.iter().zip(&cb).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt()
+}
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let [old, new, out] = args.as_slice() else { bail!("usage: compare_models OLD_MODEL NEW_MODEL OUT.jpg") };
+    let models = [load_model(Some(&PathBuf::from(old)), tch::Device::Cpu)?, load_model(Some(&PathBuf::from(new)), tch::Device::Cpu)?];
+    let mut photos: Vec<PathBuf> = std::fs::read_dir(flashmat::bundled_root().join("examples/photos"))?
+        .map(|e| e.map(|e| e.path()))
+        .collect::<std::io::Result<_>>()?;
+    photos.retain(|p| matches!(p.extension().and_then(|e| e.to_str()), Some("png" | "jpg")));
+    photos.sort();
+    let side = LightView { light: SIDE_LIGHT, view: overhead_camera() };
+    let identity = NeuralMaterial::identity_config();
+    let mut rows = vec![];
+    let mut sums = [0.0; 4];
+    println!("| photo | identity log-L1, old | new | chromaticity error, old | new |\n|---|---|---|---|---|");
+    for path in &photos {
+        let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        let photo = load_photo(path, Some(28.0), 256)?;
+        let materials = [estimate(&models[0].model, &models[0].info, &photo)?, estimate(&models[1].model, &models[1].info, &photo)?];
+        let identities = [materials[0].render_image(&identity)?, materials[1].render_image(&identity)?];
+        let errors = [
+            log_l1(&identities[0], &photo.linear),
+            log_l1(&identities[1], &photo.linear),
+            chroma_error(&identities[0], &photo.linear),
+            chroma_error(&identities[1], &photo.linear),
+        ];
+        for (sum, e) in sums.iter_mut().zip(errors) {
+            *sum += e;
+        }
+        println!("| {name} | {:.4} | {:.4} | {:.3} | {:.3} |", errors[0], errors[1], errors[2], errors[3]);
+        rows.push(vec![
+            display(&photo.linear),
+            display(&identities[0]),
+            display(&identities[1]),
+            display(&materials[0].render_image(&side)?),
+            display(&materials[1].render_image(&side)?),
+        ]);
+    }
+    let n = photos.len().max(1) as f64;
+    println!("| mean | {:.4} | {:.4} | {:.3} | {:.3} |", sums[0] / n, sums[1] / n, sums[2] / n, sums[3] / n);
+    flashmat::io::write_jpeg(&PathBuf::from(out), &flashmat::viz::grid(&rows, 2)?, 80)?;
+    eprintln!("wrote {out}");
+    Ok(())
+}
