@@ -31,16 +31,10 @@ fn log_l1(a: &Image, b: &Image) -> f64 {
     a.data.iter().zip(&b.data).map(|(x, y)| ((1.0 + x.max(0.0)).ln() - (1.0 + y.max(0.0)).ln()).abs() as f64).sum::<f64>() / n as f64
 }
 
-/// Distance between the chromaticities rgb / (r + g + b) of two `[3, H, W]` images' mean colours.
+/// Chromaticity error of an image's mean colour against another's.
 fn chroma_error(a: &Image, b: &Image) -> f64 {
-    let chromaticity = |im: &Image| {
-        let plane = im.height * im.width;
-        let mean: Vec<f64> = (0..3).map(|c| im.data[c * plane..(c + 1) * plane].iter().map(|&v| v.max(0.0) as f64).sum::<f64>() / plane as f64).collect();
-        let sum = mean.iter().sum::<f64>().max(1e-12);
-        mean.iter().map(|m| m / sum).collect::<Vec<f64>>()
-    };
-    let (ca, cb) = (chromaticity(a), chromaticity(b));
-    ca.iter().zip(&cb).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt()
+    use flashmat::eval::uniform::{chromaticity_distance, mean_colour};
+    chromaticity_distance(mean_colour(a), mean_colour(b))
 }
 
 fn main() -> Result<()> {

@@ -23,26 +23,16 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-/// Mean per case (reflect, identity, hemisphere) of one column of an eval CSV.
-fn case_means(csv: &Path, column: &str) -> Result<[f64; 3]> {
-    let text = std::fs::read_to_string(csv).with_context(|| format!("cannot read {}", csv.display()))?;
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().context("empty CSV")?.split(',').collect();
-    let col = header.iter().position(|h| *h == column).with_context(|| format!("no column {column} in {}", csv.display()))?;
-    let mut sums = [0.0; 3];
-    let mut counts = [0usize; 3];
-    for line in lines.filter(|l| !l.is_empty()) {
-        let cells: Vec<&str> = line.split(',').collect();
-        let case = match cells[1] {
-            "reflect" => 0,
-            "identity" => 1,
-            "hemisphere" => 2,
-            other => bail!("unknown case {other} in {}", csv.display()),
-        };
-        sums[case] += cells[col].parse::<f64>()?;
-        counts[case] += 1;
-    }
-    Ok(std::array::from_fn(|i| sums[i] / counts[i].max(1) as f64))
+/// Means per case (reflect, identity, hemisphere) of an eval CSV: (LPIPS, RMSE of ln(1 + R)).
+fn case_means(csv: &Path) -> Result<([f64; 3], [f64; 3])> {
+    use flashmat::geometry::Sampling;
+    let results = flashmat::eval::report::read_csv(csv)?;
+    let mean = |case: Sampling, score: fn(&flashmat::eval::Scores) -> f64| {
+        let v: Vec<f64> = results.rows.iter().filter(|r| r.case == case).map(|r| score(&r.scores)).collect();
+        v.iter().sum::<f64>() / v.len().max(1) as f64
+    };
+    let cases = [Sampling::Reflect, Sampling::Identity, Sampling::Hemisphere];
+    Ok((cases.map(|c| mean(c, |s| s.lpips)), cases.map(|c| mean(c, |s| s.rmse_log))))
 }
 
 /// Lines of a JSONL file as JSON values (missing file: none).
@@ -94,7 +84,7 @@ fn main() -> Result<()> {
         extra.insert(name.to_string(), minutes.parse::<f64>()?);
     }
     let printout_csv = runs.join("eval/printout/printout.csv");
-    let printout = (case_means(&printout_csv, "lpips")?, case_means(&printout_csv, "rmse_log")?);
+    let printout = case_means(&printout_csv)?;
     let mut points = vec![];
     for entry in std::fs::read_dir(runs.join("eval"))? {
         let dir = entry?.path();
@@ -119,13 +109,14 @@ fn main() -> Result<()> {
             .iter()
             .find(|r| r["step"].as_u64() == Some(step))
             .and_then(|r| Some((r["identity_chroma_error"].as_f64()?, r["near_black_highlight_ratio"].as_f64()?)));
+        let (lpips, rmse) = case_means(&csv)?;
         points.push(Point {
             recipe: recipe.to_string(),
             step,
             minutes: minutes + extra.get(recipe).copied().unwrap_or(0.0),
             extrapolated,
-            lpips: case_means(&csv, "lpips")?,
-            rmse: case_means(&csv, "rmse_log")?,
+            lpips,
+            rmse,
             colour,
         });
     }

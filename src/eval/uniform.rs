@@ -86,15 +86,26 @@ fn colour_stats(im: &Image) -> ([f64; 3], f64) {
     (mean, lum[..top].iter().sum::<f64>() / top as f64)
 }
 
-/// Compares a render with the truth.
-fn score(set: &'static str, material: &'static str, render: &'static str, pred: &Image, truth: &Image) -> ColourRow {
-    let ((mp, hp), (mt, ht)) = (colour_stats(pred), colour_stats(truth));
+/// Mean colour of a `[3, H, W]` image.
+pub fn mean_colour(im: &Image) -> [f64; 3] {
+    colour_stats(im).0
+}
+
+/// Euclidean distance between the chromaticities rgb / (r + g + b) of two
+/// mean colours.
+pub fn chromaticity_distance(a: [f64; 3], b: [f64; 3]) -> f64 {
     let chroma = |m: [f64; 3]| {
         let s = (m[0] + m[1] + m[2]).max(1e-12);
         m.map(|v| v / s)
     };
-    let (cp, ct) = (chroma(mp), chroma(mt));
-    let chroma_error = (0..3).map(|c| (cp[c] - ct[c]).powi(2)).sum::<f64>().sqrt();
+    let (ca, cb) = (chroma(a), chroma(b));
+    (0..3).map(|c| (ca[c] - cb[c]).powi(2)).sum::<f64>().sqrt()
+}
+
+/// Compares a render with the truth.
+fn score(set: &'static str, material: &'static str, render: &'static str, pred: &Image, truth: &Image) -> ColourRow {
+    let ((mp, hp), (mt, ht)) = (colour_stats(pred), colour_stats(truth));
+    let chroma_error = chromaticity_distance(mp, mt);
     let log_ratio = [0, 1, 2].map(|c| (mp[c].max(1e-6) / mt[c].max(1e-6)).ln());
     ColourRow { set, material, render, chroma_error, log_ratio, highlight_ratio: hp.max(1e-9) / ht.max(1e-9) }
 }

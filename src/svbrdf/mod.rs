@@ -255,8 +255,8 @@ pub fn normals_from_height(height: &Image) -> Image {
 mod tests {
     use super::*;
 
-    /// A third of a turn about the grey axis sends red to green to blue
-    /// and on to blue (hand-derived: the rotation by 120 degrees about (1,1,1)
+    /// A third of a turn about the grey axis sends red to green, two thirds
+    /// to blue (hand-derived: the rotation by 120 degrees about (1,1,1)
     /// permutes the axes); grey and the specular F0 of a dielectric do not change;
     /// saturation 0 makes every pixel its display grey.
     #[test]
