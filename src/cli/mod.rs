@@ -36,6 +36,8 @@ pub enum Command {
     TrainTeacher(train::TeacherArgs),
     /// Write a run's inference weights (M_est, ND_enc, M_render, or the baseline's network), method and configuration to one file.
     Export(train::ExportArgs),
+    /// Average the weights of several exported models of one run (late checkpoints) into one model file.
+    Average(train::AverageArgs),
     /// Estimate a neural material (.nmat) from one flash photo.
     Estimate(infer::EstimateArgs),
     /// Render a neural material (or a photo, estimated first) under a new light and view, or an orbit GIF.
@@ -283,6 +285,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Train(a) => train::train(&a),
         Command::TrainTeacher(a) => train::train_teacher(&a),
         Command::Export(a) => train::export(&a),
+        Command::Average(a) => train::average(&a),
         Command::Eval(a) => eval::eval(&a),
         Command::ShadowEval(a) => eval::shadow_eval(&a),
         Command::Bench(b) => bench::run(&b),

@@ -200,6 +200,19 @@ pub struct ExportArgs {
     pub f32: bool,
 }
 
+#[derive(Args, Debug)]
+pub struct AverageArgs {
+    /// Exported model files of one run (`flashmat export` snapshots), e.g. its last few checkpoints.
+    #[arg(required = true, num_args = 1..)]
+    pub models: Vec<PathBuf>,
+    /// Output model file (.safetensors).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Store every weight as f32 (default: large weight tensors as f16, as `flashmat export`).
+    #[arg(long)]
+    pub f32: bool,
+}
+
 /// The options every training command shares: threads, device, time limit.
 fn training_setup(threads: Option<i32>, device: &str, minutes: Option<f64>) -> Result<Device> {
     if let Some(t) = threads {
@@ -294,5 +307,14 @@ pub fn export(a: &ExportArgs) -> Result<()> {
     trainer.export_model(&a.output, !a.f32)?;
     out_dir.keep();
     eprintln!("wrote {} (model {}, step {})", a.output.display(), trainer.model.model_id(), trainer.step);
+    Ok(())
+}
+
+pub fn average(a: &AverageArgs) -> Result<()> {
+    let (model, info) = flashmat::model::Model::average(&a.models, Device::Cpu)?;
+    let out_dir = super::prepare_output(&a.output)?;
+    model.save(&a.output, &info, !a.f32)?;
+    out_dir.keep();
+    eprintln!("wrote {} (mean of {} files of model {}, step {})", a.output.display(), a.models.len(), model.model_id(), info.steps);
     Ok(())
 }

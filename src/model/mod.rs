@@ -201,6 +201,31 @@ impl Model {
         Ok((m, info))
     }
 
+    /// The element-wise mean of several model files' weights (and BatchNorm
+    /// running statistics): late checkpoints of one run scatter around a
+    /// minimum, and their average sits nearer it than any one of them.
+    /// The files must hold the same model and input range; the info is the
+    /// last file's with the largest step count. Averaging unrelated runs
+    /// is allowed but meaningless (their units do not line up).
+    pub fn average(paths: &[impl AsRef<Path>], device: Device) -> Result<(Self, ModelInfo)> {
+        ensure!(!paths.is_empty(), "nothing to average: give at least one model file");
+        let (mut model, mut info) = Self::load(&paths[0], device)?;
+        let mut sums: Vec<(String, Tensor)> = model.named_variables().into_iter().map(|(k, v)| (k, v.to_kind(Kind::Double))).collect();
+        for path in &paths[1..] {
+            let path = path.as_ref();
+            let (m, i) = Self::load_expecting(path, device, &model.model_id())?;
+            ensure!(i.ldr_input == info.ldr_input, "{}: trained on {} photos, the first file on {} ones", path.display(), range(i.ldr_input), range(info.ldr_input));
+            for ((_, sum), (_, v)) in sums.iter_mut().zip(m.named_variables()) {
+                *sum += v.to_kind(Kind::Double);
+            }
+            info.steps = info.steps.max(i.steps);
+        }
+        let n = paths.len() as f64;
+        let mean: HashMap<String, Tensor> = sums.into_iter().map(|(k, s)| (k, s / n)).collect();
+        model.load_named(&mean)?;
+        Ok((model, info))
+    }
+
     /// Loads a model file and checks that it is the expected model id.
     pub fn load_expecting(path: impl AsRef<Path>, device: Device, model_id: &str) -> Result<(Self, ModelInfo)> {
         let (m, info) = Self::load(&path, device)?;
@@ -331,6 +356,15 @@ pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: us
         render_gflop: renderer_flops_per_row(cfg) * px / 1e9,
         naive_est_s,
     })
+}
+
+/// How a model file's input range is named in messages.
+fn range(ldr_input: bool) -> &'static str {
+    if ldr_input {
+        "8-bit (LDR)"
+    } else {
+        "HDR"
+    }
 }
 
 #[cfg(test)]

@@ -362,3 +362,39 @@ fn flop_model_matches_reference_figures() {
     assert!(near(MRender::flops_per_row(&ModelConfig::paper()) * rows, 51.0));
     assert!(near(MRender::flops_per_row(&c) * rows, 15.0));
 }
+
+#[test]
+fn averaging_model_files_gives_the_elementwise_mean() {
+    let dir = tempfile::tempdir().unwrap();
+    let paths: Vec<_> = (0..3).map(|i| dir.path().join(format!("m{i}.safetensors"))).collect();
+    let models: Vec<Model> = (0..3).map(|_| Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap()).collect();
+    for (i, (m, path)) in models.iter().zip(&paths).enumerate() {
+        randomise_batchnorms(&m.est_vs);
+        m.save(path, &ModelInfo { ldr_input: true, steps: 100 * (i as u64 + 1) }, false).unwrap();
+    }
+    let (avg, info) = Model::average(&paths, Device::Cpu).unwrap();
+    assert_eq!(info, ModelInfo { ldr_input: true, steps: 300 });
+    let vars: Vec<HashMap<String, Tensor>> = models.iter().map(|m| m.named_variables().into_iter().collect()).collect();
+    for (name, v) in avg.named_variables() {
+        let mean = (&vars[0][&name] + &vars[1][&name] + &vars[2][&name]) / 3.0;
+        let err = (&v - &mean).abs().max().double_value(&[]);
+        assert!(err < 1e-6, "{name}: off the mean by {err}");
+    }
+    // Random initialisations differ, so the mean is none of them (the check above can fail).
+    let head = "est.head.weight";
+    assert!(!avg.est_vs.variables()[head].equal(&vars[0][head]));
+    // One file averages to itself.
+    let (same, _) = Model::average(&paths[..1], Device::Cpu).unwrap();
+    assert!(same.est_vs.variables()[head].equal(&vars[0][head]));
+    // Another model, or another input range, is refused naming the file.
+    let other = dir.path().join("other.safetensors");
+    Model::new(&ModelConfig { enc_hidden: 40, ..ModelConfig::tiny() }, Device::Cpu).unwrap().save(&other, &ModelInfo::default(), false).unwrap();
+    let err = format!("{:#}", Model::average(&[&paths[0], &other], Device::Cpu).unwrap_err());
+    assert!(err.contains("other.safetensors") && err.contains("another preset"), "{err}");
+    let hdr = dir.path().join("hdr.safetensors");
+    models[1].save(&hdr, &ModelInfo { ldr_input: false, steps: 5 }, false).unwrap();
+    let err = format!("{:#}", Model::average(&[&paths[0], &hdr], Device::Cpu).unwrap_err());
+    assert!(err.contains("hdr.safetensors") && err.contains("HDR"), "{err}");
+    let none: [&std::path::Path; 0] = [];
+    assert!(Model::average(&none, Device::Cpu).is_err());
+}
