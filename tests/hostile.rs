@@ -406,6 +406,11 @@ fn build_corpus(root: &Path) -> Vec<Case> {
     std::fs::write(d.join("run-flipped/checkpoint.safetensors"), flip(&ckpt, ckpt.len() / 3, 0x20)).unwrap();
     push(&mut cases, "checkpoint bit flip: resume".into(), vec!["train".into(), "--resume".into(), "in/run-flipped".into()], error(&["checkpoint.safetensors", "checksum"]));
     push(&mut cases, "checkpoint bit flip: export".into(), vec!["export".into(), "--run".into(), "in/run-flipped".into(), "-o".into(), "{out}/m.safetensors".into()], error(&["checkpoint.safetensors", "checksum"]));
+    let average = |files: &[&str]| -> Vec<String> { ["average"].iter().chain(files).chain(&["-o", "{out}/avg.safetensors"]).map(|s| s.to_string()).collect() };
+    push(&mut cases, "average: a damaged model among them".into(), average(&["in/tiny.safetensors", &p]), error(&["flipped.safetensors", "checksum"]));
+    push(&mut cases, "average: a missing model".into(), average(&["in/tiny.safetensors", "in/absent.safetensors"]), error(&["absent.safetensors"]));
+    push(&mut cases, "average: a checkpoint instead of a model".into(), average(&["in/tiny.safetensors", "in/run/checkpoint.safetensors"]), error(&["checkpoint.safetensors"]));
+    push(&mut cases, "average: no model".into(), vec!["average".into(), "-o".into(), "{out}/avg.safetensors".into()], usage(&["required arguments"]));
 
     // Forged archives: checksums recomputed over the edited content.
     let swapped = reseal(&nmat, |h, _| {
