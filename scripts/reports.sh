@@ -3,8 +3,9 @@
 # models/MODEL.md: the paper's table with the baselines and the LDR vs HDR
 # ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
 # Deterministic: the same models give the same numbers. Only the bundled
-# model (models/flashmat.safetensors, the run once committed as
-# compact-ldr-4000) is in the tree; the others left it to keep the tree
+# model (models/flashmat.safetensors, 10,400 steps since 2026-11-24) is in
+# the tree; the others (the 4,000-step bundled model compact-ldr-4000 too,
+# taken from git history below) left it to keep the tree
 # shippable to GPU jobs: retrain them with MODEL.md's commands (check the
 # SHA-256 listed there) or take them from commit 6447422.
 # Usage: scripts/reports.sh [CONFIGS]   (configurations per material for
@@ -16,8 +17,10 @@ cargo build --release --quiet
 FLASHMAT=target/release/flashmat
 CONFIGS=${1:-16}
 M=models
-# The bundled model under its evaluation name.
-[ -f $M/compact-ldr-4000.safetensors ] || cp $M/flashmat.safetensors $M/compact-ldr-4000.safetensors
+# The bundled model until 2026-11-24, from git history; the reports made
+# before then (refinement, fit) used it.
+[ -f $M/compact-ldr-4000.safetensors ] || git show 2a2b28e:models/flashmat.safetensors > $M/compact-ldr-4000.safetensors
+OLD=$M/compact-ldr-4000.safetensors
 for f in compact-hdr compact-ldr compact-hdr-4000 baseline-analytic baseline-relight-unet \
          experiments/shadow-overfit-test38 experiments/shadow-distribution; do
     [ -f "$M/$f.safetensors" ] || { echo "reports.sh: $M/$f.safetensors is missing: retrain it (models/MODEL.md) or run: git show 6447422:models/$f.safetensors > $M/$f.safetensors" >&2; exit 1; }
@@ -60,30 +63,39 @@ done
 # materials, the default (100 steps) on the 50 held-out materials with LDR
 # photos (the unrefined rows equal reports/eval-4000-ldr-inputs: same seed and
 # configurations), the captures, and the bundled photos.
-$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 0,25,50,100,200 --refine-relight 0 --limit 8 \
+$FLASHMAT eval --model $OLD --ldr-input --refine 0,25,50,100,200 --refine-relight 0 --limit 8 \
     --configs "$CONFIGS" -o reports/refine/steps-ldr-8
-$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 0,100 --refine-relight 0 --configs "$CONFIGS" -o reports/refine/ldr-50
-$FLASHMAT eval --model $M/flashmat.safetensors --refine 0,100 --refine-relight 0 --limit 10 --configs "$CONFIGS" -o reports/refine/hdr-10
+$FLASHMAT eval --model $OLD --ldr-input --refine 0,100 --refine-relight 0 --configs "$CONFIGS" -o reports/refine/ldr-50
+$FLASHMAT eval --model $OLD --refine 0,100 --refine-relight 0 --limit 10 --configs "$CONFIGS" -o reports/refine/hdr-10
 for I in 05 25 45; do
-    $FLASHMAT eval --model $M/flashmat.safetensors --refine 0,100 --refine-relight 0 \
+    $FLASHMAT eval --model $OLD --refine 0,100 --refine-relight 0 \
         --captures target/captures/test$I -o reports/refine/captures-test$I
 done
 # The relight prior (the default weight of --refine since 2026-11-24; the rows above are without it).
-$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 100 --refine-relight 0.5 --limit 8 \
+$FLASHMAT eval --model $OLD --ldr-input --refine 100 --refine-relight 0.5 --limit 8 \
     --configs "$CONFIGS" -o reports/refine/relight-ldr-8
-$FLASHMAT eval --model $M/flashmat.safetensors --ldr-input --refine 100 --refine-relight 0.5 \
+$FLASHMAT eval --model $OLD --ldr-input --refine 100 --refine-relight 0.5 \
     --configs "$CONFIGS" -o reports/refine/relight-ldr-50
-$FLASHMAT eval --model $M/flashmat.safetensors --refine 100 --refine-relight 0.5 --limit 10 \
+$FLASHMAT eval --model $OLD --refine 100 --refine-relight 0.5 --limit 10 \
     --configs "$CONFIGS" -o reports/refine/relight-hdr-10
 for I in 05 25; do
-    $FLASHMAT eval --model $M/flashmat.safetensors --refine 100 --refine-relight 0.5 \
+    $FLASHMAT eval --model $OLD --refine 100 --refine-relight 0.5 \
         --captures target/captures/test$I -o reports/refine/relight-captures-test$I
 done
-cargo run --release --quiet --example refine_photos -- 100 reports/refine
+cargo run --release --quiet --example refine_photos -- 100 reports/refine   # with the current bundled model
 
 # The analytic export (reports/fit.md): the bundled model's neural material,
 # the GGX maps `flashmat fit` fits to it (40 steps), and the analytic
 # baseline network's maps, on HDR photos of the 50 held-out materials at
 # 128x128 (26 minutes on 2 shared cores; at 256 the neural renders alone take over an hour).
-$FLASHMAT eval --model $M/flashmat.safetensors --model $M/flashmat.safetensors+fit40 --model $M/baseline-analytic.safetensors \
+$FLASHMAT eval --model $OLD --model $OLD+fit40 --model $M/baseline-analytic.safetensors \
     --size 128 --configs "$CONFIGS" -o reports/fit/eval-128
+
+# The bundled model since 2026-11-24 (reports/bundled-10400.md): the 50
+# held-out materials with 8-bit photos, the uniform-colour check against the
+# 4,000-step model, and both on the 13 bundled photos.
+cp $M/flashmat.safetensors target/flashmat-10400.safetensors
+$FLASHMAT eval --model target/flashmat-10400.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input \
+    -o reports/bundled-10400
+$FLASHMAT eval --uniform --model $OLD --model target/flashmat-10400.safetensors -o reports/bundled-10400
+cargo run --release --quiet --example compare_models -- $OLD $M/flashmat.safetensors reports/bundled-10400/photos.jpg
