@@ -39,7 +39,6 @@ fn lpips_by_material(rows: &[Row]) -> BTreeMap<(String, String), f64> {
     rows.iter().map(|r| ((r.material.clone(), format!("{:?}", r.case)), r.scores.lpips)).collect()
 }
 
-
 fn main() -> Result<()> {
     let args: Vec<PathBuf> = std::env::args().skip(1).map(PathBuf::from).collect();
     ensure!(args.len() >= 2, "usage: paired_lpips BASE.csv NEW.csv [NEW2.csv ...]");

@@ -205,7 +205,7 @@ impl Model {
     /// running statistics): late checkpoints of one run scatter around a
     /// minimum, and their average sits nearer it than any one of them.
     /// The files must hold the same model and input range; the info is the
-    /// last file's with the largest step count. Averaging unrelated runs
+    /// first file's, with the largest step count of them all. Averaging unrelated runs
     /// is allowed but meaningless (their units do not line up).
     pub fn average(paths: &[impl AsRef<Path>], device: Device) -> Result<(Self, ModelInfo)> {
         ensure!(!paths.is_empty(), "nothing to average: give at least one model file");
