@@ -24,7 +24,9 @@
 #             verdict/verdict.md, verdict/summary.md and the two methods'
 #             CSVs to $OUT (and candidate.safetensors when run alone)
 #   GPU:    bash scripts/gpu-train.sh final [MINUTES]
-#             a last chunk, then the verdict: 8 files, a job's limit
+#             a last chunk at a fifth of the learning rate (the decay that
+#             collects a constant-rate run's gain, reports/bundled-10400.md;
+#             FLASHMAT_GPU_FINAL_LR), then the verdict: 8 files, a job's limit
 #
 #   bash scripts/gpu-train.sh --cpu-dry-run
 #             the same steps on the CPU with the tiny preset (smoke test,
@@ -41,6 +43,7 @@ CROP="${FLASHMAT_GPU_CROP:-128}"
 BATCH="${FLASHMAT_GPU_BATCH:-8}"
 OUTPUTS="${FLASHMAT_GPU_OUTPUTS:-8}"
 LR="${FLASHMAT_GPU_LR:-3e-4}"
+FINAL_LR="${FLASHMAT_GPU_FINAL_LR:-6e-5}"
 WARMUP="${FLASHMAT_GPU_WARMUP:-200}"
 BANK="${FLASHMAT_GPU_BANK:-4000}"
 SEED="${FLASHMAT_GPU_SEED:-1}"
@@ -126,6 +129,9 @@ chunk() {
   smoke
   local run="$WORK/run" how teacher=""
   local args=(--minutes "$minutes" --export-dir "$out" --device "$DEVICE")
+  # CHUNK_LR (the final chunk): a new learning rate from this chunk's first step.
+  local resume_lr=()
+  [ -n "${CHUNK_LR:-}" ] && resume_lr=(--lr "$CHUNK_LR")
   local first_step=0
   start_util_sampler "$WORK/gpu-util.csv"
   local t0; t0=$(date +%s)
@@ -133,7 +139,7 @@ chunk() {
     how="resumed from the machine's checkpoint"
     first_step=$(tail -n 1 "$run/log.jsonl" 2>/dev/null | sed -n 's/.*"step":\([0-9]*\).*/\1/p')
     teacher=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1])).get("teacher", ""))' "$run/config.json")
-    "$BIN" train --resume "$run" "${args[@]}"
+    "$BIN" train --resume "$run" "${resume_lr[@]}" "${args[@]}"
   elif [ -f "$RESUME_MODEL" ]; then
     how="warm start from $(basename "$RESUME_MODEL") (the last chunk's export; the machine's disk was gone)"
     rm -rf "$run"
@@ -144,7 +150,7 @@ chunk() {
       teacher="$TEACHER_FILE"
     fi
     # shellcheck disable=SC2046
-    "$BIN" train --out "$run" --warm-start "$RESUME_MODEL" $(recipe "$teacher") "${args[@]}"
+    "$BIN" train --out "$run" --warm-start "$RESUME_MODEL" $(LR="${CHUNK_LR:-$LR}" recipe "$teacher") "${args[@]}"
   else
     how="fresh start"
     rm -rf "$run" "$WORK/teacher"
@@ -167,6 +173,7 @@ chunk() {
   [ -f "$run/losses.png" ] && cp "$run/losses.png" "$out/"
   chunk_summary "$how" "$((t1 - t0))" "$run/log.jsonl" "$WORK/gpu-util.csv" "${first_step:-0}" >"$out/chunk.md"
   echo "- recipe: \`flashmat train $(recipe "${teacher:-}")\`" >>"$out/chunk.md"
+  [ -n "${CHUNK_LR:-}" ] && echo "- learning rate of this chunk: $CHUNK_LR (the final decay)" >>"$out/chunk.md"
   [ -f "$WORK/teacher/log.jsonl" ] && echo "- teacher (curriculum stage 1): \`$(grep held_out "$WORK/teacher/log.jsonl" | tail -n 1)\`" >>"$out/chunk.md"
   [ -f "$run/colour.jsonl" ] && echo "- uniform-colour check at the last checkpoint (targets: chromaticity error below 0.03, near-black highlight within 2x): \`$(tail -n 1 "$run/colour.jsonl")\`" >>"$out/chunk.md"
   cat "$out/chunk.md"
@@ -288,6 +295,8 @@ cpu_dry_run() {
   echo "== final (the disk is still there: resume from the checkpoint; verdict on 2 materials, 2 configurations, 64x64)"
   FLASHMAT_GPU_EVAL_EXTRA="--limit 2 --size 64" OUT="$tmp/out3" bash "$self" final 0.05
   grep -q "resumed from the machine's checkpoint" "$tmp/out3/chunk.md" || die "dry run: the final chunk did not resume from the checkpoint"
+  python3 -c 'import json,sys; lr=json.loads(open(sys.argv[1]).readlines()[-1])["lr"]; sys.exit(0 if abs(lr-float(sys.argv[2]))<=1e-6*float(sys.argv[2]) else 1)' \
+    "$tmp/out3/log.jsonl" "$FINAL_LR" || die "dry run: the final chunk did not train at FLASHMAT_GPU_FINAL_LR ($FINAL_LR)"
   grep -q "^VERDICT: " "$tmp/out3/verdict/verdict.md" || die "dry run: no verdict"
   for f in model.safetensors log.jsonl losses.png chunk.md; do
     [ -f "$tmp/out2/$f" ] || die "dry run: chunk 2 brought back no $f"
@@ -305,7 +314,7 @@ case "${1:-}" in
   stage) stage ;;
   chunk) shift; chunk "$@" ;;
   verdict) verdict yes ;;
-  final) shift; chunk "$@"; verdict no ;;
+  final) shift; CHUNK_LR="$FINAL_LR" chunk "$@"; verdict no ;;
   --cpu-dry-run) cpu_dry_run ;;
   *) die "usage: gpu-train.sh stage | chunk [MINUTES] | verdict | final [MINUTES] | --cpu-dry-run" ;;
 esac
