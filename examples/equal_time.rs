@@ -91,11 +91,7 @@ fn main() -> Result<()> {
         let name = dir.file_name().unwrap_or_default().to_string_lossy().to_string();
         let Some((recipe, step)) = name.rsplit_once('-') else { continue };
         let Ok(step) = step.parse::<u64>() else { continue };
-        // `flashmat eval` names the CSV after the model file: the folder's one CSV.
-        let csv = std::fs::read_dir(&dir)?
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .find(|p| p.extension().is_some_and(|e| e == "csv"))
-            .with_context(|| format!("no eval CSV in {}", dir.display()))?;
+        let csv = flashmat::eval::report::csv_in(&dir)?;
         let log = jsonl(&runs.join(recipe).join("log.jsonl"));
         let (minutes, extrapolated) = step_minutes(&log, step).with_context(|| format!("no step times for {recipe} in {}", runs.join(recipe).display()))?;
         // A recipe's colour rows: its run, and runs that continue it (`NAME+OTHER`, links to them).

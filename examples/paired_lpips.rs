@@ -11,28 +11,12 @@
 //! instead. Prints, per case, mean(NEW - BASE) ± its 95% interval (1.96
 //! standard errors) and how many materials NEW scores lower on.
 
-use anyhow::{bail, ensure, Context, Result};
-use flashmat::eval::report::read_csv;
+use anyhow::{ensure, Context, Result};
+use flashmat::eval::report::{csv_in, read_csv};
 use flashmat::eval::{mean_ci95, Row};
 use flashmat::geometry::Sampling;
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
-
-/// A CSV path, or the one CSV inside a folder.
-fn csv_of(path: &Path) -> Result<PathBuf> {
-    if !path.is_dir() {
-        return Ok(path.to_path_buf());
-    }
-    let csvs: Vec<PathBuf> = std::fs::read_dir(path)
-        .with_context(|| format!("cannot read {}", path.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "csv"))
-        .collect();
-    match csvs.as_slice() {
-        [one] => Ok(one.clone()),
-        _ => bail!("{}: expected exactly one .csv, found {}", path.display(), csvs.len()),
-    }
-}
+use std::path::PathBuf;
 
 /// LPIPS by (material, case).
 fn lpips_by_material(rows: &[Row]) -> BTreeMap<(String, String), f64> {
@@ -42,11 +26,11 @@ fn lpips_by_material(rows: &[Row]) -> BTreeMap<(String, String), f64> {
 fn main() -> Result<()> {
     let args: Vec<PathBuf> = std::env::args().skip(1).map(PathBuf::from).collect();
     ensure!(args.len() >= 2, "usage: paired_lpips BASE.csv NEW.csv [NEW2.csv ...]");
-    let base_path = csv_of(&args[0])?;
+    let base_path = csv_in(&args[0])?;
     let base = lpips_by_material(&read_csv(&base_path)?.rows);
     println!("against {}", base_path.display());
     for path in &args[1..] {
-        let path = csv_of(path)?;
+        let path = csv_in(path)?;
         let new = lpips_by_material(&read_csv(&path)?.rows);
         let mut cells = Vec::new();
         for case in [Sampling::Reflect, Sampling::Identity, Sampling::Hemisphere] {

@@ -51,6 +51,24 @@ pub fn read_csv(path: &std::path::Path) -> Result<MethodResults> {
     Ok(MethodResults { name, rows })
 }
 
+/// The one evaluation CSV of an output folder (`flashmat eval` names it
+/// after the model file); a CSV path is returned as it is.
+pub fn csv_in(path: &std::path::Path) -> Result<std::path::PathBuf> {
+    use anyhow::{bail, Context};
+    if !path.is_dir() {
+        return Ok(path.to_path_buf());
+    }
+    let csvs: Vec<std::path::PathBuf> = std::fs::read_dir(path)
+        .with_context(|| format!("cannot read {}", path.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "csv"))
+        .collect();
+    match csvs.as_slice() {
+        [one] => Ok(one.clone()),
+        _ => bail!("{}: expected exactly one .csv, found {}", path.display(), csvs.len()),
+    }
+}
+
 /// Re-reads every `NAME.csv` of `opts.out` (e.g. CSVs of several runs with
 /// the same dataset, seed and configurations copied into one folder) and
 /// rewrites `summary.md` and `refine.png` from them. Methods are ordered by

@@ -280,3 +280,16 @@ fn eval_scores_baseline_model_files() {
     let e = format!("{:#}", run(&EvalOptions { models: vec![bad_path.to_string_lossy().into_owned()], out: t.path().join("bad"), ..opts }).unwrap_err());
     assert!(e.contains("matfusion"), "{e}");
 }
+
+#[test]
+fn the_one_csv_of_an_eval_folder_is_found_and_ambiguity_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    assert!(report::csv_in(d).unwrap_err().to_string().contains("found 0"));
+    std::fs::write(d.join("m.csv"), "x").unwrap();
+    std::fs::write(d.join("summary.md"), "x").unwrap();
+    assert_eq!(report::csv_in(d).unwrap(), d.join("m.csv"));
+    assert_eq!(report::csv_in(&d.join("m.csv")).unwrap(), d.join("m.csv"));
+    std::fs::write(d.join("n.csv"), "x").unwrap();
+    assert!(report::csv_in(d).unwrap_err().to_string().contains("found 2"));
+}
