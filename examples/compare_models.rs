@@ -7,10 +7,13 @@
 //!
 //! A row per photo: photo | identity old | identity new | side light old |
 //! side light new, 96 pixels a cell; prints the identity L1 of log
-//! radiance against the photo per model, and the chromaticity error of the
-//! identity render's mean colour (a photo's own colour kept or lost).
+//! radiance against the photo per model, the chromaticity error of the
+//! identity render's mean colour (a photo's own colour kept or lost), and
+//! the identity render's checkerboard amplitude beyond the photo's
+//! (`flashmat::eval::metrics::checkerboard_amplitude`).
 
 use anyhow::{bail, Result};
+use flashmat::eval::metrics::checkerboard_amplitude;
 use flashmat::geometry::LightView;
 use flashmat::image::Image;
 use flashmat::infer::{estimate, load_model, load_photo, overhead_camera, NeuralMaterial};
@@ -49,8 +52,8 @@ fn main() -> Result<()> {
     let side = LightView { light: SIDE_LIGHT, view: overhead_camera() };
     let identity = NeuralMaterial::identity_config();
     let mut rows = vec![];
-    let mut sums = [0.0; 4];
-    println!("| photo | identity log-L1, old | new | chromaticity error, old | new |\n|---|---|---|---|---|");
+    let mut sums = [0.0; 6];
+    println!("| photo | identity log-L1, old | new | chromaticity error, old | new | checkerboard, old | new |\n|---|---|---|---|---|---|---|");
     for path in &photos {
         let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         let photo = load_photo(path, Some(28.0), 256)?;
@@ -61,11 +64,13 @@ fn main() -> Result<()> {
             log_l1(&identities[1], &photo.linear),
             chroma_error(&identities[0], &photo.linear),
             chroma_error(&identities[1], &photo.linear),
+            checkerboard_amplitude(&identities[0], &photo.linear)?,
+            checkerboard_amplitude(&identities[1], &photo.linear)?,
         ];
         for (sum, e) in sums.iter_mut().zip(errors) {
             *sum += e;
         }
-        println!("| {name} | {:.4} | {:.4} | {:.3} | {:.3} |", errors[0], errors[1], errors[2], errors[3]);
+        println!("| {name} | {:.4} | {:.4} | {:.3} | {:.3} | {:.4} | {:.4} |", errors[0], errors[1], errors[2], errors[3], errors[4], errors[5]);
         rows.push(vec![
             display(&photo.linear),
             display(&identities[0]),
@@ -75,7 +80,8 @@ fn main() -> Result<()> {
         ]);
     }
     let n = photos.len().max(1) as f64;
-    println!("| mean | {:.4} | {:.4} | {:.3} | {:.3} |", sums[0] / n, sums[1] / n, sums[2] / n, sums[3] / n);
+    let [a, b, c, d, e, f] = sums.map(|s| s / n);
+    println!("| mean | {a:.4} | {b:.4} | {c:.3} | {d:.3} | {e:.4} | {f:.4} |");
     flashmat::io::write_jpeg(&PathBuf::from(out), &flashmat::viz::grid(&rows, 2)?, 80)?;
     eprintln!("wrote {out}");
     Ok(())

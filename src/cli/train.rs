@@ -114,6 +114,10 @@ pub struct TrainArgs {
     /// diffuse and specular maps) so colour must be read from the photo (paper: 0).
     #[arg(long, default_value_t = 0.0, value_name = "P", value_parser = super::fraction)]
     pub colour_augment: f64,
+    /// Keep M_est's upsampling kernels checkerboard-free (projected after every update: a flat photo
+    /// gives a flat neural map; paper: free). With --resume: from the resumed step on.
+    #[arg(long)]
+    pub checkerboard_free: bool,
     /// Start the adversarial term at step N (paper: 0).
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub adv_start: u64,
@@ -211,6 +215,10 @@ pub struct AverageArgs {
     /// Store every weight as f32 (default: large weight tensors as f16, as `flashmat export`).
     #[arg(long)]
     pub f32: bool,
+    /// Then project M_est's upsampling kernels onto checkerboard-free ones (a flat photo gives a flat
+    /// neural map; the nearest such kernels). With one file: only the projection.
+    #[arg(long)]
+    pub checkerboard_free: bool,
 }
 
 /// The options every training command shares: threads, device, time limit.
@@ -231,6 +239,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         max_minutes: a.minutes,
         export_dir: a.export_dir.clone(),
         new_lr: a.resume.as_ref().and(a.lr),
+        checkerboard_free: a.resume.is_some() && a.checkerboard_free,
         ..RunOptions::new(dir.clone(), device, true)
     };
     if let Some(dir) = &a.resume {
@@ -275,6 +284,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         adv_start: a.adv_start,
         frozen_bn_from: a.frozen_bn_from,
         colour_augment: a.colour_augment,
+        checkerboard_free: a.checkerboard_free,
         straight_through_output: a.straight_through_output,
         weight_lpips: a.lpips_weight,
         weight_adv: a.adv_weight,
@@ -312,6 +322,9 @@ pub fn export(a: &ExportArgs) -> Result<()> {
 
 pub fn average(a: &AverageArgs) -> Result<()> {
     let (model, info) = flashmat::model::Model::average(&a.models, Device::Cpu)?;
+    if a.checkerboard_free {
+        model.est.project_checkerboard_free();
+    }
     let out_dir = super::prepare_output(&a.output)?;
     model.save(&a.output, &info, !a.f32)?;
     out_dir.keep();

@@ -83,6 +83,52 @@ pub fn psnr_db(mse: f64) -> f64 {
     }
 }
 
+/// Period-2 components of an image: for each channel, the means of
+/// s(x, y) * ln(1 + I) with s = (-1)^x, (-1)^y and (-1)^(x + y).
+/// `[channels][3]`.
+fn period2_components(im: &crate::image::Image) -> Vec<[f64; 3]> {
+    let (h, w) = (im.height, im.width);
+    let n = (h * w) as f64;
+    (0..im.channels)
+        .map(|c| {
+            let mut sums = [0.0f64; 3];
+            for y in 0..h {
+                for x in 0..w {
+                    let v = (im.data[(c * h + y) * w + x].max(0.0) as f64).ln_1p();
+                    let (sx, sy) = (if x % 2 == 0 { 1.0 } else { -1.0 }, if y % 2 == 0 { 1.0 } else { -1.0 });
+                    sums[0] += sx * v;
+                    sums[1] += sy * v;
+                    sums[2] += sx * sy * v;
+                }
+            }
+            sums.map(|s| s / n)
+        })
+        .collect()
+}
+
+/// The checkerboard of an image against a reference of the same size:
+/// the root mean square, over channels and the three period-2 patterns
+/// ((-1)^x stripes, (-1)^y stripes, (-1)^(x+y) checkers), of the
+/// difference of their amplitudes in ln(1 + value). Subtracting the
+/// reference's own takes out what a smooth image has from its gradients;
+/// texture averages out over the image, a pattern stamped on every 2x2
+/// cell does not. A +-1% checkerboard on a flat image scores 0.01.
+pub fn checkerboard_amplitude(pred: &crate::image::Image, reference: &crate::image::Image) -> Result<f64> {
+    ensure!(
+        (pred.channels, pred.height, pred.width) == (reference.channels, reference.height, reference.width),
+        "checkerboard amplitude of images of different sizes ({}x{}x{} and {}x{}x{})",
+        pred.channels,
+        pred.height,
+        pred.width,
+        reference.channels,
+        reference.height,
+        reference.width
+    );
+    let (p, r) = (period2_components(pred), period2_components(reference));
+    let squares: f64 = p.iter().zip(&r).flat_map(|(a, b)| (0..3).map(move |i| (a[i] - b[i]).powi(2))).sum();
+    Ok((squares / (3 * pred.channels.max(1)) as f64).sqrt())
+}
+
 /// Mean of each score over configurations (NaN for none).
 pub fn mean_scores(scores: &[Scores]) -> Scores {
     let n = scores.len() as f64;
@@ -112,6 +158,29 @@ pub fn mean_ci95(values: &[f64]) -> (f64, f64) {
 mod tests {
     use super::*;
     use tch::Device;
+
+    #[test]
+    fn checkerboard_amplitude_of_known_patterns() {
+        use crate::image::Image;
+        // A flat grey (e - 1, so ln(1 + v) = 1) with ln(1 + v) = 1 +- 0.01 on
+        // alternate pixels: amplitude 0.01 in the checker pattern only, so
+        // the RMS over the 3 patterns is 0.01 / sqrt(3).
+        let e1 = std::f32::consts::E - 1.0;
+        let flat = Image::from_fn(3, 16, 16, |_, _, _| e1);
+        let checkers = Image::from_fn(3, 16, 16, |_, y, x| (1.0f32 + if (x + y) % 2 == 0 { 0.01 } else { -0.01 }).exp() - 1.0);
+        let a = checkerboard_amplitude(&checkers, &flat).unwrap();
+        assert!((a - 0.01 / 3f64.sqrt()).abs() < 1e-6, "{a}");
+        // Stripes along x as well: two patterns of 0.01 each.
+        let both = Image::from_fn(3, 16, 16, |_, y, x| (1.0f32 + if (x + y) % 2 == 0 { 0.01 } else { -0.01 } + if x % 2 == 0 { 0.01 } else { -0.01 }).exp() - 1.0);
+        let b = checkerboard_amplitude(&both, &flat).unwrap();
+        assert!((b - 0.01 * (2.0f64 / 3.0).sqrt()).abs() < 1e-6, "{b}");
+        // A smooth ramp against itself: 0; a texture of period 4 has no period-2 part.
+        let ramp = Image::from_fn(3, 16, 16, |c, y, x| 0.1 + 0.02 * (x + y + c) as f32);
+        assert_eq!(checkerboard_amplitude(&ramp, &ramp).unwrap(), 0.0);
+        let period4 = Image::from_fn(3, 16, 16, |_, _, x| if x % 4 < 2 { 0.5 } else { 0.2 });
+        assert!(checkerboard_amplitude(&period4, &flat).unwrap() < 1e-9);
+        assert!(checkerboard_amplitude(&flat, &Image::from_fn(3, 8, 16, |_, _, _| 0.5)).is_err());
+    }
 
     #[test]
     fn identical_renders_score_perfectly() {

@@ -8,8 +8,11 @@
 //!
 //! Per material and render: the chromaticity error (Euclidean distance of
 //! the mean colour's rgb / (r + g + b) between render and truth), the log
-//! ratio of the mean colour per channel, and the highlight ratio (the
-//! brightest 1% of pixels, render over truth).
+//! ratio of the mean colour per channel, the highlight ratio (the
+//! brightest 1% of pixels, render over truth), and the checkerboard (the
+//! period-2 amplitude in ln(1 + RGB) beyond the truth's,
+//! `metrics::checkerboard_amplitude`): a flat material shows a 2x2 pattern
+//! of the upsampling layers at once.
 
 use crate::geometry::{LightView, MODEL_FOV_DEG};
 use crate::image::Image;
@@ -73,6 +76,8 @@ pub struct ColourRow {
     pub log_ratio: [f64; 3],
     /// Brightest 1% of pixels (luminance), render over truth.
     pub highlight_ratio: f64,
+    /// Period-2 amplitude of the render in ln(1 + RGB), beyond the truth's.
+    pub checkerboard: f64,
 }
 
 /// Mean colour and mean luminance of the brightest 1% of pixels of a `[3, H, W]` image.
@@ -103,11 +108,12 @@ pub fn chromaticity_distance(a: [f64; 3], b: [f64; 3]) -> f64 {
 }
 
 /// Compares a render with the truth.
-fn score(set: &'static str, material: &'static str, render: &'static str, pred: &Image, truth: &Image) -> ColourRow {
+fn score(set: &'static str, material: &'static str, render: &'static str, pred: &Image, truth: &Image) -> Result<ColourRow> {
     let ((mp, hp), (mt, ht)) = (colour_stats(pred), colour_stats(truth));
     let chroma_error = chromaticity_distance(mp, mt);
     let log_ratio = [0, 1, 2].map(|c| (mp[c].max(1e-6) / mt[c].max(1e-6)).ln());
-    ColourRow { set, material, render, chroma_error, log_ratio, highlight_ratio: hp.max(1e-9) / ht.max(1e-9) }
+    let checkerboard = super::metrics::checkerboard_amplitude(pred, truth)?;
+    Ok(ColourRow { set, material, render, chroma_error, log_ratio, highlight_ratio: hp.max(1e-9) / ht.max(1e-9), checkerboard })
 }
 
 /// Runs the check on a model at `size` x `size` pixels (a multiple of 8).
@@ -129,19 +135,21 @@ fn colour_rows(model: &Model, info: &ModelInfo, size: usize) -> Result<Vec<Colou
             let pred = estimated.render_image(&config)?;
             // An LDR model is judged on what its photo shows: values up to 1.
             let clamp = |im: &Image| if info.ldr_input && name == "identity" { im.map(|v| v.min(1.0)) } else { im.clone() };
-            rows.push(score(set, u.name, name, &clamp(&pred), &clamp(reference)));
+            rows.push(score(set, u.name, name, &clamp(&pred), &clamp(reference))?);
         }
     }
     Ok(rows)
 }
 
 /// Summary numbers of a check: mean chromaticity error of the identity
-/// and relit renders, and the near-black glossy material's highlight ratio.
+/// and relit renders, the near-black glossy material's highlight ratio,
+/// and the mean checkerboard amplitude of all renders.
 #[derive(Clone, Debug, Serialize)]
 pub struct ColourSummary {
     pub identity_chroma_error: f64,
     pub relit_chroma_error: f64,
     pub near_black_highlight_ratio: f64,
+    pub checkerboard: f64,
 }
 
 pub fn summarize(rows: &[ColourRow]) -> ColourSummary {
@@ -150,22 +158,23 @@ pub fn summarize(rows: &[ColourRow]) -> ColourSummary {
         v.iter().sum::<f64>() / v.len().max(1) as f64
     };
     let near_black = rows.iter().find(|r| r.set == "glossy" && r.material == "near-black" && r.render == "identity").map_or(f64::NAN, |r| r.highlight_ratio);
-    ColourSummary { identity_chroma_error: mean("identity"), relit_chroma_error: mean("relit"), near_black_highlight_ratio: near_black }
+    let checkerboard = rows.iter().map(|r| r.checkerboard).sum::<f64>() / rows.len().max(1) as f64;
+    ColourSummary { identity_chroma_error: mean("identity"), relit_chroma_error: mean("relit"), near_black_highlight_ratio: near_black, checkerboard }
 }
 
 /// A markdown table of the rows and the summary line.
 pub fn markdown(model_name: &str, rows: &[ColourRow]) -> String {
     let s = summarize(rows);
     let mut out = format!(
-        "## Uniform-colour check: {model_name}\n\nMean chromaticity error: identity {:.4}, relit {:.4}. Near-black glossy highlight: {:.2}x the truth.\n\n",
-        s.identity_chroma_error, s.relit_chroma_error, s.near_black_highlight_ratio
+        "## Uniform-colour check: {model_name}\n\nMean chromaticity error: identity {:.4}, relit {:.4}. Near-black glossy highlight: {:.2}x the truth. Mean checkerboard amplitude: {:.4}.\n\n",
+        s.identity_chroma_error, s.relit_chroma_error, s.near_black_highlight_ratio, s.checkerboard
     );
-    out.push_str("| set | material | render | chromaticity error | ln ratio R / G / B | highlight ratio |\n|---|---|---|---|---|---|\n");
+    out.push_str("| set | material | render | chromaticity error | ln ratio R / G / B | highlight ratio | checkerboard |\n|---|---|---|---|---|---|---|\n");
     for r in rows {
         let _ = writeln!(
             out,
-            "| {} | {} | {} | {:.4} | {:+.2} / {:+.2} / {:+.2} | {:.2} |",
-            r.set, r.material, r.render, r.chroma_error, r.log_ratio[0], r.log_ratio[1], r.log_ratio[2], r.highlight_ratio
+            "| {} | {} | {} | {:.4} | {:+.2} / {:+.2} / {:+.2} | {:.2} | {:.4} |",
+            r.set, r.material, r.render, r.chroma_error, r.log_ratio[0], r.log_ratio[1], r.log_ratio[2], r.highlight_ratio, r.checkerboard
         );
     }
     out
@@ -179,16 +188,16 @@ mod tests {
     fn scores_of_a_known_colour_shift() {
         let truth = Image::from_fn(3, 10, 10, |c, _, _| [0.6, 0.1, 0.1][c]);
         // Identical: no error, ratios 1.
-        let same = score("matte", "red", "identity", &truth, &truth);
-        assert!(same.chroma_error < 1e-12 && same.log_ratio.iter().all(|v| v.abs() < 1e-9) && (same.highlight_ratio - 1.0).abs() < 1e-9);
+        let same = score("matte", "red", "identity", &truth, &truth).unwrap();
+        assert!(same.checkerboard == 0.0 && same.chroma_error < 1e-12 && same.log_ratio.iter().all(|v| v.abs() < 1e-9) && (same.highlight_ratio - 1.0).abs() < 1e-9);
         // Twice as bright: same chromaticity, ln 2 in every channel.
         let bright = truth.map(|v| 2.0 * v);
-        let r = score("matte", "red", "identity", &bright, &truth);
+        let r = score("matte", "red", "identity", &bright, &truth).unwrap();
         assert!(r.chroma_error < 1e-9 && r.log_ratio.iter().all(|v| (v - 2f64.ln()).abs() < 1e-6));
         assert!((r.highlight_ratio - 2.0).abs() < 1e-6);
         // Grey instead of red: chromaticity (0.75, 0.125, 0.125) against (1/3, 1/3, 1/3).
         let grey = Image::filled(3, 10, 10, 0.2667);
-        let r = score("matte", "red", "identity", &grey, &truth);
+        let r = score("matte", "red", "identity", &grey, &truth).unwrap();
         let expected = ((0.75f64 - 1.0 / 3.0).powi(2) + 2.0 * (0.125f64 - 1.0 / 3.0).powi(2)).sqrt();
         assert!((r.chroma_error - expected).abs() < 1e-4, "{} vs {expected}", r.chroma_error);
         // A highlight: one bright pixel in 100 is the top 1%.
@@ -196,7 +205,7 @@ mod tests {
         spot.set(0, 5, 5, 6.0);
         spot.set(1, 5, 5, 6.0);
         spot.set(2, 5, 5, 6.0);
-        let r = score("glossy", "red", "identity", &truth, &spot);
+        let r = score("glossy", "red", "identity", &truth, &spot).unwrap();
         assert!((r.highlight_ratio - (0.8 / 3.0) / 6.0).abs() < 1e-6, "{}", r.highlight_ratio);
     }
 
@@ -205,7 +214,7 @@ mod tests {
         let model = Model::new(&crate::model::ModelConfig::tiny(), tch::Device::Cpu).unwrap();
         let rows = colour_check(&model, &ModelInfo { ldr_input: true, steps: 0 }, 16).unwrap();
         assert_eq!(rows.len(), 2 * 9 * 2);
-        assert!(rows.iter().all(|r| r.chroma_error.is_finite() && r.highlight_ratio > 0.0));
+        assert!(rows.iter().all(|r| r.chroma_error.is_finite() && r.highlight_ratio > 0.0 && r.checkerboard.is_finite()));
         let s = summarize(&rows);
         assert!(s.near_black_highlight_ratio.is_finite());
         let md = markdown("tiny", &rows);

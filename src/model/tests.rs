@@ -398,3 +398,62 @@ fn averaging_model_files_gives_the_elementwise_mean() {
     let none: [&std::path::Path; 0] = [];
     assert!(Model::average(&none, Device::Cpu).is_err());
 }
+
+#[test]
+fn checkerboard_free_kernel_equalises_the_parity_sums() {
+    let opts = (Kind::Double, Device::Cpu);
+    // 2x2 skip kernel: each tap is its own parity class, so all become the mean.
+    let w2 = Tensor::from_slice(&[1.0, 2.0, 3.0, 6.0]).view([1, 1, 2, 2]);
+    let p2 = m_est::checkerboard_free_kernel(&w2);
+    assert_eq!(Vec::<f64>::try_from(p2.flatten(0, -1)).unwrap(), vec![3.0; 4]);
+    // 4x4: class (row parity, column parity). Taps 0..16 row-major: the class
+    // sums of k = 4 * ky + kx are (0+2+8+10, 1+3+9+11, 4+6+12+14, 5+7+13+15)
+    // = (20, 24, 36, 40), mean 30, so the classes shift by (+2.5, +1.5, -1.5, -2.5) per tap.
+    let w4 = Tensor::arange(16, opts).view([1, 1, 4, 4]);
+    let p4 = m_est::checkerboard_free_kernel(&w4);
+    let shift = [[2.5, 1.5], [-1.5, -2.5]];
+    for ky in 0..4i64 {
+        for kx in 0..4i64 {
+            let expected = (4 * ky + kx) as f64 + shift[(ky % 2) as usize][(kx % 2) as usize];
+            assert!((p4.double_value(&[0, 0, ky, kx]) - expected).abs() < 1e-12, "tap ({ky}, {kx})");
+        }
+    }
+    // Idempotent, and a flat input comes out flat (away from the border),
+    // where the random kernel stamps a 2x2 pattern.
+    let w = Tensor::randn([3, 5, 4, 4], opts);
+    let p = m_est::checkerboard_free_kernel(&w);
+    assert!((m_est::checkerboard_free_kernel(&p) - &p).abs().max().double_value(&[]) < 1e-12);
+    let flat = Tensor::ones([1, 3, 8, 8], opts);
+    let spread = |k: &Tensor| {
+        let y = layers::conv_t(&flat, k, None, 2, 1).narrow(2, 2, 12).narrow(3, 2, 12);
+        (y.amax([2i64, 3], false) - y.amin([2i64, 3], false)).abs().max().double_value(&[])
+    };
+    assert!(spread(&w) > 0.1, "a random kernel makes a checkerboard");
+    assert!(spread(&p) < 1e-12, "the projected kernel keeps a flat input flat: {}", spread(&p));
+}
+
+#[test]
+fn projected_m_est_maps_a_flat_photo_to_a_flat_neural_map() {
+    tch::manual_seed(5);
+    let mut m = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
+    randomise_batchnorms(&m.est_vs);
+    // In float64, so that "flat" means flat to rounding.
+    m.est_vs.double();
+    // A flat photo: ln(1 + RGB) of one colour and a constant h_z.
+    let x = Tensor::from_slice(&[0.4f64, 0.2, 0.1, 0.9]).view([1, 4, 1, 1]).expand([1, 4, 256, 256], false).contiguous();
+    // The largest deviation from the mean in the interior of the map,
+    // relative to the mean's size. (The transposed convolutions' border
+    // pixels differ, and the decoder carries that ~60 pixels inwards, fading.)
+    let interior_spread = |m: &Model| {
+        let y = tch::no_grad(|| m.est_forward_t(&x, false)).unwrap().narrow(2, 112, 32).narrow(3, 112, 32);
+        let mean = y.mean_dim([2i64, 3].as_slice(), true, Kind::Double);
+        (&y - &mean).abs().max().double_value(&[]) / mean.abs().mean(Kind::Double).double_value(&[])
+    };
+    assert!(!m.est.is_checkerboard_free(1e-6));
+    let before = interior_spread(&m);
+    m.est.project_checkerboard_free();
+    assert!(m.est.is_checkerboard_free(1e-6));
+    let after = interior_spread(&m);
+    assert!(before > 0.1, "random kernels stamp a pattern on a flat photo: {before}");
+    assert!(after < 1e-5, "projected: flat in, flat out ({after})");
+}

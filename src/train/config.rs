@@ -115,6 +115,12 @@ pub struct TrainConfig {
     /// colour from texture instead of reading it from the photo.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub colour_augment: f64,
+    /// Keep M_est's upsampling kernels checkerboard-free: projected
+    /// (`MEst::project_checkerboard_free`) when the run starts or resumes
+    /// and after every update, so a flat photo gives a flat neural map
+    /// (false: the paper's free transposed convolutions).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub checkerboard_free: bool,
     pub weight_l1: f64,
     pub weight_lpips: f64,
     pub weight_adv: f64,
@@ -165,6 +171,7 @@ impl Default for TrainConfig {
             straight_through_output: false,
             frozen_bn_from: None,
             colour_augment: 0.0,
+            checkerboard_free: false,
             weight_l1: 1.0,
             weight_lpips: 0.01,
             weight_adv: 0.03,
@@ -244,6 +251,7 @@ impl TrainConfig {
         anyhow::ensure!(self.pixel_fraction > 0.0 && self.pixel_fraction <= 1.0, "pixel fraction must be in (0, 1]");
         anyhow::ensure!(self.lr > 0.0 && self.lr.is_finite(), "learning rate must be positive");
         anyhow::ensure!(self.init_from.is_none() || self.warm_start.is_none(), "--init-from and --warm-start exclude each other");
+        anyhow::ensure!(!self.checkerboard_free || self.method.is_flashmat(), "--checkerboard-free applies to --method flashmat only");
         anyhow::ensure!(self.weight_code >= 0.0 && self.weight_code.is_finite(), "--code-weight must be a finite number >= 0 (got {})", self.weight_code);
         anyhow::ensure!(self.weight_code == 0.0 || self.teacher.is_some(), "--code-weight needs --teacher FILE");
         anyhow::ensure!(self.bank == 0 || self.data == "procedural", "--bank applies to procedural data only (got --data {})", self.data);

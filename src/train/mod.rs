@@ -134,7 +134,18 @@ impl Trainer {
             UpdateScheme::Combined => self.combined_step(batch, lr, weight_adv),
         })?;
         self.step += 1;
+        if !out.skipped {
+            self.apply_weight_constraints();
+        }
         Ok(StepLosses { step: self.step, lr, ..out })
+    }
+
+    /// Projects the weights onto what the configuration constrains them to
+    /// (`checkerboard_free`); nothing otherwise. Idempotent.
+    pub fn apply_weight_constraints(&self) {
+        if self.config.checkerboard_free {
+            self.model.est.project_checkerboard_free();
+        }
     }
 
     /// Non-trainable state of all networks (BatchNorm running statistics).

@@ -131,6 +131,9 @@ pub trait RunTrainer: Sized {
     /// written: a diverging step can leave huge but finite weights whose
     /// next forward pass overflows.
     fn is_finite_on(&self, batch: &TrainingBatch) -> Result<bool>;
+    /// Projects the weights onto the configuration's constraints (flashmat's
+    /// `checkerboard_free`); called when a run starts or resumes.
+    fn apply_weight_constraints(&self) {}
     /// Fresh networks for a configuration.
     fn create(config: TrainConfig, device: Device) -> Result<Self>;
     /// Rebuilds the trainer from a checkpoint.
@@ -173,6 +176,9 @@ impl RunTrainer for Trainer {
             let pred = self.model.renderer.forward_maps(&neural, &batch.out_wi, &batch.out_wo)?;
             Ok(all_finite(&neural) && all_finite(&pred))
         })
+    }
+    fn apply_weight_constraints(&self) {
+        Trainer::apply_weight_constraints(self)
     }
     fn create(config: TrainConfig, device: Device) -> Result<Self> {
         let (init, warm) = (config.init_from.clone(), config.warm_start.clone());
@@ -271,13 +277,16 @@ pub struct RunOptions {
     /// diverged run continues from its last good checkpoint), recorded in
     /// the configuration of its next checkpoints.
     pub new_lr: Option<f64>,
+    /// With a resume: keep M_est's upsampling checkerboard-free from the
+    /// resumed step on (`TrainConfig::checkerboard_free`), recorded likewise.
+    pub checkerboard_free: bool,
     pub progress: bool,
 }
 
 impl RunOptions {
     /// Options of a plain run in `run_dir` (no step, time or export limits).
     pub fn new(run_dir: impl Into<PathBuf>, device: Device, progress: bool) -> Self {
-        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, new_lr: None, progress }
+        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, new_lr: None, checkerboard_free: false, progress }
     }
 }
 
@@ -364,6 +373,10 @@ fn resume_with<T: RunTrainer>(opts: &RunOptions, steps: Option<u64>) -> Result<T
         trainer.config_mut().lr = lr;
         trainer.config().validate()?;
     }
+    if opts.checkerboard_free {
+        trainer.config_mut().checkerboard_free = true;
+        trainer.config().validate()?;
+    }
     truncate_log(&opts.run_dir, trainer.steps_done())?;
     train_loop(trainer, opts)
 }
@@ -423,6 +436,7 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
     let out_of_time = || opts.max_minutes.is_some_and(|m| started.elapsed().as_secs_f64() >= m * 60.0);
     let cfg = trainer.config().clone();
     let run = &opts.run_dir;
+    trainer.apply_weight_constraints();
     catch_stop_signals();
     let first = trainer.steps_done();
     // The checkpoint on disk: the one resumed from, if any.

@@ -483,3 +483,24 @@ fn colour_augment_recolours_the_crops_of_the_plain_stream() {
         assert!((lo..=hi).contains(&recoloured), "P = {p}: {recoloured} of 12 recoloured");
     }
 }
+
+#[test]
+fn checkerboard_free_runs_keep_the_upsampling_projected() {
+    let dir = tempfile::tempdir().unwrap();
+    // A plain run: free transposed convolutions, which the updates move off
+    // the projected kernels.
+    let opts = RunOptions { max_steps_this_run: Some(2), ..RunOptions::new(dir.path().join("r"), tch::Device::Cpu, false) };
+    let t = run::start(TrainConfig { steps: 4, weight_lpips: 0.0, ..tiny_config() }, &opts).unwrap();
+    assert!(!t.config.checkerboard_free && !t.model.est.is_checkerboard_free(1e-5));
+    // Resumed with the option: projected at the resume and after every
+    // update, and the checkpoint records it.
+    let resumed = RunOptions { checkerboard_free: true, ..RunOptions::new(dir.path().join("r"), tch::Device::Cpu, false) };
+    let t = run::resume(&resumed, None).unwrap();
+    assert_eq!(t.step, 4);
+    assert!(t.config.checkerboard_free && t.model.est.is_checkerboard_free(1e-5));
+    let again = Trainer::resume(&checkpoint_path(&opts.run_dir), tch::Device::Cpu, None).unwrap();
+    assert!(again.config.checkerboard_free && again.model.est.is_checkerboard_free(1e-5));
+    // The option is refused for the baselines (their U-Net is not M_est).
+    let baseline = TrainConfig { method: crate::baselines::TrainMethod::Analytic, checkerboard_free: true, ..tiny_config() };
+    assert!(format!("{:#}", baseline.validate().err().unwrap()).contains("--checkerboard-free"));
+}

@@ -197,6 +197,41 @@ impl UpBlock {
     }
 }
 
+impl UpBlock {
+    /// Projects both transposed convolutions onto the kernels that map a
+    /// constant input to a constant output ([`checkerboard_free_kernel`]).
+    pub fn project_checkerboard_free(&self) {
+        tch::no_grad(|| {
+            for w in [&self.tconv, &self.skip_tconv] {
+                let projected = checkerboard_free_kernel(w);
+                w.shallow_clone().copy_(&projected);
+            }
+        })
+    }
+}
+
+/// The nearest kernel (least squares) of a stride-2 transposed convolution
+/// without a checkerboard. An output pixel of parity (a, b) sums the input
+/// through the taps (ky, kx) with ky = a + padding and kx = b + padding
+/// (mod 2) only, so a flat input comes out flat exactly when the four
+/// parity classes of taps sum to the same value for every (input, output)
+/// channel pair; otherwise the layer stamps a 2x2 pattern on flat regions
+/// and every later layer carries it (Odena et al. 2016, "Deconvolution and
+/// checkerboard artifacts"). Each class is shifted by the same amount per
+/// tap to the mean of the four sums: for the 2x2 skip kernel, every tap
+/// becomes the mean (nearest-neighbour upsampling then a 1x1 conv); for the
+/// 4x4 kernel, 3 of the 16 degrees of freedom per channel pair go.
+/// w: `[C, P, k, k]`, k even -> same shape.
+pub fn checkerboard_free_kernel(w: &Tensor) -> Tensor {
+    let s = w.size();
+    let (c, p, k) = (s[0], s[1], s[2]);
+    assert!(s.len() == 4 && k == s[3] && k % 2 == 0, "a stride-2 transposed-convolution kernel [C, P, k, k] with k even, got {s:?}");
+    let taps = w.reshape([c, p, k / 2, 2, k / 2, 2]);
+    let class_sums = taps.sum_dim_intlist([2i64, 4].as_slice(), true, w.kind());
+    let excess = (&class_sums - class_sums.mean_dim([3i64, 5].as_slice(), true, w.kind())) / ((k / 2) * (k / 2)) as f64;
+    (taps - excess).reshape([c, p, k, k])
+}
+
 /// One decoder stage: an optional upsampling block then residual blocks.
 #[derive(Debug)]
 pub struct DecStage {
@@ -266,6 +301,27 @@ impl MEst {
         let _ = (&compat / "bottleneck_ln").var("weight", &[8 * w], Init::Const(1.0));
         let _ = (&compat / "bottleneck_ln").var("bias", &[8 * w], Init::Const(0.0));
         Ok(Self { stem, enc, dec, head, width: w, out_channels: cfg.neural_channels })
+    }
+
+    /// Projects every upsampling block onto checkerboard-free kernels
+    /// (`UpBlock::project_checkerboard_free`): a flat photo then gives a flat
+    /// neural map. Idempotent; the mean of projected models stays projected.
+    pub fn project_checkerboard_free(&self) {
+        for stage in &self.dec {
+            if let Some(up) = &stage.up {
+                up.project_checkerboard_free();
+            }
+        }
+    }
+
+    /// Whether every upsampling kernel is checkerboard-free to `tol`
+    /// (largest change the projection would make, relative to the kernel's
+    /// largest tap).
+    pub fn is_checkerboard_free(&self, tol: f64) -> bool {
+        self.dec.iter().filter_map(|s| s.up.as_ref()).flat_map(|u| [&u.tconv, &u.skip_tconv]).all(|w| {
+            let change = (checkerboard_free_kernel(w) - w).abs().max().double_value(&[]);
+            change <= tol * w.abs().max().double_value(&[]).max(1e-30)
+        })
     }
 
     /// x: `[N, 4, H, W]` (ln(1+RGB), h_z), H and W multiples of 8 ->
