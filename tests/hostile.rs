@@ -411,6 +411,12 @@ fn build_corpus(root: &Path) -> Vec<Case> {
     push(&mut cases, "average: a missing model".into(), average(&["in/tiny.safetensors", "in/absent.safetensors"]), error(&["absent.safetensors"]));
     push(&mut cases, "average: a checkpoint instead of a model".into(), average(&["in/tiny.safetensors", "in/run/checkpoint.safetensors"]), error(&["checkpoint.safetensors"]));
     push(&mut cases, "average: no model".into(), vec!["average".into(), "-o".into(), "{out}/avg.safetensors".into()], usage(&["required arguments"]));
+    push(
+        &mut cases,
+        "train --checkerboard-free on a baseline".into(),
+        ["train", "--method", "analytic", "--checkerboard-free", "--preset", "tiny", "--steps", "1", "--out", "{out}/cb-run"].map(String::from).to_vec(),
+        error(&["--checkerboard-free", "flashmat only"]),
+    );
 
     // Forged archives: checksums recomputed over the edited content.
     let swapped = reseal(&nmat, |h, _| {
