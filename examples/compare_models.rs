@@ -35,6 +35,7 @@ fn zoomed(linear: &Image) -> Result<Image> {
     let crop = linear.crop(top, left, ZOOM_CROP, ZOOM_CROP)?.to_display();
     Ok(Image::from_fn(crop.channels, ZOOM_CROP * ZOOM, ZOOM_CROP * ZOOM, |c, y, x| crop.get(c, y / ZOOM, x / ZOOM)))
 }
+
 /// The side light of the comparison (as in `flashmat show`'s first orbit frame).
 const SIDE_LIGHT: [f64; 3] = [2.0, 0.0, 3.0];
 

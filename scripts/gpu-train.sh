@@ -48,6 +48,9 @@ WARMUP="${FLASHMAT_GPU_WARMUP:-200}"
 BANK="${FLASHMAT_GPU_BANK:-4000}"
 SEED="${FLASHMAT_GPU_SEED:-1}"
 CONFIGS="${FLASHMAT_GPU_CONFIGS:-128}"
+# M_est's upsampling kept checkerboard-free (reports/checkerboard.md: level
+# held-out LPIPS, no 2x2 pattern); 0 for the paper's free kernels.
+CHECKERBOARD_FREE="${FLASHMAT_GPU_CHECKERBOARD_FREE:-1}"
 # Curriculum (docs/TRAINING.md): the committed teacher (trained on the CPU,
 # models/MODEL.md; FLASHMAT_GPU_TEACHER= turns the curriculum off), or
 # teacher steps on the device before a fresh start; then the teacher-code
@@ -86,11 +89,12 @@ use_machine_libtorch() {
 
 # The training options; $1: a teacher file for the curriculum's code term, or empty.
 recipe() {
-  local teacher=()
+  local teacher=() constraint=()
   [ -n "${1:-}" ] && teacher=(--teacher "$1" --code-weight "$CODE_WEIGHT" --code-until "$CODE_UNTIL")
+  [ "$CHECKERBOARD_FREE" = 1 ] && constraint=(--checkerboard-free)
   echo --preset "$PRESET" --ldr --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --lr "$LR" \
     --warmup-steps "$WARMUP" --straight-through-output --bank "$BANK" --seed "$SEED" \
-    --steps 100000000 --checkpoint-every 500 --preview-every 1000 "${teacher[@]}"
+    --steps 100000000 --checkpoint-every 500 --preview-every 1000 "${teacher[@]}" "${constraint[@]}"
 }
 
 gpu_info() {
@@ -297,6 +301,7 @@ cpu_dry_run() {
   grep -q "resumed from the machine's checkpoint" "$tmp/out3/chunk.md" || die "dry run: the final chunk did not resume from the checkpoint"
   python3 -c 'import json,sys; lr=json.loads(open(sys.argv[1]).readlines()[-1])["lr"]; sys.exit(0 if abs(lr-float(sys.argv[2]))<=1e-6*float(sys.argv[2]) else 1)' \
     "$tmp/out3/log.jsonl" "$FINAL_LR" || die "dry run: the final chunk did not train at FLASHMAT_GPU_FINAL_LR ($FINAL_LR)"
+  grep -q '"checkerboard_free": true' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --checkerboard-free"
   grep -q "^VERDICT: " "$tmp/out3/verdict/verdict.md" || die "dry run: no verdict"
   for f in model.safetensors log.jsonl losses.png chunk.md; do
     [ -f "$tmp/out2/$f" ] || die "dry run: chunk 2 brought back no $f"

@@ -112,7 +112,8 @@ fn period2_components(im: &crate::image::Image) -> Vec<[f64; 3]> {
 /// difference of their amplitudes in ln(1 + value). Subtracting the
 /// reference's own takes out what a smooth image has from its gradients;
 /// texture averages out over the image, a pattern stamped on every 2x2
-/// cell does not. A +-1% checkerboard on a flat image scores 0.01.
+/// cell does not. A +-1% checkerboard on a flat image scores
+/// 0.01 / sqrt(3) (the one pattern of the three that is there).
 pub fn checkerboard_amplitude(pred: &crate::image::Image, reference: &crate::image::Image) -> Result<f64> {
     ensure!(
         (pred.channels, pred.height, pred.width) == (reference.channels, reference.height, reference.width),

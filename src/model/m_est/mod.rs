@@ -195,9 +195,7 @@ impl UpBlock {
         let id = self.skip_bn.forward_t(&conv_t(x, &self.skip_tconv, None, 2, 0), train);
         (out + id).relu()
     }
-}
 
-impl UpBlock {
     /// Projects both transposed convolutions onto the kernels that map a
     /// constant input to a constant output ([`checkerboard_free_kernel`]).
     pub fn project_checkerboard_free(&self) {
