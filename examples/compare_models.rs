@@ -16,7 +16,7 @@
 //! enlarged 4x pixel for pixel.
 
 use anyhow::{bail, Result};
-use flashmat::eval::metrics::checkerboard_amplitude;
+use flashmat::eval::metrics::{checkerboard_amplitude, log_l1};
 use flashmat::geometry::LightView;
 use flashmat::image::Image;
 use flashmat::infer::{estimate, load_model, load_photo, overhead_camera, NeuralMaterial};
@@ -41,12 +41,6 @@ const SIDE_LIGHT: [f64; 3] = [2.0, 0.0, 3.0];
 
 fn display(linear: &Image) -> Image {
     linear.to_display().resize_to(CELL, CELL)
-}
-
-/// Mean |ln(1 + a) - ln(1 + b)| over pixels and channels of two `[3, H, W]` images.
-fn log_l1(a: &Image, b: &Image) -> f64 {
-    let n = a.data.len().min(b.data.len());
-    a.data.iter().zip(&b.data).map(|(x, y)| ((1.0 + x.max(0.0)).ln() - (1.0 + y.max(0.0)).ln()).abs() as f64).sum::<f64>() / n as f64
 }
 
 /// Chromaticity error of an image's mean colour against another's.
@@ -81,8 +75,8 @@ fn main() -> Result<()> {
         let materials = [estimate(&models[0].model, &models[0].info, &photo)?, estimate(&models[1].model, &models[1].info, &photo)?];
         let identities = [materials[0].render_image(&identity)?, materials[1].render_image(&identity)?];
         let errors = [
-            log_l1(&identities[0], &photo.linear),
-            log_l1(&identities[1], &photo.linear),
+            log_l1(&identities[0], &photo.linear)?,
+            log_l1(&identities[1], &photo.linear)?,
             chroma_error(&identities[0], &photo.linear),
             chroma_error(&identities[1], &photo.linear),
             checkerboard_amplitude(&identities[0], &photo.linear)?,

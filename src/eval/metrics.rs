@@ -91,10 +91,11 @@ fn period2_components(im: &crate::image::Image) -> Vec<[f64; 3]> {
     let n = (h * w) as f64;
     (0..im.channels)
         .map(|c| {
+            let plane = im.plane(c);
             let mut sums = [0.0f64; 3];
             for y in 0..h {
                 for x in 0..w {
-                    let v = (im.data[(c * h + y) * w + x].max(0.0) as f64).ln_1p();
+                    let v = (plane[y * w + x].max(0.0) as f64).ln_1p();
                     let (sx, sy) = (if x % 2 == 0 { 1.0 } else { -1.0 }, if y % 2 == 0 { 1.0 } else { -1.0 });
                     sums[0] += sx * v;
                     sums[1] += sy * v;
@@ -115,19 +116,33 @@ fn period2_components(im: &crate::image::Image) -> Vec<[f64; 3]> {
 /// cell does not. A +-1% checkerboard on a flat image scores
 /// 0.01 / sqrt(3) (the one pattern of the three that is there).
 pub fn checkerboard_amplitude(pred: &crate::image::Image, reference: &crate::image::Image) -> Result<f64> {
-    ensure!(
-        (pred.channels, pred.height, pred.width) == (reference.channels, reference.height, reference.width),
-        "checkerboard amplitude of images of different sizes ({}x{}x{} and {}x{}x{})",
-        pred.channels,
-        pred.height,
-        pred.width,
-        reference.channels,
-        reference.height,
-        reference.width
-    );
+    ensure_same_size("checkerboard amplitude", pred, reference)?;
     let (p, r) = (period2_components(pred), period2_components(reference));
     let squares: f64 = p.iter().zip(&r).flat_map(|(a, b)| (0..3).map(move |i| (a[i] - b[i]).powi(2))).sum();
     Ok((squares / (3 * pred.channels.max(1)) as f64).sqrt())
+}
+
+/// Mean |ln(1 + a) - ln(1 + b)| over the pixels and channels of two images
+/// of the same size (negative values count as 0): the tone-mapped error
+/// that weighs highlights and dark regions alike.
+pub fn log_l1(a: &crate::image::Image, b: &crate::image::Image) -> Result<f64> {
+    ensure_same_size("log-L1", a, b)?;
+    let sum: f64 = a.data.iter().zip(&b.data).map(|(x, y)| ((1.0 + x.max(0.0)).ln() - (1.0 + y.max(0.0)).ln()).abs() as f64).sum();
+    Ok(sum / a.data.len().max(1) as f64)
+}
+
+fn ensure_same_size(what: &str, a: &crate::image::Image, b: &crate::image::Image) -> Result<()> {
+    ensure!(
+        (a.channels, a.height, a.width) == (b.channels, b.height, b.width),
+        "{what} of images of different sizes ({}x{}x{} and {}x{}x{})",
+        a.channels,
+        a.height,
+        a.width,
+        b.channels,
+        b.height,
+        b.width
+    );
+    Ok(())
 }
 
 /// Mean of each score over configurations (NaN for none).
@@ -181,6 +196,9 @@ mod tests {
         let period4 = Image::from_fn(3, 16, 16, |_, _, x| if x % 4 < 2 { 0.5 } else { 0.2 });
         assert!(checkerboard_amplitude(&period4, &flat).unwrap() < 1e-9);
         assert!(checkerboard_amplitude(&flat, &Image::from_fn(3, 8, 16, |_, _, _| 0.5)).is_err());
+        // log-L1: e - 1 against 0 is |1 - 0| everywhere.
+        assert!((log_l1(&flat, &Image::filled(3, 16, 16, 0.0)).unwrap() - 1.0).abs() < 1e-6);
+        assert!(log_l1(&flat, &Image::filled(3, 8, 16, 0.0)).is_err());
     }
 
     #[test]
