@@ -111,9 +111,10 @@ pub struct TrainArgs {
     #[arg(long, value_name = "N")]
     pub frozen_bn_from: Option<u64>,
     /// Recolour this fraction of training materials (random hue turn, saturation x0.6-1.8 of the
-    /// diffuse and specular maps) so colour must be read from the photo (paper: 0).
-    #[arg(long, default_value_t = 0.0, value_name = "P", value_parser = super::fraction)]
-    pub colour_augment: f64,
+    /// diffuse and specular maps) so colour must be read from the photo (default and paper: 0).
+    /// With --resume: from the resumed step on.
+    #[arg(long, value_name = "P", value_parser = super::fraction)]
+    pub colour_augment: Option<f64>,
     /// Keep M_est's upsampling kernels checkerboard-free (projected after every update: a flat photo
     /// gives a flat neural map; paper: free). With --resume: from the resumed step on.
     #[arg(long)]
@@ -240,6 +241,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         export_dir: a.export_dir.clone(),
         new_lr: a.resume.as_ref().and(a.lr),
         checkerboard_free: a.resume.is_some() && a.checkerboard_free,
+        new_colour_augment: a.resume.as_ref().and(a.colour_augment),
         ..RunOptions::new(dir.clone(), device, true)
     };
     if let Some(dir) = &a.resume {
@@ -283,7 +285,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         warmup_steps: a.warmup_steps,
         adv_start: a.adv_start,
         frozen_bn_from: a.frozen_bn_from,
-        colour_augment: a.colour_augment,
+        colour_augment: a.colour_augment.unwrap_or(0.0),
         checkerboard_free: a.checkerboard_free,
         straight_through_output: a.straight_through_output,
         weight_lpips: a.lpips_weight,

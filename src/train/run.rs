@@ -280,13 +280,16 @@ pub struct RunOptions {
     /// With a resume: keep M_est's upsampling checkerboard-free from the
     /// resumed step on (`TrainConfig::checkerboard_free`), recorded likewise.
     pub checkerboard_free: bool,
+    /// With a resume: a new fraction of recoloured training materials
+    /// (`TrainConfig::colour_augment`) from the resumed step on, recorded likewise.
+    pub new_colour_augment: Option<f64>,
     pub progress: bool,
 }
 
 impl RunOptions {
     /// Options of a plain run in `run_dir` (no step, time or export limits).
     pub fn new(run_dir: impl Into<PathBuf>, device: Device, progress: bool) -> Self {
-        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, new_lr: None, checkerboard_free: false, progress }
+        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, new_lr: None, checkerboard_free: false, new_colour_augment: None, progress }
     }
 }
 
@@ -375,6 +378,10 @@ fn resume_with<T: RunTrainer>(opts: &RunOptions, steps: Option<u64>) -> Result<T
     }
     if opts.checkerboard_free {
         trainer.config_mut().checkerboard_free = true;
+        trainer.config().validate()?;
+    }
+    if let Some(p) = opts.new_colour_augment {
+        trainer.config_mut().colour_augment = p;
         trainer.config().validate()?;
     }
     truncate_log(&opts.run_dir, trainer.steps_done())?;

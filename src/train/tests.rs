@@ -504,3 +504,18 @@ fn checkerboard_free_runs_keep_the_upsampling_projected() {
     let baseline = TrainConfig { method: crate::baselines::TrainMethod::Analytic, checkerboard_free: true, ..tiny_config() };
     assert!(format!("{:#}", baseline.validate().err().unwrap()).contains("--checkerboard-free"));
 }
+
+#[test]
+fn a_resume_can_turn_colour_augmentation_on_and_it_stays_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let opts = RunOptions { max_steps_this_run: Some(1), ..RunOptions::new(dir.path().join("r"), tch::Device::Cpu, false) };
+    let t = run::start(TrainConfig { steps: 3, weight_lpips: 0.0, ..tiny_config() }, &opts).unwrap();
+    assert_eq!(t.config.colour_augment, 0.0);
+    let recolouring = RunOptions { max_steps_this_run: Some(1), new_colour_augment: Some(0.6), ..RunOptions::new(dir.path().join("r"), tch::Device::Cpu, false) };
+    let t = run::resume(&recolouring, None).unwrap();
+    assert_eq!((t.step, t.config.colour_augment), (2, 0.6));
+    // A later plain resume keeps the recorded fraction.
+    let plain = RunOptions { max_steps_this_run: None, ..RunOptions::new(dir.path().join("r"), tch::Device::Cpu, false) };
+    let t = run::resume(&plain, None).unwrap();
+    assert_eq!((t.step, t.config.colour_augment), (3, 0.6));
+}
