@@ -3,8 +3,8 @@
 # models/MODEL.md: the paper's table with the baselines and the LDR vs HDR
 # ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
 # Deterministic: the same models give the same numbers. Only the bundled
-# model (models/flashmat.safetensors, 10,400 steps since 2026-11-24) is in
-# the tree; the others (the 4,000-step bundled model compact-ldr-4000 too,
+# model (models/flashmat.safetensors, 13,500 steps since 2026-11-24) is in
+# the tree; the others (the 4,000- and 10,400-step bundled models too,
 # taken from git history below) left it to keep the tree
 # shippable to GPU jobs: retrain them with MODEL.md's commands (check the
 # SHA-256 listed there) or take them from commit 6447422.
@@ -91,11 +91,22 @@ cargo run --release --quiet --example refine_photos -- 100 reports/refine   # wi
 $FLASHMAT eval --model $OLD --model $OLD+fit40 --model $M/baseline-analytic.safetensors \
     --size 128 --configs "$CONFIGS" -o reports/fit/eval-128
 
-# The bundled model since 2026-11-24 (reports/bundled-10400.md): the 50
-# held-out materials with 8-bit photos, the uniform-colour check against the
-# 4,000-step model, and both on the 13 bundled photos.
-cp $M/flashmat.safetensors target/flashmat-10400.safetensors
+# The bundled model of 10,400 steps (the morning to the evening of
+# 2026-11-24, reports/bundled-10400.md), from git history: the 50 held-out
+# materials with 8-bit photos, the uniform-colour check against the
+# 4,000-step model, and both on the 13 bundled photos. Its worst-material
+# grid is not kept (tree size; bundled-13500/ has the newer model's).
+[ -f target/flashmat-10400.safetensors ] || git show bf37fd4:models/flashmat.safetensors > target/flashmat-10400.safetensors
 $FLASHMAT eval --model target/flashmat-10400.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input \
     -o reports/bundled-10400
+rm -f reports/bundled-10400/worst.jpg
 $FLASHMAT eval --uniform --model $OLD --model target/flashmat-10400.safetensors -o reports/bundled-10400
-cargo run --release --quiet --example compare_models -- $OLD $M/flashmat.safetensors reports/bundled-10400/photos.jpg
+cargo run --release --quiet --example compare_models -- $OLD target/flashmat-10400.safetensors reports/bundled-10400/photos.jpg
+
+# The bundled model since the evening of 2026-11-24 (13,500 steps,
+# reports/bundled-13500.md): the same three against the 10,400-step model.
+cp $M/flashmat.safetensors target/flashmat-13500.safetensors
+$FLASHMAT eval --model target/flashmat-13500.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input \
+    -o reports/bundled-13500
+$FLASHMAT eval --uniform --model target/flashmat-10400.safetensors --model target/flashmat-13500.safetensors -o reports/bundled-13500
+cargo run --release --quiet --example compare_models -- target/flashmat-10400.safetensors $M/flashmat.safetensors reports/bundled-13500/photos.jpg

@@ -35,6 +35,27 @@ pub struct Archive {
 /// Smallest tensor stored as f16 when [`Archive::store_half`] is set.
 pub const HALF_MIN_NUMEL: usize = 1024;
 
+/// Rewrites a serialized safetensors file's JSON header with its keys in
+/// sorted order. `safetensors::serialize` takes the metadata as a HashMap
+/// and writes it in that map's random order, so the same archive gave
+/// different bytes on every save and a retrained model could not be
+/// checked by its SHA-256. The tensor offsets are explicit in the header,
+/// and the same keys and values in another order have the same length, so
+/// the data part is untouched.
+fn sort_header_keys(data: &mut [u8]) -> Result<()> {
+    let len_bytes: [u8; 8] = data.get(..8).context("serialized archive shorter than its header length")?.try_into()?;
+    let header_len = u64::from_le_bytes(len_bytes) as usize;
+    let header = data.get_mut(8..8 + header_len).context("serialized archive shorter than its header")?;
+    // serde_json's Map is a BTreeMap (no preserve_order feature): parsing sorts every object.
+    let parsed: serde_json::Value = serde_json::from_slice(header).context("parsing the serialized header")?;
+    let sorted = serde_json::to_vec(&parsed)?;
+    anyhow::ensure!(sorted.len() <= header.len(), "sorted header longer than the original ({} > {})", sorted.len(), header.len());
+    let (head, padding) = header.split_at_mut(sorted.len());
+    head.copy_from_slice(&sorted);
+    padding.fill(b' ');
+    Ok(())
+}
+
 impl Archive {
     pub fn new() -> Self {
         Self::default()
@@ -114,7 +135,8 @@ impl Archive {
             .iter()
             .map(|(name, dtype, bytes, shape)| Ok((name.clone(), TensorView::new(*dtype, shape.clone(), bytes)?)))
             .collect::<Result<_>>()?;
-        let data = safetensors::tensor::serialize(views, Some(metadata.into_iter().collect())).context("serializing tensors")?;
+        let mut data = safetensors::tensor::serialize(views, Some(metadata.into_iter().collect())).context("serializing tensors")?;
+        sort_header_keys(&mut data)?;
         crate::io::atomic_write_bytes(path, &data)
     }
 
@@ -262,6 +284,34 @@ mod tests {
         assert_eq!(b.with_prefix("net.").len(), 2);
         // no temporary files left behind
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    /// The same archive saved twice gives the same bytes (safetensors
+    /// itself writes the metadata in a HashMap's random order: with eight
+    /// keys two saves differed with probability 1 - 1/8!), the header's
+    /// keys are in sorted order, and the file still reads back.
+    #[test]
+    fn the_same_archive_gives_the_same_bytes() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut a = sample();
+        for key in ["model_id", "method", "info", "zeta"] {
+            a.set_meta(key, format!("value of {key}"));
+        }
+        let (p, q) = (dir.path().join("a.safetensors"), dir.path().join("b.safetensors"));
+        a.save(&p, "test", 3).unwrap();
+        a.save(&q, "test", 3).unwrap();
+        let (bytes, again) = (std::fs::read(&p).unwrap(), std::fs::read(&q).unwrap());
+        assert_eq!(bytes, again);
+        let header_len = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+        assert_eq!((8 + header_len) % 8, 0, "safetensors pads the header to 8 bytes");
+        let header = std::str::from_utf8(&bytes[8..8 + header_len]).unwrap();
+        let position = |key: &str| header.find(&format!("\"{key}\"")).unwrap();
+        let keys = ["config", "flashmat.crc32", "flashmat.format", "flashmat.meta_crc32", "flashmat.version", "info", "method", "model_id", "zeta"];
+        assert!(keys.windows(2).all(|w| position(w[0]) < position(w[1])), "{header}");
+        assert!(position("__metadata__") < position("net.b") && position("net.b") < position("net.w"), "{header}");
+        let b = Archive::load(&p, "test", 3).unwrap();
+        assert_eq!(b.meta("zeta").unwrap(), "value of zeta");
+        assert_eq!(b.tensor("net.w").unwrap().double_value(&[1, 2]), 6.0);
     }
 
     #[test]
