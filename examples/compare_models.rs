@@ -15,8 +15,8 @@
 //! 48 x 48 pixels of the photo and of both identity renders (at 256),
 //! enlarged 4x pixel for pixel.
 
-use anyhow::{bail, Result};
-use flashmat::eval::metrics::{checkerboard_amplitude, log_l1};
+use anyhow::{bail, ensure, Result};
+use flashmat::eval::photos::{bundled_photos, score_identity, PHOTO_FOV_DEG};
 use flashmat::geometry::LightView;
 use flashmat::image::Image;
 use flashmat::infer::{estimate, load_model, load_photo, overhead_camera, NeuralMaterial};
@@ -43,12 +43,6 @@ fn display(linear: &Image) -> Image {
     linear.to_display().resize_to(CELL, CELL)
 }
 
-/// Chromaticity error of an image's mean colour against another's.
-fn chroma_error(a: &Image, b: &Image) -> f64 {
-    use flashmat::eval::uniform::{chromaticity_distance, mean_colour};
-    chromaticity_distance(mean_colour(a), mean_colour(b))
-}
-
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let (old, new, out, zoom_out) = match args.as_slice() {
@@ -57,11 +51,8 @@ fn main() -> Result<()> {
         _ => bail!("usage: compare_models OLD_MODEL NEW_MODEL OUT.jpg [ZOOM.jpg]"),
     };
     let models = [load_model(Some(&PathBuf::from(old)), tch::Device::Cpu)?, load_model(Some(&PathBuf::from(new)), tch::Device::Cpu)?];
-    let mut photos: Vec<PathBuf> = std::fs::read_dir(flashmat::bundled_root().join("examples/photos"))?
-        .map(|e| e.map(|e| e.path()))
-        .collect::<std::io::Result<_>>()?;
-    photos.retain(|p| matches!(p.extension().and_then(|e| e.to_str()), Some("png" | "jpg")));
-    photos.sort();
+    let photos = bundled_photos()?;
+    ensure!(!photos.is_empty(), "no photos in {}", flashmat::bundled_root().join("examples/photos").display());
     let side = LightView { light: SIDE_LIGHT, view: overhead_camera() };
     let identity = NeuralMaterial::identity_config();
     let mut rows = vec![];
@@ -71,17 +62,11 @@ fn main() -> Result<()> {
     println!("| photo | identity log-L1, old | new | chromaticity error, old | new | checkerboard, old | new |\n|---|---|---|---|---|---|---|");
     for path in &photos {
         let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        let photo = load_photo(path, Some(28.0), 256)?;
+        let photo = load_photo(path, Some(PHOTO_FOV_DEG), 256)?;
         let materials = [estimate(&models[0].model, &models[0].info, &photo)?, estimate(&models[1].model, &models[1].info, &photo)?];
         let identities = [materials[0].render_image(&identity)?, materials[1].render_image(&identity)?];
-        let errors = [
-            log_l1(&identities[0], &photo.linear)?,
-            log_l1(&identities[1], &photo.linear)?,
-            chroma_error(&identities[0], &photo.linear),
-            chroma_error(&identities[1], &photo.linear),
-            checkerboard_amplitude(&identities[0], &photo.linear)?,
-            checkerboard_amplitude(&identities[1], &photo.linear)?,
-        ];
+        let (old_score, new_score) = (score_identity(&identities[0], &photo.linear)?, score_identity(&identities[1], &photo.linear)?);
+        let errors = [old_score.log_l1, new_score.log_l1, old_score.chroma_error, new_score.chroma_error, old_score.checkerboard, new_score.checkerboard];
         for (sum, e) in sums.iter_mut().zip(errors) {
             *sum += e;
         }

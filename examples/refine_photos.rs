@@ -30,12 +30,7 @@ fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let steps: usize = args.get(1).map_or(Ok(flashmat::infer::refine::DEFAULT_REFINE_STEPS), |s| s.parse()).context("STEPS must be a whole number")?;
     let out = PathBuf::from(args.get(2).map_or("reports/refine", String::as_str));
-    let root = flashmat::bundled_root();
-    let mut photos: Vec<PathBuf> = std::fs::read_dir(root.join("examples/photos"))?
-        .map(|e| e.map(|e| e.path()))
-        .collect::<std::io::Result<_>>()?;
-    photos.retain(|p| matches!(p.extension().and_then(|e| e.to_str()), Some("png" | "jpg")));
-    photos.sort();
+    let photos = flashmat::eval::photos::bundled_photos()?;
     let loaded = load_model(None, tch::Device::Cpu)?;
     let cfg = RefineConfig::with_steps(steps);
     let side = LightView { light: SIDE_LIGHT, view: overhead_camera() };
@@ -47,7 +42,7 @@ fn main() -> Result<()> {
     );
     for path in &photos {
         let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        let photo = load_photo(path, Some(28.0), 256)?;
+        let photo = load_photo(path, Some(flashmat::eval::photos::PHOTO_FOV_DEG), 256)?;
         let unrefined = estimate(&loaded.model, &loaded.info, &photo)?;
         let mut refined = estimate(&loaded.model, &loaded.info, &photo)?;
         let report = refine(&mut refined, &photo.linear.to_tensor(), photo.ldr, &cfg, |_| {})?;

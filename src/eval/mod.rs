@@ -14,6 +14,7 @@
 pub mod captures;
 pub mod methods;
 pub mod metrics;
+pub mod photos;
 pub mod report;
 pub mod shadows;
 pub mod uniform;

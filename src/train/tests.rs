@@ -358,6 +358,8 @@ fn time_limit_stops_with_checkpoint_and_export_then_warm_start_continues_the_ste
     let line: serde_json::Value = serde_json::from_str(colour.lines().last().unwrap()).unwrap();
     assert_eq!(line["step"], 1);
     assert!(line["identity_chroma_error"].as_f64().unwrap().is_finite());
+    // And the photo check on the 13 bundled photos.
+    assert!(line["photo_chroma_error"].as_f64().unwrap().is_finite() && line["photo_log_l1"].as_f64().unwrap() > 0.0, "{line}");
     let file = export.join(run::EXPORT_FILE);
     let (model, info) = crate::model::Model::load(&file, tch::Device::Cpu).unwrap();
     assert_eq!(info, crate::model::ModelInfo { ldr_input: false, steps: 1 });
