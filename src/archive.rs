@@ -287,8 +287,8 @@ mod tests {
     }
 
     /// The same archive saved twice gives the same bytes (safetensors
-    /// itself writes the metadata in a HashMap's random order: with eight
-    /// keys two saves differed with probability 1 - 1/8!), the header's
+    /// itself writes the metadata in a HashMap's random order: with these
+    /// nine keys two saves agreed about once in 9! times), the header's
     /// keys are in sorted order, and the file still reads back.
     #[test]
     fn the_same_archive_gives_the_same_bytes() {
