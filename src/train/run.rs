@@ -165,15 +165,15 @@ impl RunTrainer for Trainer {
         preview_grid(self, batch, max_outputs)
     }
     fn export_model(&self, path: &Path, half: bool) -> Result<()> {
-        let info = crate::model::ModelInfo { ldr_input: self.config.ldr_input, steps: self.step };
+        let info = model_info(&self.config, self.step);
         self.model.save(path, &info, half)
     }
     fn colour_summary(&self) -> Option<Result<crate::eval::uniform::ColourSummary>> {
-        let info = crate::model::ModelInfo { ldr_input: self.config.ldr_input, steps: self.step };
+        let info = model_info(&self.config, self.step);
         Some(crate::eval::uniform::colour_check(&self.model, &info, COLOUR_CHECK_SIZE).map(|rows| crate::eval::uniform::summarize(&rows)))
     }
     fn photo_summary(&self) -> Option<Result<crate::eval::photos::PhotoSummary>> {
-        let info = crate::model::ModelInfo { ldr_input: self.config.ldr_input, steps: self.step };
+        let info = model_info(&self.config, self.step);
         crate::eval::photos::photo_check(&self.model, &info, PHOTO_CHECK_SIZE).transpose()
     }
     fn is_finite_on(&self, batch: &TrainingBatch) -> Result<bool> {
@@ -225,7 +225,7 @@ impl RunTrainer for BaselineTrainer {
         BaselineTrainer::preview_grid(self, batch, max_outputs)
     }
     fn export_model(&self, path: &Path, half: bool) -> Result<()> {
-        let info = crate::model::ModelInfo { ldr_input: self.config.ldr_input, steps: self.step };
+        let info = model_info(&self.config, self.step);
         self.net.save(path, &info, half)
     }
     fn is_finite_on(&self, batch: &TrainingBatch) -> Result<bool> {
@@ -300,6 +300,12 @@ impl RunOptions {
     pub fn new(run_dir: impl Into<PathBuf>, device: Device, progress: bool) -> Self {
         Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, new_lr: None, checkerboard_free: false, new_colour_augment: None, progress }
     }
+}
+
+/// What an exported model (and the checks run on the live networks)
+/// records of the run: its input range and the steps done.
+fn model_info(config: &TrainConfig, steps: u64) -> crate::model::ModelInfo {
+    crate::model::ModelInfo { ldr_input: config.ldr_input, steps }
 }
 
 /// Resolution of the uniform-colour check logged at every checkpoint
