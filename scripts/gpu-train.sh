@@ -145,7 +145,7 @@ chunk() {
     teacher=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1])).get("teacher", ""))' "$run/config.json")
     "$BIN" train --resume "$run" "${resume_lr[@]}" "${args[@]}"
   elif [ -f "$RESUME_MODEL" ]; then
-    how="warm start from $(basename "$RESUME_MODEL") (the last chunk's export; the machine's disk was gone)"
+    how="warm start from $(basename "$RESUME_MODEL") (carried in .gpu/: the last chunk's export, or the model a campaign continues; no checkpoint on this machine's disk)"
     rm -rf "$run"
     if [ "$TEACHER_STEPS" -gt 0 ]; then
       [ -f "$CARRIED_TEACHER" ] || die "the curriculum's warm start needs the teacher: copy the first chunk's teacher.safetensors to $CARRIED_TEACHER"
@@ -226,8 +226,10 @@ verdict() {
   fi
   local bundled="$ROOT/models/flashmat.safetensors"
   rm -rf "$WORK/eval"
+  # 8-bit (clamped) photos: the recipe trains an 8-bit model (--ldr), and the
+  # issue's protocol scores an 8-bit model on 8-bit photos.
   "$BIN" eval --model "$candidate" --model "$bundled" --dataset procedural-test --configs "$CONFIGS" \
-    --device "$DEVICE" -o "$WORK/eval" "${EVAL_EXTRA[@]}" >/dev/null
+    --ldr-input --device "$DEVICE" -o "$WORK/eval" "${EVAL_EXTRA[@]}" >/dev/null
   mkdir -p "$out/verdict"
   cp "$WORK/eval/summary.md" "$WORK/eval/candidate.csv" "$WORK/eval/flashmat.csv" "$out/verdict/"
   [ "$keep_model" = yes ] && cp "$candidate" "$out/candidate.safetensors"
@@ -265,6 +267,11 @@ stage() {
   cargo build --release --bin flashmat
   mkdir -p .gpu
   cp target/release/flashmat .gpu/flashmat
+  # A campaign continues the bundled model (the first campaign's lesson,
+  # docs/GPU.md) unless a resume model is already staged or FLASHMAT_GPU_FRESH=1.
+  if [ ! -f "$RESUME_MODEL" ] && [ "${FLASHMAT_GPU_FRESH:-0}" != 1 ]; then
+    cp models/flashmat.safetensors "$RESUME_MODEL"
+  fi
   local size; size=$(git ls-files -z | xargs -0 du -cb | tail -n 1 | cut -f1)
   local extra; extra=$(du -cb .gpu | tail -n 1 | cut -f1)
   echo "staged .gpu/ ($((extra / 1048576)) MiB; tracked tree $((size / 1048576)) MiB; a job takes at most 64 MiB)"

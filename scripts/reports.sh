@@ -3,8 +3,8 @@
 # models/MODEL.md: the paper's table with the baselines and the LDR vs HDR
 # ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
 # Deterministic: the same models give the same numbers. Only the bundled
-# model (models/flashmat.safetensors, 13,500 steps since 2026-11-24) is in
-# the tree; the others (the 4,000- and 10,400-step bundled models too,
+# model (models/flashmat.safetensors, 24,115 steps since 2026-11-24) is in
+# the tree; the others (the 4,000-, 10,400- and 13,500-step bundled models too,
 # taken from git history below) left it to keep the tree
 # shippable to GPU jobs: retrain them with MODEL.md's commands (check the
 # SHA-256 listed there) or take them from commit 6447422.
@@ -103,10 +103,22 @@ rm -f reports/bundled-10400/worst.jpg
 $FLASHMAT eval --uniform --model $OLD --model target/flashmat-10400.safetensors -o reports/bundled-10400
 cargo run --release --quiet --example compare_models -- $OLD target/flashmat-10400.safetensors reports/bundled-10400/photos.jpg
 
-# The bundled model since the evening of 2026-11-24 (13,500 steps,
-# reports/bundled-13500.md): the same three against the 10,400-step model.
-cp $M/flashmat.safetensors target/flashmat-13500.safetensors
+# The bundled model in the evening of 2026-11-24 (13,500 steps,
+# reports/bundled-13500.md), from git history: the same three against the
+# 10,400-step model. Its worst-material grid is not kept (tree size).
+[ -f target/flashmat-13500.safetensors ] || git show 39736b1:models/flashmat.safetensors > target/flashmat-13500.safetensors
 $FLASHMAT eval --model target/flashmat-13500.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input \
     -o reports/bundled-13500
+rm -f reports/bundled-13500/worst.jpg
 $FLASHMAT eval --uniform --model target/flashmat-10400.safetensors --model target/flashmat-13500.safetensors -o reports/bundled-13500
-cargo run --release --quiet --example compare_models -- target/flashmat-10400.safetensors $M/flashmat.safetensors reports/bundled-13500/photos.jpg
+cargo run --release --quiet --example compare_models -- target/flashmat-10400.safetensors target/flashmat-13500.safetensors reports/bundled-13500/photos.jpg
+
+# The bundled model since the night of 2026-11-24 (24,115 steps, the first
+# GPU campaign; reports/bundled-24115.md): the same three against the
+# 13,500-step model. (The campaign's own reports, reports/gpu-campaign-*,
+# come from the GPU jobs: docs/GPU.md.)
+cp $M/flashmat.safetensors target/flashmat-24115.safetensors
+$FLASHMAT eval --model target/flashmat-24115.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input \
+    -o reports/bundled-24115
+$FLASHMAT eval --uniform --model target/flashmat-13500.safetensors --model target/flashmat-24115.safetensors -o reports/bundled-24115
+cargo run --release --quiet --example compare_models -- target/flashmat-13500.safetensors $M/flashmat.safetensors reports/bundled-24115/photos.jpg
