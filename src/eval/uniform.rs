@@ -113,7 +113,22 @@ fn score(set: &'static str, material: &'static str, render: &'static str, pred: 
     let chroma_error = chromaticity_distance(mp, mt);
     let log_ratio = [0, 1, 2].map(|c| (mp[c].max(1e-6) / mt[c].max(1e-6)).ln());
     let checkerboard = super::metrics::checkerboard_amplitude(pred, truth)?;
-    Ok(ColourRow { set, material, render, chroma_error, log_ratio, highlight_ratio: hp.max(1e-9) / ht.max(1e-9), checkerboard })
+    Ok(ColourRow { set, material, render, chroma_error, log_ratio, highlight_ratio: ratio_of_highlights(hp, ht), checkerboard })
+}
+
+fn ratio_of_highlights(predicted: f64, truth: f64) -> f64 {
+    predicted.max(1e-9) / truth.max(1e-9)
+}
+
+/// Scores a render, its colour clamped at 1 where `clamp_at_one` (what an
+/// 8-bit photo shows) but its highlight on the radiance itself: clamped,
+/// any saturated highlight would read 1 / (the truth's), whatever its height.
+/// pred, truth: [3, H, W]
+fn score_render(set: &'static str, material: &'static str, render: &'static str, pred: &Image, truth: &Image, clamp_at_one: bool) -> Result<ColourRow> {
+    let clamp = |im: &Image| if clamp_at_one { im.map(|v| v.min(1.0)) } else { im.clone() };
+    let mut row = score(set, material, render, &clamp(pred), &clamp(truth))?;
+    row.highlight_ratio = ratio_of_highlights(colour_stats(pred).1, colour_stats(truth).1);
+    Ok(row)
 }
 
 /// Runs the check on a model at `size` x `size` pixels (a multiple of 8).
@@ -134,8 +149,7 @@ fn colour_rows(model: &Model, info: &ModelInfo, size: usize) -> Result<Vec<Colou
         for (name, config, reference) in [("identity", identity, &truth[0]), ("relit", side, &truth[1])] {
             let pred = estimated.render_image(&config)?;
             // An LDR model is judged on what its photo shows: values up to 1.
-            let clamp = |im: &Image| if info.ldr_input && name == "identity" { im.map(|v| v.min(1.0)) } else { im.clone() };
-            rows.push(score(set, u.name, name, &clamp(&pred), &clamp(reference))?);
+            rows.push(score_render(set, u.name, name, &pred, reference, info.ldr_input && name == "identity")?);
         }
     }
     Ok(rows)
@@ -207,6 +221,27 @@ mod tests {
         spot.set(2, 5, 5, 6.0);
         let r = score("glossy", "red", "identity", &truth, &spot).unwrap();
         assert!((r.highlight_ratio - (0.8 / 3.0) / 6.0).abs() < 1e-6, "{}", r.highlight_ratio);
+    }
+
+    /// A highlight 10x too bright, both renders above 1 only in the
+    /// prediction: clamped colour sees a near-match, the highlight ratio
+    /// does not saturate at 1 / 0.66.
+    #[test]
+    fn the_highlight_ratio_is_taken_before_the_clamp() {
+        let mut truth = Image::filled(3, 10, 10, 0.1);
+        let mut pred = truth.clone();
+        for c in 0..3 {
+            truth.set(c, 5, 5, 0.66);
+            pred.set(c, 5, 5, 6.6);
+        }
+        let r = score_render("glossy", "near-black", "identity", &pred, &truth, true).unwrap();
+        assert!((r.highlight_ratio - 10.0).abs() < 1e-5, "{}", r.highlight_ratio);
+        assert!(r.chroma_error < 1e-9, "grey stays grey: {}", r.chroma_error);
+        // Clamped, the colour means differ only by the one highlight pixel, 1 against 0.66.
+        let expected = ((99.0f64 * 0.1 + 1.0) / (99.0 * 0.1 + 0.66)).ln();
+        assert!((r.log_ratio[0] - expected).abs() < 1e-5, "{:?} vs {expected}", r.log_ratio);
+        let before_the_fix = score("glossy", "near-black", "identity", &pred.map(|v| v.min(1.0)), &truth.map(|v| v.min(1.0))).unwrap();
+        assert!((before_the_fix.highlight_ratio - 1.0 / 0.66).abs() < 1e-5);
     }
 
     #[test]
