@@ -223,9 +223,9 @@ mod tests {
         assert!((r.highlight_ratio - (0.8 / 3.0) / 6.0).abs() < 1e-6, "{}", r.highlight_ratio);
     }
 
-    /// A highlight 10x too bright, both renders above 1 only in the
-    /// prediction: clamped colour sees a near-match, the highlight ratio
-    /// does not saturate at 1 / 0.66.
+    /// A highlight 10x too bright (above 1 only in the prediction): the
+    /// clamped colour sees a near-match, and the highlight ratio no longer
+    /// saturates at 1 / 0.66.
     #[test]
     fn the_highlight_ratio_is_taken_before_the_clamp() {
         let mut truth = Image::filled(3, 10, 10, 0.1);
