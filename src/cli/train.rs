@@ -115,6 +115,11 @@ pub struct TrainArgs {
     /// With --resume: from the resumed step on.
     #[arg(long, value_name = "P", value_parser = super::fraction)]
     pub colour_augment: Option<f64>,
+    /// Of each material's output renders, make N co-located: the input's own light and view, then
+    /// light and camera together at random points (default and paper: 0, "reflect" only). Trains
+    /// the renderer where light and view meet near the normal. With --resume: from the resumed step on.
+    #[arg(long, value_name = "N")]
+    pub colocated_outputs: Option<usize>,
     /// Keep M_est's upsampling kernels checkerboard-free (projected after every update: a flat photo
     /// gives a flat neural map; paper: free). With --resume: from the resumed step on.
     #[arg(long)]
@@ -242,6 +247,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         new_lr: a.resume.as_ref().and(a.lr),
         checkerboard_free: a.resume.is_some() && a.checkerboard_free,
         new_colour_augment: a.resume.as_ref().and(a.colour_augment),
+        new_colocated_outputs: a.resume.as_ref().and(a.colocated_outputs),
         ..RunOptions::new(dir.clone(), device, true)
     };
     if let Some(dir) = &a.resume {
@@ -286,6 +292,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         adv_start: a.adv_start,
         frozen_bn_from: a.frozen_bn_from,
         colour_augment: a.colour_augment.unwrap_or(0.0),
+        colocated_outputs: a.colocated_outputs.unwrap_or(0),
         checkerboard_free: a.checkerboard_free,
         straight_through_output: a.straight_through_output,
         weight_lpips: a.lpips_weight,

@@ -23,6 +23,14 @@ pub struct SampleConfig {
     pub ldr_input: bool,
     /// Scheme for output configurations.
     pub output_sampling: Sampling,
+    /// Of each material's outputs, this many (the last ones) are co-located
+    /// instead: the first the input's own configuration (the Identity case),
+    /// the others light and camera together at a random point of the
+    /// hemisphere of the camera's distance. "reflect" sampling almost never
+    /// puts light and view together near the normal, so without them the
+    /// renderer is free to spike there (issue 15).
+    #[serde(default)]
+    pub colocated_outputs: usize,
     /// Hard shadows from the materials' height fields (integrated from the
     /// normals where missing) in the input and output renders.
     #[serde(default)]
@@ -43,6 +51,7 @@ impl Default for SampleConfig {
             fov_deg: crate::geometry::MODEL_FOV_DEG,
             ldr_input: false,
             output_sampling: Sampling::Reflect,
+            colocated_outputs: 0,
             shadows: false,
             height_scale: 1.0,
         }
@@ -141,6 +150,27 @@ fn render_on_cpu(
     Ok((stack(&inputs), stack(&outputs), stack(&wis), stack(&wos)))
 }
 
+/// Replaces the last `colocated` of every `k` configurations with co-located
+/// ones (`SampleConfig::colocated_outputs`). Drawn after the others, so the
+/// remaining configurations are those a run without them draws.
+fn with_colocated_outputs<R: Rng>(configs: &mut [LightView], k: usize, colocated: usize, fov_deg: f64, rng: &mut R) -> Result<()> {
+    if colocated > k {
+        bail!("{colocated} co-located outputs asked of {k} outputs per material");
+    }
+    let d = crate::geometry::fov_to_distance(fov_deg);
+    for material in configs.chunks_mut(k) {
+        for (j, config) in material[k - colocated..].iter_mut().enumerate() {
+            *config = if j == 0 {
+                LightView::colocated(fov_deg)
+            } else {
+                let at = crate::geometry::uniform_hemisphere(rng).map(|c| c * d);
+                LightView { light: at, view: at }
+            };
+        }
+    }
+    Ok(())
+}
+
 /// Builds one training batch: input renders plus K sampled output renders.
 pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R, device: Device) -> Result<TrainingBatch> {
     let maps = stack_maps(materials, device)?;
@@ -150,7 +180,8 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
 
     let (in_wi, in_wo) = input_directions(h, w, cfg.fov_deg, device);
     let hz = half_vector_z(&in_wi, &in_wo).expand([n, 1, h as i64, w as i64], false);
-    let configs = sample_configs(rng, cfg.output_sampling, (n * k) as usize, cfg.fov_deg);
+    let mut configs = sample_configs(rng, cfg.output_sampling, (n * k) as usize, cfg.fov_deg);
+    with_colocated_outputs(&mut configs, k as usize, cfg.colocated_outputs, cfg.fov_deg, rng)?;
     // Input and outputs are rendered together by the f32 CPU renderer (much
     // faster than tensor ops on a CPU), then moved to the device.
     let shadows = ShadowOptions { height_scale: cfg.height_scale, ..Default::default() };
@@ -218,6 +249,32 @@ mod tests {
         let r = scalar::radiance_at(&pm, pixel_center(i, j, 8, 16), cfg1.light, cfg1.view);
         let t = b.targets.double_value(&[1, 2, 0, i as i64, j as i64]);
         assert!((t - r[0]).abs() < 1e-4 * r[0].max(1.0));
+    }
+
+    #[test]
+    fn colocated_outputs_replace_the_last_outputs_and_keep_the_others() {
+        let mats = vec![material(16, 16, 0.3), material(16, 16, 0.6)];
+        let plain = SampleConfig { outputs_per_material: 4, ..Default::default() };
+        let with = SampleConfig { colocated_outputs: 2, ..plain.clone() };
+        let a = make_batch(&mats, &plain, &mut Pcg64::seed_from_u64(5), Device::Cpu).unwrap();
+        let b = make_batch(&mats, &with, &mut Pcg64::seed_from_u64(5), Device::Cpu).unwrap();
+        let identity = LightView::colocated(plain.fov_deg);
+        let d = fov_to_distance(plain.fov_deg);
+        for i in 0..2 {
+            // The first two outputs are the reflect draws of a run without the option.
+            assert_eq!(&a.configs[i * 4..i * 4 + 2], &b.configs[i * 4..i * 4 + 2]);
+            assert_eq!(b.configs[i * 4 + 2], identity);
+            let other = b.configs[i * 4 + 3];
+            assert_eq!(other.light, other.view);
+            assert!((other.light.iter().map(|c| c * c).sum::<f64>().sqrt() - d).abs() < 1e-9 && other.light[2] >= 0.0);
+            assert_ne!(other, identity);
+            // The Identity output re-renders the (HDR) input photo exactly.
+            let diff = (b.targets.get(i as i64).get(2) - b.input_linear.get(i as i64)).abs().max().double_value(&[]);
+            assert!(diff < 1e-6, "identity output differs from the input by {diff}");
+        }
+        let too_many = SampleConfig { colocated_outputs: 5, ..plain };
+        let err = make_batch(&mats, &too_many, &mut Pcg64::seed_from_u64(5), Device::Cpu).err().unwrap();
+        assert!(err.to_string().contains("5 co-located outputs asked of 4"), "{err}");
     }
 
     #[test]

@@ -119,6 +119,7 @@ pub fn generate_bank(count: usize, size: usize) -> Vec<Svbrdf> {
 pub fn batch_for_step(cfg: &TrainConfig, materials: &[Svbrdf], step: u64, device: Device) -> Result<TrainingBatch> {
     let sample_cfg = SampleConfig {
         outputs_per_material: cfg.outputs_per_material,
+        colocated_outputs: cfg.colocated_outputs,
         ldr_input: cfg.ldr_input,
         shadows: cfg.shadows,
         height_scale: cfg.height_scale,

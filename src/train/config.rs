@@ -115,6 +115,11 @@ pub struct TrainConfig {
     /// colour from texture instead of reading it from the photo.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub colour_augment: f64,
+    /// Of each material's outputs, this many are co-located (the input's
+    /// own view, then light and camera together elsewhere,
+    /// `SampleConfig::colocated_outputs`); 0 is the paper's "reflect" only.
+    #[serde(default, skip_serializing_if = "is_zero_count")]
+    pub colocated_outputs: usize,
     /// Keep M_est's upsampling kernels checkerboard-free: projected
     /// (`MEst::project_checkerboard_free`) when the run starts or resumes
     /// and after every update, so a flat photo gives a flat neural map
@@ -134,6 +139,10 @@ pub struct TrainConfig {
     pub checkpoint_every: u64,
     pub preview_every: u64,
     pub seed: u64,
+}
+
+fn is_zero_count(v: &usize) -> bool {
+    *v == 0
 }
 
 fn is_zero(v: &f64) -> bool {
@@ -171,6 +180,7 @@ impl Default for TrainConfig {
             straight_through_output: false,
             frozen_bn_from: None,
             colour_augment: 0.0,
+            colocated_outputs: 0,
             checkerboard_free: false,
             weight_l1: 1.0,
             weight_lpips: 0.01,
@@ -248,6 +258,12 @@ impl TrainConfig {
         anyhow::ensure!(self.material_size >= self.crop, "material size {} is smaller than the crop {}", self.material_size, self.crop);
         anyhow::ensure!(self.materials_per_batch >= 2 || self.weight_adv == 0.0, "the discriminator needs at least 2 materials per batch");
         anyhow::ensure!(self.outputs_per_material >= 1, "at least one output render per material");
+        anyhow::ensure!(
+            self.colocated_outputs <= self.outputs_per_material,
+            "--colocated-outputs {} is more than the {} outputs per material",
+            self.colocated_outputs,
+            self.outputs_per_material
+        );
         anyhow::ensure!(self.pixel_fraction > 0.0 && self.pixel_fraction <= 1.0, "pixel fraction must be in (0, 1]");
         anyhow::ensure!(self.lr > 0.0 && self.lr.is_finite(), "learning rate must be positive");
         anyhow::ensure!(self.init_from.is_none() || self.warm_start.is_none(), "--init-from and --warm-start exclude each other");

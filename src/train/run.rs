@@ -292,13 +292,16 @@ pub struct RunOptions {
     /// With a resume: a new fraction of recoloured training materials
     /// (`TrainConfig::colour_augment`) from the resumed step on, recorded likewise.
     pub new_colour_augment: Option<f64>,
+    /// With a resume: co-located outputs per material
+    /// (`TrainConfig::colocated_outputs`) from the resumed step on, recorded likewise.
+    pub new_colocated_outputs: Option<usize>,
     pub progress: bool,
 }
 
 impl RunOptions {
     /// Options of a plain run in `run_dir` (no step, time or export limits).
     pub fn new(run_dir: impl Into<PathBuf>, device: Device, progress: bool) -> Self {
-        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, new_lr: None, checkerboard_free: false, new_colour_augment: None, progress }
+        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, new_lr: None, checkerboard_free: false, new_colour_augment: None, new_colocated_outputs: None, progress }
     }
 }
 
@@ -405,6 +408,10 @@ fn resume_with<T: RunTrainer>(opts: &RunOptions, steps: Option<u64>) -> Result<T
     }
     if let Some(p) = opts.new_colour_augment {
         trainer.config_mut().colour_augment = p;
+        trainer.config().validate()?;
+    }
+    if let Some(c) = opts.new_colocated_outputs {
+        trainer.config_mut().colocated_outputs = c;
         trainer.config().validate()?;
     }
     truncate_log(&opts.run_dir, trainer.steps_done())?;
