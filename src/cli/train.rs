@@ -116,7 +116,7 @@ pub struct TrainArgs {
     #[arg(long, value_name = "P", value_parser = super::fraction)]
     pub colour_augment: Option<f64>,
     /// Of each material's output renders, make N co-located: the input's own light and view, then
-    /// light and camera together at random points (default and paper: 0, "reflect" only). Trains
+    /// light and camera together at random points above the material (default and paper: 0, "reflect" only). Trains
     /// the renderer where light and view meet near the normal. With --resume: from the resumed step on.
     #[arg(long, value_name = "N")]
     pub colocated_outputs: Option<usize>,
