@@ -38,6 +38,10 @@ fn main() -> Result<()> {
         println!("  truth    {}", fmt(&row_of(&truth[0])));
         println!("  render   {}", fmt(&row_of(&pred)));
         println!("  |code|   {}", fmt(&norms));
+        let lum: Vec<f32> = (0..size * size).map(|i| (0..3).map(|c| pred.data[c * size * size + i]).sum::<f32>() / 3.0).collect();
+        let (at, peak) = lum.iter().enumerate().fold((0, f32::MIN), |best, (i, &v)| if v > best.1 { (i, v) } else { best });
+        let truth_peak = (0..size * size).map(|i| (0..3).map(|c| truth[0].data[c * size * size + i]).sum::<f32>() / 3.0).fold(f32::MIN, f32::max);
+        println!("  brightest render pixel {peak:.3} at row {}, column {} (truth's brightest {truth_peak:.3})", at / size, at % size);
         let original = mat.neural_map.copy();
         let mean = original.mean_dim(&[1i64, 2][..], true, Kind::Float);
         mat.neural_map = mean.expand_as(&original).contiguous();

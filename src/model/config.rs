@@ -41,7 +41,7 @@ impl Default for ModelConfig {
 }
 
 /// Names accepted by [`ModelConfig::preset`].
-pub const PRESETS: [&str; 3] = ["paper", "compact", "tiny"];
+pub const PRESETS: [&str; 4] = ["paper", "compact", "compact-f8", "tiny"];
 
 impl ModelConfig {
     /// The sizes of the paper and the authors' code: M_est 84,008,960
@@ -102,6 +102,18 @@ impl ModelConfig {
         }
     }
 
+    /// `compact` with 8 direction-encoding frequencies instead of 16 (ND_enc
+    /// reads 9 + 18 x 8 = 153 values). Where the direction components are
+    /// dyadic rationals (all 0 where light and view meet along the normal,
+    /// then 1/2, 1/4, ...) every cos(2^k pi v) of high k is 1 at once, and
+    /// weights that cancel elsewhere add up: the high frequencies gave the
+    /// co-located highlight a spike and rings (issue 15,
+    /// `reports/frequencies.md`). 2^7 pi still resolves a pixel's change of
+    /// direction at 256x256.
+    pub fn compact_f8() -> Self {
+        Self { name: "compact-f8".into(), enc_frequencies: 8, ..Self::compact() }
+    }
+
     /// For tests: the same architecture at toy widths (M_est W = 8,
     /// 1,338,176 parameters).
     pub fn tiny() -> Self {
@@ -118,11 +130,12 @@ impl ModelConfig {
         }
     }
 
-    /// A preset by name (`paper`, `compact`, `tiny`).
+    /// A preset by name (`paper`, `compact`, `compact-f8`, `tiny`).
     pub fn preset(name: &str) -> Result<Self> {
         match name {
             "paper" => Ok(Self::paper()),
             "compact" => Ok(Self::compact()),
+            "compact-f8" => Ok(Self::compact_f8()),
             "tiny" => Ok(Self::tiny()),
             other => bail!("unknown model preset '{other}'; available presets: {}", PRESETS.join(", ")),
         }
@@ -226,7 +239,8 @@ mod tests {
         }
         assert_eq!(ModelConfig::paper().encoding_width(), 297);
         let err = ModelConfig::preset("huge").unwrap_err().to_string();
-        assert!(err.contains("paper, compact, tiny"), "{err}");
+        assert!(err.contains("paper, compact, compact-f8, tiny"), "{err}");
+        assert_eq!(ModelConfig::compact_f8().encoding_width(), 153);
     }
 
     #[test]

@@ -226,6 +226,28 @@ impl Model {
         Ok((model, info))
     }
 
+    /// The same model with the direction encoding cut to `config`'s
+    /// frequencies: the first ND_enc layer keeps its columns for v and for
+    /// sin / cos(2^k pi v) with k below the new count, everything else is
+    /// copied. `config` may differ from the model's only in
+    /// `enc_frequencies` (not more than the model's) and its name. The
+    /// renders change by what the dropped columns contributed (a starting
+    /// point for a fine-tune, `reports/frequencies.md`).
+    pub fn truncate_frequencies(&self, config: &ModelConfig) -> Result<Self> {
+        let (n, keep) = (self.config.enc_frequencies, config.enc_frequencies);
+        ensure!(keep <= n, "the configuration has {keep} direction frequencies, the model only {n}");
+        let same_otherwise = ModelConfig { name: self.config.name.clone(), enc_frequencies: n, ..config.clone() };
+        ensure!(same_otherwise == self.config, "the configuration '{}' differs from the model's in more than its frequencies and name", config.name);
+        let mut truncated = Self::new(config, self.device())?;
+        let mut named: HashMap<String, Tensor> = self.named_variables().into_iter().collect();
+        let first = named.get(FIRST_ENCODING_LAYER).with_context(|| format!("{FIRST_ENCODING_LAYER} is missing"))?;
+        // Columns: [v (9) | sin, k-major (n x 9) | cos (n x 9)] (`nd_enc::encode_directions`).
+        let kept = Tensor::cat(&[first.narrow(1, 0, 9 + 9 * keep), first.narrow(1, 9 + 9 * n, 9 * keep)], 1);
+        named.insert(FIRST_ENCODING_LAYER.into(), kept);
+        truncated.load_named(&named)?;
+        Ok(truncated)
+    }
+
     /// Loads a model file and checks that it is the expected model id.
     pub fn load_expecting(path: impl AsRef<Path>, device: Device, model_id: &str) -> Result<(Self, ModelInfo)> {
         let (m, info) = Self::load(&path, device)?;
@@ -238,6 +260,9 @@ impl Model {
         Ok((m, info))
     }
 }
+
+/// ND_enc's first layer, the one that reads the direction encoding.
+const FIRST_ENCODING_LAYER: &str = "renderer.nd_enc.0.weight";
 
 /// Number of trainable scalars in a VarStore.
 pub fn count_trainable(vs: &nn::VarStore) -> i64 {

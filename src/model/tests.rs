@@ -457,3 +457,37 @@ fn projected_m_est_maps_a_flat_photo_to_a_flat_neural_map() {
     assert!(before > 0.1, "random kernels stamp a pattern on a flat photo: {before}");
     assert!(after < 1e-5, "projected: flat in, flat out ({after})");
 }
+
+#[test]
+fn truncating_frequencies_keeps_what_the_low_ones_compute() {
+    let cfg = ModelConfig::tiny();
+    let m = Model::new(&cfg, Device::Cpu).unwrap();
+    let fewer = ModelConfig { name: "tiny-f4".into(), enc_frequencies: 4, ..cfg.clone() };
+    let opts = (Kind::Float, Device::Cpu);
+    let unit = |t: Tensor| &t / t.square().sum_dim_intlist([1i64].as_slice(), true, Kind::Float).sqrt();
+    let (wi, wo) = (unit(Tensor::randn([50, 3], opts) + 0.5), unit(Tensor::randn([50, 3], opts) + 0.5));
+    let params = Tensor::randn([50, cfg.neural_channels], opts);
+    let render = |model: &Model| model.renderer.forward_rows(&params, &wi, &wo).unwrap();
+    // With the model's own weights the dropped columns contributed something.
+    let cut = m.truncate_frequencies(&fewer).unwrap();
+    assert_eq!(cut.model_id(), fewer.model_id());
+    assert_eq!(cut.renderer.nd_enc.layers[0].size(), [cfg.enc_hidden, 9 + 18 * 4]);
+    assert!((render(&cut) - render(&m)).abs().max().double_value(&[]) > 1e-4);
+    // Zero the columns of k >= 4 (sin at 9 + 9k.., cos at 9 + 9 * 16 + 9k..):
+    // the truncated model renders exactly what the full one does.
+    tch::no_grad(|| {
+        let first = &m.renderer.nd_enc.layers[0];
+        let _ = first.narrow(1, 9 + 9 * 4, 9 * 12).zero_();
+        let _ = first.narrow(1, 9 + 9 * 16 + 9 * 4, 9 * 12).zero_();
+    });
+    let cut = m.truncate_frequencies(&fewer).unwrap();
+    assert!((render(&cut) - render(&m)).abs().max().double_value(&[]) < 1e-6);
+    // M_est is copied unchanged.
+    let photo = Tensor::rand([1, 4, 16, 16], opts);
+    assert_eq!((cut.est_inference(&photo).unwrap() - m.est_inference(&photo).unwrap()).abs().max().double_value(&[]), 0.0);
+    // Refused: more frequencies than the model has, another width.
+    let more = ModelConfig { enc_frequencies: 17, ..cfg.clone() };
+    assert!(m.truncate_frequencies(&more).unwrap_err().to_string().contains("17 direction frequencies, the model only 16"));
+    let wider = ModelConfig { enc_hidden: 40, ..fewer };
+    assert!(m.truncate_frequencies(&wider).unwrap_err().to_string().contains("more than its frequencies"));
+}
