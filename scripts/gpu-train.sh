@@ -51,6 +51,9 @@ CONFIGS="${FLASHMAT_GPU_CONFIGS:-128}"
 # M_est's upsampling kept checkerboard-free (reports/checkerboard.md: level
 # held-out LPIPS, no 2x2 pattern); 0 for the paper's free kernels.
 CHECKERBOARD_FREE="${FLASHMAT_GPU_CHECKERBOARD_FREE:-1}"
+# Co-located outputs per material (docs/TRAINING.md, reports/frequencies.md;
+# 0: "reflect" only, as the first campaign trained).
+COLOCATED="${FLASHMAT_GPU_COLOCATED:-0}"
 # Curriculum (docs/TRAINING.md): the committed teacher (trained on the CPU,
 # models/MODEL.md; FLASHMAT_GPU_TEACHER= turns the curriculum off), or
 # teacher steps on the device before a fresh start; then the teacher-code
@@ -92,6 +95,7 @@ recipe() {
   local teacher=() constraint=()
   [ -n "${1:-}" ] && teacher=(--teacher "$1" --code-weight "$CODE_WEIGHT" --code-until "$CODE_UNTIL")
   [ "$CHECKERBOARD_FREE" = 1 ] && constraint=(--checkerboard-free)
+  [ "$COLOCATED" != 0 ] && constraint+=(--colocated-outputs "$COLOCATED")
   echo --preset "$PRESET" --ldr --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --lr "$LR" \
     --warmup-steps "$WARMUP" --straight-through-output --bank "$BANK" --seed "$SEED" \
     --steps 100000000 --checkpoint-every 500 --preview-every 1000 "${teacher[@]}" "${constraint[@]}"
@@ -269,8 +273,14 @@ stage() {
   cp target/release/flashmat .gpu/flashmat
   # A campaign continues the bundled model (the first campaign's lesson,
   # docs/GPU.md) unless a resume model is already staged or FLASHMAT_GPU_FRESH=1.
+  # Another preset that differs only in its direction frequencies
+  # (FLASHMAT_GPU_PRESET=compact-f8) starts from the bundled model cut to them.
   if [ ! -f "$RESUME_MODEL" ] && [ "${FLASHMAT_GPU_FRESH:-0}" != 1 ]; then
-    cp models/flashmat.safetensors "$RESUME_MODEL"
+    if [ "$PRESET" = compact ]; then
+      cp models/flashmat.safetensors "$RESUME_MODEL"
+    else
+      cargo run --release --example truncate_frequencies -- models/flashmat.safetensors "$PRESET" "$RESUME_MODEL"
+    fi
   fi
   local size; size=$(git ls-files -z | xargs -0 du -cb | tail -n 1 | cut -f1)
   local extra; extra=$(du -cb .gpu | tail -n 1 | cut -f1)
@@ -286,7 +296,7 @@ cpu_dry_run() {
   source scripts/env.sh
   [ -x target/release/flashmat ] || cargo build --release --bin flashmat
   export FLASHMAT_GPU_DEVICE=cpu FLASHMAT_GPU_PRESET=tiny FLASHMAT_GPU_CROP=32 FLASHMAT_GPU_BATCH=2 \
-    FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
+    FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_COLOCATED=1 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
     FLASHMAT_GPU_WORK="$tmp/machine" FLASHMAT_GPU_BIN="$ROOT/target/release/flashmat" \
     FLASHMAT_GPU_RESUME="$tmp/resume.safetensors" FLASHMAT_TORCH_LIB="$FLASHMAT_TORCH_LIB" \
     FLASHMAT_GPU_TEACHER_STEPS=20 FLASHMAT_GPU_TEACHER_PIXELS=1024 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/teacher.safetensors"

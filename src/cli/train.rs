@@ -15,7 +15,7 @@ pub struct TrainArgs {
     /// analytic (U-Net -> GGX maps, rendering loss) or relight-unet (U-Net predicting the relit image).
     #[arg(long, value_enum, default_value_t = TrainMethod::Flashmat, conflicts_with = "resume")]
     pub method: TrainMethod,
-    /// Model size preset: paper (W=64, the paper's sizes), compact (CPU-trainable) or tiny (tests).
+    /// Model size preset: paper (W=64, the paper's sizes), compact (CPU-trainable), compact-f8 (compact with 8 direction frequencies) or tiny (tests).
     #[arg(long, default_value = "compact", conflicts_with = "model_config")]
     pub preset: String,
     /// A TOML file with model sizes (fields of ModelConfig; missing ones take the paper's values).
