@@ -38,7 +38,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT="$PWD"
 
-PRESET="${FLASHMAT_GPU_PRESET:-compact}"
+# The bundled model's preset (compact with 8 direction frequencies,
+# reports/frequencies.md).
+PRESET="${FLASHMAT_GPU_PRESET:-compact-f8}"
 CROP="${FLASHMAT_GPU_CROP:-128}"
 BATCH="${FLASHMAT_GPU_BATCH:-8}"
 OUTPUTS="${FLASHMAT_GPU_OUTPUTS:-8}"
@@ -273,10 +275,10 @@ stage() {
   cp target/release/flashmat .gpu/flashmat
   # A campaign continues the bundled model (the first campaign's lesson,
   # docs/GPU.md) unless a resume model is already staged or FLASHMAT_GPU_FRESH=1.
-  # Another preset that differs only in its direction frequencies
-  # (FLASHMAT_GPU_PRESET=compact-f8) starts from the bundled model cut to them.
+  # A preset with fewer direction frequencies than the bundled model's, and
+  # otherwise the same, starts from the bundled model cut to them.
   if [ ! -f "$RESUME_MODEL" ] && [ "${FLASHMAT_GPU_FRESH:-0}" != 1 ]; then
-    if [ "$PRESET" = compact ]; then
+    if [ "$PRESET" = compact-f8 ]; then
       cp models/flashmat.safetensors "$RESUME_MODEL"
     else
       cargo run --release --example truncate_frequencies -- models/flashmat.safetensors "$PRESET" "$RESUME_MODEL"

@@ -34,8 +34,8 @@ use anyhow::{bail, ensure, Result};
 use std::path::{Path, PathBuf};
 use tch::Device;
 
-/// Preset of the bundled models (`models/compact-{ldr,hdr}-4000.safetensors`).
-pub const BUNDLED_PRESET: &str = "compact";
+/// Preset of the bundled model (`models/flashmat.safetensors`).
+pub const BUNDLED_PRESET: &str = "compact-f8";
 
 /// Environment variable that replaces the bundled-models folder.
 pub const MODELS_ENV: &str = "FLASHMAT_MODELS";
