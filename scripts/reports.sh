@@ -3,8 +3,9 @@
 # models/MODEL.md: the paper's table with the baselines and the LDR vs HDR
 # ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
 # Deterministic: the same models give the same numbers. Only the bundled
-# model (models/flashmat.safetensors, 24,115 steps since 2026-11-24) is in
-# the tree; the others (the 4,000-, 10,400- and 13,500-step bundled models too,
+# model (models/flashmat.safetensors: the 24,115-step weights with 8
+# direction frequencies since 2026-11-25) is in the tree; the others (the
+# 4,000-, 10,400-, 13,500- and 24,115-step bundled models too,
 # taken from git history below) left it to keep the tree
 # shippable to GPU jobs: retrain them with MODEL.md's commands (check the
 # SHA-256 listed there) or take them from commit 6447422.
@@ -113,12 +114,22 @@ rm -f reports/bundled-13500/worst.jpg
 $FLASHMAT eval --uniform --model target/flashmat-10400.safetensors --model target/flashmat-13500.safetensors -o reports/bundled-13500
 cargo run --release --quiet --example compare_models -- target/flashmat-10400.safetensors target/flashmat-13500.safetensors reports/bundled-13500/photos.jpg
 
-# The bundled model since the night of 2026-11-24 (24,115 steps, the first
-# GPU campaign; reports/bundled-24115.md): the same three against the
-# 13,500-step model. (The campaign's own reports, reports/gpu-campaign-*,
-# come from the GPU jobs: docs/GPU.md.)
-cp $M/flashmat.safetensors target/flashmat-24115.safetensors
+# The bundled model from the night of 2026-11-24 to 2026-11-25 (24,115
+# steps, the first GPU campaign; reports/bundled-24115.md), from git
+# history: the same three against the 13,500-step model. (The campaign's
+# own reports, reports/gpu-campaign-*, come from the GPU jobs: docs/GPU.md.)
+[ -f target/flashmat-24115.safetensors ] || git show e02db76:models/flashmat.safetensors > target/flashmat-24115.safetensors
 $FLASHMAT eval --model target/flashmat-24115.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input \
     -o reports/bundled-24115
 $FLASHMAT eval --uniform --model target/flashmat-13500.safetensors --model target/flashmat-24115.safetensors -o reports/bundled-24115
-cargo run --release --quiet --example compare_models -- target/flashmat-13500.safetensors $M/flashmat.safetensors reports/bundled-24115/photos.jpg
+cargo run --release --quiet --example compare_models -- target/flashmat-13500.safetensors target/flashmat-24115.safetensors reports/bundled-24115/photos.jpg
+
+# The bundled model since 2026-11-25 (the same weights with 8 direction
+# frequencies; reports/frequencies.md): the held-out CSV and the photos
+# against 16 frequencies. The report's fine-tunes are training runs kept in
+# the cache (commands in the report), not regenerated here.
+cp $M/flashmat.safetensors target/trunc8-24115.safetensors
+$FLASHMAT eval --model target/trunc8-24115.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input \
+    -o target/eval-trunc8-24115
+cp target/eval-trunc8-24115/trunc8-24115.csv reports/frequencies/
+cargo run --release --quiet --example compare_models -- target/flashmat-24115.safetensors $M/flashmat.safetensors reports/frequencies/photos.jpg
