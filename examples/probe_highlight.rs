@@ -15,7 +15,15 @@ use flashmat::geometry::LightView;
 use flashmat::infer::{estimate, load_model, PreparedPhoto};
 use tch::Kind;
 
-fn main() -> Result<()> {
+fn main() {
+    // One error line and a non-zero exit for bad input, never a backtrace.
+    if let Err(e) = run() {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run() -> Result<()> {
     let path = std::env::args().nth(1).map(std::path::PathBuf::from);
     let size: usize = std::env::args().nth(2).map_or(Ok(256), |s| s.parse())?;
     let loaded = load_model(path.as_deref(), tch::Device::Cpu)?;

@@ -17,7 +17,15 @@ use anyhow::{ensure, Result};
 use flashmat::model::{Model, ModelConfig};
 use tch::Device;
 
-fn main() -> Result<()> {
+fn main() {
+    // One error line and a non-zero exit for bad input, never a backtrace.
+    if let Err(e) = run() {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
     ensure!(args.len() == 4, "usage: truncate_frequencies MODEL_IN CONFIG.toml|PRESET MODEL_OUT");
     let (model, info) = Model::load(&args[1], Device::Cpu)?;
