@@ -3,11 +3,10 @@
 //! k < N (`Model::truncate_frequencies`), and the model is saved with the
 //! configuration of a preset or TOML file that differs from the model's
 //! only in its frequencies and name (a new model id; every consumer reads
-//! the count from the file). Issue 15: at
-//! directions whose components are dyadic rationals (0 at co-location
-//! along the normal, then 1/2, 1/4, ...) every cos(2^k pi v) of high k is
-//! 1 at once, so weights that cancel elsewhere add up: the spike and the
-//! rings. The truncated model is a starting point for a fine-tune.
+//! the count from the file). Issue 15: at directions whose components are
+//! dyadic rationals (0 at co-location along the normal, then 1/2, 1/4, ...)
+//! every cos(2^k pi v) of high k is 1 at once, so weights that cancel
+//! elsewhere add up: the spike and the rings (`reports/frequencies.md`).
 //!
 //! ```sh
 //! cargo run --release --example truncate_frequencies -- target/gpu-25650.safetensors compact-f8 target/gpu-25650-f8.safetensors

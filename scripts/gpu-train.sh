@@ -274,9 +274,10 @@ stage() {
   mkdir -p .gpu
   cp target/release/flashmat .gpu/flashmat
   # A campaign continues the bundled model (the first campaign's lesson,
-  # docs/GPU.md) unless a resume model is already staged or FLASHMAT_GPU_FRESH=1.
-  # A preset with fewer direction frequencies than the bundled model's, and
-  # otherwise the same, starts from the bundled model cut to them.
+  # docs/GPU.md) unless a resume model is already staged or FLASHMAT_GPU_FRESH=1;
+  # a preset of fewer direction frequencies than the bundled model's
+  # (compact-f8, BUNDLED_PRESET in src/infer/mod.rs), otherwise the same,
+  # continues it cut to them.
   if [ ! -f "$RESUME_MODEL" ] && [ "${FLASHMAT_GPU_FRESH:-0}" != 1 ]; then
     if [ "$PRESET" = compact-f8 ]; then
       cp models/flashmat.safetensors "$RESUME_MODEL"
