@@ -3,9 +3,9 @@
 # models/MODEL.md: the paper's table with the baselines and the LDR vs HDR
 # ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
 # Deterministic: the same models give the same numbers. Only the bundled
-# model (models/flashmat.safetensors: the 24,115-step weights with 8
-# direction frequencies since 2026-11-25) is in the tree; the others (the
-# 4,000-, 10,400-, 13,500- and 24,115-step bundled models too,
+# model (models/flashmat.safetensors: 26,500 steps since 2026-11-25) is in
+# the tree; the others (the 4,000-, 10,400-, 13,500- and 24,115-step
+# bundled models too, 16 and 8 frequencies,
 # taken from git history below) left it to keep the tree
 # shippable to GPU jobs: retrain them with MODEL.md's commands (check the
 # SHA-256 listed there) or take them from commit 6447422.
@@ -124,12 +124,24 @@ $FLASHMAT eval --model target/flashmat-24115.safetensors --dataset procedural-te
 $FLASHMAT eval --uniform --model target/flashmat-13500.safetensors --model target/flashmat-24115.safetensors -o reports/bundled-24115
 cargo run --release --quiet --example compare_models -- target/flashmat-13500.safetensors target/flashmat-24115.safetensors reports/bundled-24115/photos.jpg
 
-# The bundled model since 2026-11-25 (the same weights with 8 direction
-# frequencies; reports/frequencies.md): the held-out CSV and the photos
-# against 16 frequencies. The report's fine-tunes are training runs kept in
-# the cache (commands in the report), not regenerated here.
-cp $M/flashmat.safetensors target/trunc8-24115.safetensors
+# The bundled model of 2026-11-25 morning (the same weights with 8
+# direction frequencies; reports/frequencies.md), from git history: the
+# held-out CSV and the photos against 16 frequencies. The report's
+# fine-tunes are training runs kept in the cache (commands in the report),
+# not regenerated here.
+[ -f target/trunc8-24115.safetensors ] || git show fec657a:models/flashmat.safetensors > target/trunc8-24115.safetensors
 $FLASHMAT eval --model target/trunc8-24115.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input \
     -o target/eval-trunc8-24115
 cp target/eval-trunc8-24115/trunc8-24115.csv reports/frequencies/
-cargo run --release --quiet --example compare_models -- target/flashmat-24115.safetensors $M/flashmat.safetensors reports/frequencies/photos.jpg
+cargo run --release --quiet --example compare_models -- target/flashmat-24115.safetensors target/trunc8-24115.safetensors reports/frequencies/photos.jpg
+
+# The bundled model since 2026-11-25 (later; 26,500 steps, the renderer
+# fine-tuned with M_est frozen; reports/frozen.md): its held-out CSV, the
+# uniform check and the photos against the 8-frequency model. The other
+# arms' runs live in the cache (commands in the report).
+cp $M/flashmat.safetensors target/C-26500.safetensors
+$FLASHMAT eval --model target/C-26500.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input -o target/eval-C-26500
+cp target/eval-C-26500/C-26500.csv reports/frozen/
+$FLASHMAT eval --uniform --model target/C-26500.safetensors -o target/uniform-C-26500
+cp target/uniform-C-26500/uniform.md reports/frozen/uniform-26500.md
+cargo run --release --quiet --example compare_models -- target/trunc8-24115.safetensors $M/flashmat.safetensors reports/frozen/photos.jpg

@@ -124,6 +124,16 @@ pub struct TrainArgs {
     /// gives a flat neural map; paper: free). With --resume: from the resumed step on.
     #[arg(long)]
     pub checkerboard_free: bool,
+    /// Train ND_enc + M_render (and the discriminator) only: M_est keeps the warm start's weights and
+    /// runs as at inference (BatchNorm on running statistics). About half the step's time; needs
+    /// --warm-start or --init-from (paper: both networks train). A resumed run keeps its own choice.
+    #[arg(long, conflicts_with = "resume")]
+    pub freeze_estimator: bool,
+    /// With --freeze-estimator and --colocated-outputs: the outputs that are not co-located take this model's renders
+    /// (the same model, usually the warm start) as their targets instead of the GGX truth, so the renderer learns the
+    /// co-located light while holding what it renders elsewhere.
+    #[arg(long, value_name = "MODEL_FILE", conflicts_with = "resume", requires = "freeze_estimator")]
+    pub anchor: Option<PathBuf>,
     /// Start the adversarial term at step N (paper: 0).
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub adv_start: u64,
@@ -294,6 +304,8 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         colour_augment: a.colour_augment.unwrap_or(0.0),
         colocated_outputs: a.colocated_outputs.unwrap_or(0),
         checkerboard_free: a.checkerboard_free,
+        freeze_estimator: a.freeze_estimator,
+        anchor: a.anchor.as_ref().map(|p| p.display().to_string()),
         straight_through_output: a.straight_through_output,
         weight_lpips: a.lpips_weight,
         weight_adv: a.adv_weight,

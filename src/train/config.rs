@@ -126,6 +126,23 @@ pub struct TrainConfig {
     /// (false: the paper's free transposed convolutions).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub checkerboard_free: bool,
+    /// Train the renderer (ND_enc + M_render) and the discriminator only:
+    /// M_est is not stepped and runs in inference mode (BatchNorm on its
+    /// running statistics), so its codes are exactly those `estimate`
+    /// gives. For fixing what the renderer does with a trained M_est's
+    /// codes (the co-located highlight) without moving M_est (false: the
+    /// paper, both halves).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub freeze_estimator: bool,
+    /// Model file (the same model; usually the warm start) whose renderer
+    /// gives the targets of the outputs that are not co-located: its
+    /// renders of the same neural map and directions instead of the GGX
+    /// truth. The run then learns the co-located outputs' truth while
+    /// holding the renderer to what it did everywhere else. Needs
+    /// `freeze_estimator` and `colocated_outputs` (None: the truth for
+    /// every output, the paper).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub anchor: Option<String>,
     pub weight_l1: f64,
     pub weight_lpips: f64,
     pub weight_adv: f64,
@@ -182,6 +199,8 @@ impl Default for TrainConfig {
             colour_augment: 0.0,
             colocated_outputs: 0,
             checkerboard_free: false,
+            freeze_estimator: false,
+            anchor: None,
             weight_l1: 1.0,
             weight_lpips: 0.01,
             weight_adv: 0.03,
@@ -270,6 +289,17 @@ impl TrainConfig {
         anyhow::ensure!(!self.checkerboard_free || self.method.is_flashmat(), "--checkerboard-free applies to --method flashmat only");
         anyhow::ensure!(self.weight_code >= 0.0 && self.weight_code.is_finite(), "--code-weight must be a finite number >= 0 (got {})", self.weight_code);
         anyhow::ensure!(self.weight_code == 0.0 || self.teacher.is_some(), "--code-weight needs --teacher FILE");
+        anyhow::ensure!(!self.freeze_estimator || self.method.is_flashmat(), "--freeze-estimator applies to --method flashmat only");
+        anyhow::ensure!(!self.freeze_estimator || self.weight_code == 0.0, "--freeze-estimator excludes --code-weight (the teacher's code term trains M_est)");
+        anyhow::ensure!(
+            !self.freeze_estimator || (self.init_from.is_some() || self.warm_start.is_some()),
+            "--freeze-estimator needs a trained M_est: give --warm-start or --init-from"
+        );
+        if self.anchor.is_some() {
+            anyhow::ensure!(self.freeze_estimator, "--anchor needs --freeze-estimator (it holds the renderer, for a fixed M_est)");
+            anyhow::ensure!(self.colocated_outputs >= 1, "--anchor needs --colocated-outputs N >= 1 (the outputs that still learn the truth)");
+            anyhow::ensure!(self.scheme == UpdateScheme::Alternating, "--anchor applies to --scheme alternating only");
+        }
         anyhow::ensure!(self.bank == 0 || self.data == "procedural", "--bank applies to procedural data only (got --data {})", self.data);
         anyhow::ensure!(self.height_scale >= 0.0 && self.height_scale.is_finite(), "height scale must be a finite number >= 0 (got {})", self.height_scale);
         Ok(())

@@ -20,7 +20,7 @@ use crate::data::samples::TrainingBatch;
 use crate::lpips::Lpips;
 use crate::model::{Discriminator, Model};
 use crate::optim::Adam;
-use anyhow::Result;
+use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Tensor};
 
@@ -64,6 +64,9 @@ pub struct Trainer {
     pub lpips: Option<Lpips>,
     /// The frozen per-pixel teacher of the curriculum's second stage.
     pub teacher: Option<teacher::Teacher>,
+    /// The frozen model whose renders are the non-co-located outputs'
+    /// targets (`TrainConfig::anchor`).
+    pub anchor: Option<Model>,
     /// Steps completed.
     pub step: u64,
 }
@@ -117,7 +120,16 @@ impl Trainer {
             Some(file) => Some(teacher::Teacher::load(std::path::Path::new(file), &config.model, device, Some(&model.renderer_vs))?),
             None => None,
         };
-        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, step: 0 })
+        let anchor = match &config.anchor {
+            Some(file) => {
+                let (mut anchor, _) = Model::load_expecting(file, device, &model.model_id()).with_context(|| format!("{file}: --anchor"))?;
+                anchor.est_vs.freeze();
+                anchor.renderer_vs.freeze();
+                Some(anchor)
+            }
+            None => None,
+        };
+        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, anchor, step: 0 })
     }
 
     pub fn device(&self) -> Device {
@@ -161,9 +173,6 @@ impl Trainer {
 
     fn alternating_step(&mut self, b: &TrainingBatch, lr: f64, weight_adv: f64) -> Result<StepLosses> {
         let cfg = self.config.clone();
-        let target_log = crate::spaces::to_log(&b.targets);
-        let photo_log = b.est_input.narrow(1, 0, 3);
-        let clip = cfg.grad_clip;
         let mut out = StepLosses::default();
 
         // The direction code does not depend on the neural map: encode once,
@@ -171,6 +180,16 @@ impl Trainer {
         // and with its graph for the renderer half.
         self.zero_all();
         let code = self.model.renderer.encode_maps(&b.out_wi, &b.out_wo)?;
+
+        if cfg.freeze_estimator {
+            // M_est as at inference: no gradient, running BatchNorm statistics.
+            let neural = tch::no_grad(|| self.model.est.forward_t(&b.est_input, false))?;
+            out.param_norm = losses::mean_param_norm(&neural);
+            return self.renderer_and_discriminator_updates(b, neural, &code, lr, weight_adv, out);
+        }
+
+        let target_log = crate::spaces::to_log(&b.targets);
+        let photo_log = b.est_input.narrow(1, 0, 3);
 
         // 1. M_est update; the renderer takes part in the graph but is not stepped.
         let neural = self.model.est.forward_t(&b.est_input, cfg.est_batch_stats_at(self.step))?;
@@ -200,14 +219,42 @@ impl Trainer {
             return Ok(StepLosses { skipped: true, ..out });
         }
 
+        self.renderer_and_discriminator_updates(b, neural.detach(), &code, lr, weight_adv, out)
+    }
+
+    /// The alternating step's second half: the renderer's update on the
+    /// (detached) neural map with pixel-sampled L1, the discriminator's,
+    /// then the optimizer steps (M_est's too unless it is frozen). `out`
+    /// carries the first half's losses.
+    /// neural: `[B, C, H, W]` detached; code: the direction code of the outputs.
+    fn renderer_and_discriminator_updates(
+        &mut self,
+        b: &TrainingBatch,
+        neural: Tensor,
+        code: &Tensor,
+        lr: f64,
+        weight_adv: f64,
+        mut out: StepLosses,
+    ) -> Result<StepLosses> {
+        let cfg = self.config.clone();
+        let truth_log = crate::spaces::to_log(&b.targets);
+        let target_log = match &self.anchor {
+            Some(anchor) => anchored_targets(anchor, &neural, b, &truth_log, cfg.colocated_outputs)?,
+            None => truth_log.shallow_clone(),
+        };
+        let photo_log = b.est_input.narrow(1, 0, 3);
+        let clip = cfg.grad_clip;
         // 2. Renderer update on the detached neural map, pixel-sampled L1.
-        let neural = neural.detach();
         self.opt_render.zero_grad();
         self.opt_disc.zero_grad();
-        let pred_r = self.model.renderer.render_code(&neural, &code)?;
+        let pred_r = self.model.renderer.render_code(&neural, code)?;
         let mut rng = batches::step_rng(cfg.seed, self.step, 3);
         let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling, &mut rng);
         let l1_r = losses::masked_l1(&pred_r, &target_log, &mask);
+        if cfg.freeze_estimator {
+            // No M_est half ran: log the full-image L1 against the truth it would have seen.
+            out.l1 = tch::no_grad(|| (&pred_r - &truth_log).abs().mean(tch::Kind::Float).double_value(&[]));
+        }
         let lp_r = losses::perceptual(self.lpips.as_ref(), &pred_r, &target_log)?;
         let adv_r = losses::adversarial(&self.disc, &pred_r, &photo_log, weight_adv)?;
         let loss_render = &l1_r * cfg.weight_l1 + &lp_r * cfg.weight_lpips + &adv_r * weight_adv;
@@ -225,7 +272,7 @@ impl Trainer {
 
         // 3. Discriminator update.
         self.opt_disc.zero_grad();
-        let loss_disc = losses::discriminator_loss(&self.disc, &pred_r.detach(), &target_log, &photo_log, weight_adv)?;
+        let loss_disc = losses::discriminator_loss(&self.disc, &pred_r.detach(), &truth_log, &photo_log, weight_adv)?;
         out.loss_disc = loss_disc.double_value(&[]);
         let disc_ok = out.loss_disc.is_finite() && {
             if weight_adv > 0.0 {
@@ -239,7 +286,9 @@ impl Trainer {
         }
 
         // Every loss and gradient is finite: apply the three updates.
-        self.opt_est.step(lr, clip);
+        if !cfg.freeze_estimator {
+            self.opt_est.step(lr, clip);
+        }
         self.opt_render.step(lr, clip);
         if weight_adv > 0.0 {
             self.opt_disc.step(lr, clip);
@@ -253,13 +302,32 @@ impl Trainer {
         let target_log = crate::spaces::to_log(&b.targets);
         let photo_log = b.est_input.narrow(1, 0, 3);
         self.zero_all();
-        let neural = self.model.est.forward_t(&b.est_input, cfg.est_batch_stats_at(self.step))?;
+        let neural = if cfg.freeze_estimator {
+            tch::no_grad(|| self.model.est.forward_t(&b.est_input, false))?
+        } else {
+            self.model.est.forward_t(&b.est_input, cfg.est_batch_stats_at(self.step))?
+        };
         let pred = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
         let param_norm = losses::mean_param_norm(&neural);
-        let mut nets = [&mut self.opt_est, &mut self.opt_render];
+        let mut nets: Vec<&mut Adam> = if cfg.freeze_estimator { vec![&mut self.opt_render] } else { vec![&mut self.opt_est, &mut self.opt_render] };
         let out = combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv)?;
         Ok(StepLosses { param_norm, ..out })
     }
+}
+
+/// The renderer's targets with an anchor: the last `colocated` outputs of
+/// each material keep the truth, the others become the anchor's renders of
+/// the same neural map and directions (`TrainConfig::anchor`).
+/// neural: `[N, C, H, W]`; truth_log: ln(1 + R) `[N, K, 3, H, W]` -> the same shape.
+fn anchored_targets(anchor: &Model, neural: &Tensor, b: &TrainingBatch, truth_log: &Tensor, colocated: usize) -> Result<Tensor> {
+    let k = truth_log.size()[1];
+    let held = k - colocated as i64;
+    if held <= 0 {
+        return Ok(truth_log.shallow_clone());
+    }
+    let (wi, wo) = (b.out_wi.narrow(1, 0, held), b.out_wo.narrow(1, 0, held));
+    let anchor_log = tch::no_grad(|| anchor.renderer.forward_maps(neural, &wi, &wo))?;
+    Ok(Tensor::cat(&[anchor_log, truth_log.narrow(1, held, k - held)], 1))
 }
 
 /// The update shared by one-pass training (flashmat's combined scheme and

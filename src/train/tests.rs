@@ -452,6 +452,86 @@ fn frozen_batch_norm_keeps_running_statistics_and_still_trains_m_est() {
     assert!(changed(&weights1, &weights2) > weights1.len() / 2, "{} of {}", changed(&weights1, &weights2), weights1.len());
 }
 
+/// `--freeze-estimator`: M_est's weights and BatchNorm statistics stay
+/// bit-identical while the renderer learns; refused without trained
+/// weights to start from and with the teacher's code term.
+#[test]
+fn frozen_estimator_stays_put_while_the_renderer_learns() {
+    // Trainer::new does not read the warm start (the run does); validate wants one.
+    let cfg = TrainConfig { freeze_estimator: true, warm_start: Some("trained.safetensors".into()), weight_lpips: 0.0, ..tiny_config() };
+    assert!(TrainConfig { warm_start: None, ..cfg.clone() }.validate().is_err());
+    assert!(TrainConfig { weight_code: 1.0, teacher: Some("teacher.safetensors".into()), ..cfg.clone() }.validate().is_err());
+    for scheme in [UpdateScheme::Alternating, UpdateScheme::Combined] {
+        let mut t = Trainer::new(TrainConfig { scheme, ..cfg.clone() }, tch::Device::Cpu).unwrap();
+        let m = procedural::generate_family(Family::Tiles, 3, 32);
+        let sample = SampleConfig { outputs_per_material: 2, ..Default::default() };
+        let batch = make_batch(&[m.clone(), m], &sample, &mut Pcg64::seed_from_u64(1), tch::Device::Cpu).unwrap();
+        let snapshot = |vs: &tch::nn::VarStore| -> Vec<(String, Tensor)> {
+            let mut v: Vec<_> = vs.variables().into_iter().map(|(k, v)| (k, v.copy())).collect();
+            v.sort_by(|a, b| a.0.cmp(&b.0));
+            v
+        };
+        let (est0, render0) = (snapshot(&t.model.est_vs), snapshot(&t.model.renderer_vs));
+        let losses: Vec<f64> = (0..40).map(|_| t.train_step(&batch).unwrap().l1_render).collect();
+        let (est1, render1) = (snapshot(&t.model.est_vs), snapshot(&t.model.renderer_vs));
+        assert!(est0.iter().zip(&est1).all(|(a, b)| a.1.equal(&b.1)), "{scheme:?}: M_est moved");
+        let moved = render0.iter().zip(&render1).filter(|(a, b)| !a.1.equal(&b.1)).count();
+        assert!(moved > render0.len() / 2, "{scheme:?}: {moved} of {} renderer tensors moved", render0.len());
+        let (first, last) = (losses[0], losses[35..].iter().sum::<f64>() / 5.0);
+        assert!(last < 0.8 * first, "{scheme:?}: renderer L1 {first} -> {last}");
+    }
+}
+
+/// `--anchor`: the outputs that are not co-located take the anchor's
+/// renders as targets (a model anchored to its own weights matches them
+/// exactly before any update), the co-located ones keep the truth; after
+/// training the held outputs stay at the anchor's renders while the
+/// co-located ones move toward the truth. Refused without a frozen M_est,
+/// without co-located outputs, with the combined scheme, or with another
+/// model's file.
+#[test]
+fn anchor_renders_replace_the_targets_of_the_held_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("start.safetensors");
+    let start = Trainer::new(tiny_config(), tch::Device::Cpu).unwrap();
+    start.model.save(&file, &crate::model::ModelInfo { ldr_input: false, steps: 0 }, false).unwrap();
+    let path = Some(file.display().to_string());
+    let cfg = TrainConfig { freeze_estimator: true, warm_start: path.clone(), anchor: path, colocated_outputs: 1, weight_lpips: 0.0, weight_adv: 0.0, ..tiny_config() };
+    assert!(TrainConfig { freeze_estimator: false, ..cfg.clone() }.validate().is_err());
+    assert!(TrainConfig { colocated_outputs: 0, ..cfg.clone() }.validate().is_err());
+    assert!(TrainConfig { scheme: UpdateScheme::Combined, ..cfg.clone() }.validate().is_err());
+    assert!(Trainer::new(TrainConfig { model: ModelConfig::compact(), ..cfg.clone() }, tch::Device::Cpu).is_err());
+
+    let mut t = Trainer::new(cfg, tch::Device::Cpu).unwrap();
+    t.warm_start_from(&file).unwrap();
+    let m = procedural::generate_family(Family::Tiles, 3, 32);
+    let sample = SampleConfig { outputs_per_material: 2, colocated_outputs: 1, ..Default::default() };
+    let batch = make_batch(&[m.clone(), m], &sample, &mut Pcg64::seed_from_u64(1), tch::Device::Cpu).unwrap();
+    let truth = crate::spaces::to_log(&batch.targets);
+    let renders = |t: &Trainer| {
+        tch::no_grad(|| {
+            let neural = t.model.est.forward_t(&batch.est_input, false).unwrap();
+            (neural.shallow_clone(), t.model.renderer.forward_maps(&neural, &batch.out_wi, &batch.out_wo).unwrap())
+        })
+    };
+    let (neural, own) = renders(&t);
+    let targets = anchored_targets(t.anchor.as_ref().unwrap(), &neural, &batch, &truth, 1).unwrap();
+    assert_eq!(targets.size(), truth.size());
+    let l1 = |a: &Tensor, b: &Tensor, k: i64| (a.narrow(1, k, 1) - b.narrow(1, k, 1)).abs().mean(tch::Kind::Float).double_value(&[]);
+    assert_eq!(l1(&targets, &own, 0), 0.0, "the held output's target is the anchor's render");
+    assert_eq!(l1(&targets, &truth, 1), 0.0, "the co-located output keeps the truth");
+    let (held_to_truth, colocated_before) = (l1(&own, &truth, 0), l1(&own, &truth, 1));
+    assert!(held_to_truth > 0.05, "an untrained renderer is far from the truth: {held_to_truth}");
+
+    for _ in 0..40 {
+        t.train_step(&batch).unwrap();
+    }
+    let (_, after) = renders(&t);
+    let (colocated_after, held_to_anchor) = (l1(&after, &truth, 1), l1(&after, &own, 0));
+    assert!(colocated_after < 0.7 * colocated_before, "co-located L1 {colocated_before} -> {colocated_after}");
+    assert!(held_to_anchor < 0.5 * held_to_truth, "held output: {held_to_anchor} from the anchor, the truth {held_to_truth} away");
+}
+
 /// `--colour-augment`: the crops are those of a run without it (geometry
 /// untouched), some materials come back recoloured at P = 1/2, every one at
 /// P = 1, and a recoloured material keeps its display brightness per pixel
