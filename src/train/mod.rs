@@ -173,6 +173,7 @@ impl Trainer {
 
     fn alternating_step(&mut self, b: &TrainingBatch, lr: f64, weight_adv: f64) -> Result<StepLosses> {
         let cfg = self.config.clone();
+        let truth_log = crate::spaces::to_log(&b.targets);
         let mut out = StepLosses::default();
 
         // The direction code does not depend on the neural map: encode once,
@@ -182,20 +183,18 @@ impl Trainer {
         let code = self.model.renderer.encode_maps(&b.out_wi, &b.out_wo)?;
 
         if cfg.freeze_estimator {
-            // M_est as at inference: no gradient, running BatchNorm statistics.
-            let neural = tch::no_grad(|| self.model.est.forward_t(&b.est_input, false))?;
+            let neural = self.frozen_neural_map(b)?;
             out.param_norm = losses::mean_param_norm(&neural);
-            return self.renderer_and_discriminator_updates(b, neural, &code, lr, weight_adv, out);
+            return self.renderer_and_discriminator_updates(b, neural, &code, &truth_log, lr, weight_adv, out);
         }
 
-        let target_log = crate::spaces::to_log(&b.targets);
         let photo_log = b.est_input.narrow(1, 0, 3);
 
         // 1. M_est update; the renderer takes part in the graph but is not stepped.
         let neural = self.model.est.forward_t(&b.est_input, cfg.est_batch_stats_at(self.step))?;
         let pred = self.model.renderer.render_code(&neural, &code.detach())?;
-        let l1 = (&pred - &target_log).abs().mean(tch::Kind::Float);
-        let lp = losses::perceptual(self.lpips.as_ref(), &pred, &target_log)?;
+        let l1 = (&pred - &truth_log).abs().mean(tch::Kind::Float);
+        let lp = losses::perceptual(self.lpips.as_ref(), &pred, &truth_log)?;
         let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
         let mut loss_est = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
         let weight_code = cfg.code_weight_at(self.step);
@@ -219,27 +218,35 @@ impl Trainer {
             return Ok(StepLosses { skipped: true, ..out });
         }
 
-        self.renderer_and_discriminator_updates(b, neural.detach(), &code, lr, weight_adv, out)
+        self.renderer_and_discriminator_updates(b, neural.detach(), &code, &truth_log, lr, weight_adv, out)
+    }
+
+    /// M_est as at inference (`TrainConfig::freeze_estimator`): no
+    /// gradient, BatchNorm on its running statistics. -> `[B, C, H, W]`.
+    fn frozen_neural_map(&self, b: &TrainingBatch) -> Result<Tensor> {
+        tch::no_grad(|| self.model.est.forward_t(&b.est_input, false))
     }
 
     /// The alternating step's second half: the renderer's update on the
     /// (detached) neural map with pixel-sampled L1, the discriminator's,
     /// then the optimizer steps (M_est's too unless it is frozen). `out`
     /// carries the first half's losses.
-    /// neural: `[B, C, H, W]` detached; code: the direction code of the outputs.
+    /// neural: `[B, C, H, W]` detached; code: the direction code of the
+    /// outputs; truth_log: ln(1 + R) of `b.targets`.
+    #[allow(clippy::too_many_arguments)]
     fn renderer_and_discriminator_updates(
         &mut self,
         b: &TrainingBatch,
         neural: Tensor,
         code: &Tensor,
+        truth_log: &Tensor,
         lr: f64,
         weight_adv: f64,
         mut out: StepLosses,
     ) -> Result<StepLosses> {
         let cfg = self.config.clone();
-        let truth_log = crate::spaces::to_log(&b.targets);
         let target_log = match &self.anchor {
-            Some(anchor) => anchored_targets(anchor, &neural, b, &truth_log, cfg.colocated_outputs)?,
+            Some(anchor) => anchored_targets(anchor, &neural, b, truth_log, cfg.colocated_outputs)?,
             None => truth_log.shallow_clone(),
         };
         let photo_log = b.est_input.narrow(1, 0, 3);
@@ -253,7 +260,7 @@ impl Trainer {
         let l1_r = losses::masked_l1(&pred_r, &target_log, &mask);
         if cfg.freeze_estimator {
             // No M_est half ran: log the full-image L1 against the truth it would have seen.
-            out.l1 = tch::no_grad(|| (&pred_r - &truth_log).abs().mean(tch::Kind::Float).double_value(&[]));
+            out.l1 = tch::no_grad(|| (&pred_r - truth_log).abs().mean(tch::Kind::Float).double_value(&[]));
         }
         let lp_r = losses::perceptual(self.lpips.as_ref(), &pred_r, &target_log)?;
         let adv_r = losses::adversarial(&self.disc, &pred_r, &photo_log, weight_adv)?;
@@ -272,7 +279,7 @@ impl Trainer {
 
         // 3. Discriminator update.
         self.opt_disc.zero_grad();
-        let loss_disc = losses::discriminator_loss(&self.disc, &pred_r.detach(), &truth_log, &photo_log, weight_adv)?;
+        let loss_disc = losses::discriminator_loss(&self.disc, &pred_r.detach(), truth_log, &photo_log, weight_adv)?;
         out.loss_disc = loss_disc.double_value(&[]);
         let disc_ok = out.loss_disc.is_finite() && {
             if weight_adv > 0.0 {
@@ -303,7 +310,7 @@ impl Trainer {
         let photo_log = b.est_input.narrow(1, 0, 3);
         self.zero_all();
         let neural = if cfg.freeze_estimator {
-            tch::no_grad(|| self.model.est.forward_t(&b.est_input, false))?
+            self.frozen_neural_map(b)?
         } else {
             self.model.est.forward_t(&b.est_input, cfg.est_batch_stats_at(self.step))?
         };
