@@ -129,6 +129,10 @@ pub struct TrainArgs {
     /// --warm-start or --init-from (paper: both networks train). A resumed run keeps its own choice.
     #[arg(long, conflicts_with = "resume")]
     pub freeze_estimator: bool,
+    /// Train M_est only: ND_enc + M_render keep the warm start's weights (for fixing the colour of M_est's codes
+    /// against a renderer that already renders them). Needs --warm-start or --init-from and --adv-weight 0.
+    #[arg(long, conflicts_with_all = ["resume", "freeze_estimator"])]
+    pub freeze_renderer: bool,
     /// With --freeze-estimator and --colocated-outputs: the outputs that are not co-located take this model's renders
     /// (the same model, usually the warm start) as their targets instead of the GGX truth, so the renderer learns the
     /// co-located light while holding what it renders elsewhere.
@@ -143,6 +147,10 @@ pub struct TrainArgs {
     /// Weight of the adversarial term (paper 0.03).
     #[arg(long, default_value_t = 0.03)]
     pub adv_weight: f64,
+    /// Weight of a colour-balance term: each render's mean chromaticity rgb / (r + g + b) against the truth's, L1
+    /// (paper: none). Weighs a dark channel's error like a bright one's, which the log L1 does not.
+    #[arg(long, default_value_t = 0.0, value_name = "W")]
+    pub chroma_weight: f64,
     #[arg(long, default_value_t = 250)]
     pub checkpoint_every: u64,
     #[arg(long, default_value_t = 250)]
@@ -305,10 +313,12 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         colocated_outputs: a.colocated_outputs.unwrap_or(0),
         checkerboard_free: a.checkerboard_free,
         freeze_estimator: a.freeze_estimator,
+        freeze_renderer: a.freeze_renderer,
         anchor: a.anchor.as_ref().map(|p| p.display().to_string()),
         straight_through_output: a.straight_through_output,
         weight_lpips: a.lpips_weight,
         weight_adv: a.adv_weight,
+        weight_chroma: a.chroma_weight,
         steps: a.steps.unwrap_or(TrainConfig::default().steps),
         checkpoint_every: a.checkpoint_every,
         preview_every: a.preview_every,

@@ -134,6 +134,13 @@ pub struct TrainConfig {
     /// paper, both halves).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub freeze_estimator: bool,
+    /// Train M_est only: ND_enc + M_render keep the warm start's weights
+    /// (they take part in the graph but are never stepped) and there is
+    /// no discriminator. For fixing what M_est writes (the colour of its
+    /// codes) against a renderer that already renders them (false: the
+    /// paper, both halves).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub freeze_renderer: bool,
     /// Model file (the same model; usually the warm start) whose renderer
     /// gives the targets of the outputs that are not co-located: its
     /// renders of the same neural map and directions instead of the GGX
@@ -146,6 +153,12 @@ pub struct TrainConfig {
     pub weight_l1: f64,
     pub weight_lpips: f64,
     pub weight_adv: f64,
+    /// Weight of the colour-balance term (`losses::chroma_l1`): the mean
+    /// chromaticity of each render against the truth's. The log L1 barely
+    /// sees a dark channel that is 1.5x too bright (blue's red); this term
+    /// weighs every channel's share alike (0: none, the paper).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub weight_chroma: f64,
     pub pixel_fraction: f64,
     pub pixel_sampling: PixelSampling,
     pub scheme: UpdateScheme,
@@ -200,10 +213,12 @@ impl Default for TrainConfig {
             colocated_outputs: 0,
             checkerboard_free: false,
             freeze_estimator: false,
+            freeze_renderer: false,
             anchor: None,
             weight_l1: 1.0,
             weight_lpips: 0.01,
             weight_adv: 0.03,
+            weight_chroma: 0.0,
             pixel_fraction: 0.6,
             pixel_sampling: PixelSampling::InverseNorm,
             scheme: UpdateScheme::Alternating,
@@ -271,7 +286,7 @@ impl TrainConfig {
             anyhow::ensure!(c.is_finite() && c > 0.0, "--grad-clip must be a finite number > 0 (got {c})");
         }
         anyhow::ensure!(self.lr_decay.is_finite() && self.lr_decay > 0.0, "the learning-rate decay must be a finite number > 0 (got {})", self.lr_decay);
-        for (name, w) in [("L1", self.weight_l1), ("LPIPS", self.weight_lpips), ("adversarial", self.weight_adv)] {
+        for (name, w) in [("L1", self.weight_l1), ("LPIPS", self.weight_lpips), ("adversarial", self.weight_adv), ("chromaticity", self.weight_chroma)] {
             anyhow::ensure!(w.is_finite() && w >= 0.0, "the {name} weight must be a finite number >= 0 (got {w})");
         }
         anyhow::ensure!(self.material_size >= self.crop, "material size {} is smaller than the crop {}", self.material_size, self.crop);
@@ -295,6 +310,12 @@ impl TrainConfig {
             !self.freeze_estimator || (self.init_from.is_some() || self.warm_start.is_some()),
             "--freeze-estimator needs a trained M_est: give --warm-start or --init-from"
         );
+        if self.freeze_renderer {
+            anyhow::ensure!(!self.freeze_estimator, "--freeze-renderer and --freeze-estimator exclude each other (nothing would train)");
+            anyhow::ensure!(self.method.is_flashmat(), "--freeze-renderer applies to --method flashmat only");
+            anyhow::ensure!(self.init_from.is_some() || self.warm_start.is_some(), "--freeze-renderer needs a trained renderer: give --warm-start or --init-from");
+            anyhow::ensure!(self.weight_adv == 0.0, "--freeze-renderer needs --adv-weight 0 (the discriminator is not trained)");
+        }
         if self.anchor.is_some() {
             anyhow::ensure!(self.freeze_estimator, "--anchor needs --freeze-estimator (it holds the renderer, for a fixed M_est)");
             anyhow::ensure!(self.colocated_outputs >= 1, "--anchor needs --colocated-outputs N >= 1 (the outputs that still learn the truth)");

@@ -26,6 +26,18 @@ pub fn perceptual(lpips: Option<&Lpips>, pred_log: &Tensor, target_log: &Tensor)
     }
 }
 
+/// The colour-balance term: L1 distance between the chromaticities
+/// rgb / (r + g + b) of each render's mean linear colour and the truth's,
+/// averaged over renders (the uniform-colour check's error, as a loss).
+/// pred_log, target_log: `[N, K, 3, H, W]` ln(1 + R) -> scalar.
+pub fn chroma_l1(pred_log: &Tensor, target_log: &Tensor) -> Tensor {
+    let chroma = |log: &Tensor| {
+        let mean = flat(log).expm1().mean_dim([2i64, 3].as_slice(), false, Kind::Float);
+        &mean / mean.sum_dim_intlist([1i64].as_slice(), true, Kind::Float).clamp_min(1e-6)
+    };
+    (chroma(pred_log) - chroma(&target_log.detach())).abs().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).mean(Kind::Float)
+}
+
 /// Repeats the input photo once per output render.
 /// photo_log: `[N, 3, H, W]`, k -> `[N*K, 3, H, W]`.
 fn photo_per_output(photo_log: &Tensor, k: i64) -> Tensor {
@@ -114,6 +126,24 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
     use tch::Device;
+
+    /// Hand-derived: grey against red (0.6, 0.1, 0.1) is |1/3 - 0.75| +
+    /// 2 |1/3 - 0.125| = 0.8333; a render twice as bright as the truth
+    /// has the same chromaticity (0); two renders average.
+    #[test]
+    fn chroma_l1_is_the_chromaticity_distance_of_the_mean_colours() {
+        let log = |rgb: [f64; 3], scale: f64| Tensor::from_slice(&rgb.map(|v| ((v * scale) as f32).ln_1p())).view([1, 1, 3, 1, 1]).expand([1, 1, 3, 4, 4], false).contiguous();
+        let (grey, red) = (log([0.2, 0.2, 0.2], 1.0), log([0.6, 0.1, 0.1], 1.0));
+        assert!((chroma_l1(&grey, &red).double_value(&[]) - 0.8333).abs() < 1e-3);
+        assert!(chroma_l1(&log([0.6, 0.1, 0.1], 2.0), &red).double_value(&[]).abs() < 1e-5);
+        let both = |a: &Tensor, b: &Tensor| Tensor::cat(&[a, b], 1);
+        let mean = chroma_l1(&both(&grey, &red), &both(&red, &red)).double_value(&[]);
+        assert!((mean - 0.8333 / 2.0).abs() < 1e-3, "{mean}");
+        // Only the prediction takes a gradient, and it is finite at black.
+        let pred = Tensor::zeros([1, 1, 3, 4, 4], (Kind::Float, Device::Cpu)).set_requires_grad(true);
+        chroma_l1(&pred, &red).backward();
+        assert!(pred.grad().isfinite().all().int64_value(&[]) == 1);
+    }
 
     #[test]
     fn mask_has_the_requested_fraction_and_prefers_low_norm() {

@@ -196,7 +196,7 @@ impl Trainer {
         let l1 = (&pred - &truth_log).abs().mean(tch::Kind::Float);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &truth_log)?;
         let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
-        let mut loss_est = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
+        let mut loss_est = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv + chroma_term(&cfg, &pred, &truth_log);
         let weight_code = cfg.code_weight_at(self.step);
         if let (Some(t), true) = (&self.teacher, weight_code > 0.0) {
             let code = losses::code_l1(&neural, &tch::no_grad(|| t.encoder.forward_maps(&b.maps)));
@@ -216,6 +216,11 @@ impl Trainer {
         if !self.opt_est.grad_norm().is_finite() {
             self.zero_all();
             return Ok(StepLosses { skipped: true, ..out });
+        }
+        if cfg.freeze_renderer {
+            self.opt_est.step(lr, cfg.grad_clip);
+            self.zero_all();
+            return Ok(out);
         }
 
         self.renderer_and_discriminator_updates(b, neural.detach(), &code, &truth_log, lr, weight_adv, out)
@@ -264,7 +269,7 @@ impl Trainer {
         }
         let lp_r = losses::perceptual(self.lpips.as_ref(), &pred_r, &target_log)?;
         let adv_r = losses::adversarial(&self.disc, &pred_r, &photo_log, weight_adv)?;
-        let loss_render = &l1_r * cfg.weight_l1 + &lp_r * cfg.weight_lpips + &adv_r * weight_adv;
+        let loss_render = &l1_r * cfg.weight_l1 + &lp_r * cfg.weight_lpips + &adv_r * weight_adv + chroma_term(&cfg, &pred_r, &target_log);
         out.l1_render = l1_r.double_value(&[]);
         out.loss_render = loss_render.double_value(&[]);
         if !out.loss_render.is_finite() {
@@ -316,10 +321,24 @@ impl Trainer {
         };
         let pred = self.model.renderer.forward_maps(&neural, &b.out_wi, &b.out_wo)?;
         let param_norm = losses::mean_param_norm(&neural);
-        let mut nets: Vec<&mut Adam> = if cfg.freeze_estimator { vec![&mut self.opt_render] } else { vec![&mut self.opt_est, &mut self.opt_render] };
+        let mut nets: Vec<&mut Adam> = match (cfg.freeze_estimator, cfg.freeze_renderer) {
+            (true, _) => vec![&mut self.opt_render],
+            (_, true) => vec![&mut self.opt_est],
+            _ => vec![&mut self.opt_est, &mut self.opt_render],
+        };
         let out = combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv)?;
         Ok(StepLosses { param_norm, ..out })
     }
+}
+
+/// The weighted colour-balance term (`TrainConfig::weight_chroma`; a
+/// constant 0 when off, so the paper's graph is unchanged).
+/// pred, target_log: `[N, K, 3, H, W]` log renders -> scalar.
+fn chroma_term(cfg: &TrainConfig, pred: &Tensor, target_log: &Tensor) -> Tensor {
+    if cfg.weight_chroma == 0.0 {
+        return Tensor::zeros([], (tch::Kind::Float, pred.device()));
+    }
+    losses::chroma_l1(pred, target_log) * cfg.weight_chroma
 }
 
 /// The renderer's targets with an anchor: the last `colocated` outputs of
@@ -338,12 +357,13 @@ fn anchored_targets(anchor: &Model, neural: &Tensor, b: &TrainingBatch, truth_lo
 }
 
 /// The update shared by one-pass training (flashmat's combined scheme and
-/// the baselines): the paper's three loss terms on `pred`, one backward
+/// the baselines): the paper's three loss terms (and the optional colour
+/// balance) on `pred`, one backward
 /// pass into the networks of `nets`, the discriminator's least-squares
 /// step on the detached prediction, then every optimizer step. A NaN/Inf
 /// loss or gradient clears all gradients and returns `skipped` without
 /// stepping. The caller zeroes the gradients before its forward pass.
-/// pred, target_log: `[B*K, 3, H, W]` log renders; photo_log: `[B, 3, H, W]`.
+/// pred, target_log: `[B, K, 3, H, W]` log renders; photo_log: `[B, 3, H, W]`.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn combined_update(
     cfg: &TrainConfig,
@@ -361,7 +381,7 @@ pub(crate) fn combined_update(
     let l1 = (pred - target_log).abs().mean(tch::Kind::Float);
     let lp = losses::perceptual(lpips, pred, target_log)?;
     let adv = losses::adversarial(disc, pred, photo_log, weight_adv)?;
-    let loss = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv;
+    let loss = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv + chroma_term(cfg, pred, target_log);
     out.l1 = l1.double_value(&[]);
     out.l1_render = out.l1;
     out.lpips = lp.double_value(&[]);

@@ -482,6 +482,60 @@ fn frozen_estimator_stays_put_while_the_renderer_learns() {
     }
 }
 
+/// `--freeze-renderer`: ND_enc + M_render stay bit-identical while M_est
+/// learns; refused alongside `--freeze-estimator`, without trained weights
+/// to start from, and with an adversarial term.
+#[test]
+fn frozen_renderer_stays_put_while_the_estimator_learns() {
+    let cfg = TrainConfig { freeze_renderer: true, warm_start: Some("trained.safetensors".into()), weight_lpips: 0.0, weight_adv: 0.0, ..tiny_config() };
+    cfg.validate().unwrap();
+    assert!(TrainConfig { warm_start: None, ..cfg.clone() }.validate().is_err());
+    assert!(TrainConfig { freeze_estimator: true, ..cfg.clone() }.validate().is_err());
+    assert!(TrainConfig { weight_adv: 0.03, ..cfg.clone() }.validate().is_err());
+    for scheme in [UpdateScheme::Alternating, UpdateScheme::Combined] {
+        let mut t = Trainer::new(TrainConfig { scheme, ..cfg.clone() }, tch::Device::Cpu).unwrap();
+        let m = procedural::generate_family(Family::Tiles, 3, 32);
+        let sample = SampleConfig { outputs_per_material: 2, ..Default::default() };
+        let batch = make_batch(&[m.clone(), m], &sample, &mut Pcg64::seed_from_u64(1), tch::Device::Cpu).unwrap();
+        let snapshot = |vs: &tch::nn::VarStore| -> Vec<(String, Tensor)> {
+            let mut v: Vec<_> = vs.variables().into_iter().map(|(k, v)| (k, v.copy())).collect();
+            v.sort_by(|a, b| a.0.cmp(&b.0));
+            v
+        };
+        let (est0, render0) = (snapshot(&t.model.est_vs), snapshot(&t.model.renderer_vs));
+        let losses: Vec<f64> = (0..40).map(|_| t.train_step(&batch).unwrap().l1).collect();
+        let (est1, render1) = (snapshot(&t.model.est_vs), snapshot(&t.model.renderer_vs));
+        assert!(render0.iter().zip(&render1).all(|(a, b)| a.1.equal(&b.1)), "{scheme:?}: the renderer moved");
+        let moved = est0.iter().zip(&est1).filter(|(a, b)| !a.1.equal(&b.1)).count();
+        assert!(moved > est0.len() / 2, "{scheme:?}: {moved} of {} M_est tensors moved", est0.len());
+        let (first, last) = (losses[0], losses[35..].iter().sum::<f64>() / 5.0);
+        assert!(last < 0.8 * first, "{scheme:?}: L1 {first} -> {last}");
+    }
+}
+
+/// `--chroma-weight`: the M_est update's loss is the paper's plus the
+/// weighted colour-balance term of its prediction (two trainers from the
+/// same seed see the same first prediction), and a negative weight is
+/// refused.
+#[test]
+fn chroma_weight_adds_the_colour_balance_term() {
+    let cfg = TrainConfig { weight_lpips: 0.0, weight_adv: 0.0, ..tiny_config() };
+    assert!(TrainConfig { weight_chroma: -1.0, ..cfg.clone() }.validate().is_err());
+    let m = procedural::generate_family(Family::Tiles, 3, 32);
+    let sample = SampleConfig { outputs_per_material: 2, ..Default::default() };
+    let batch = make_batch(&[m.clone(), m], &sample, &mut Pcg64::seed_from_u64(1), tch::Device::Cpu).unwrap();
+    let plain = Trainer::new(cfg.clone(), tch::Device::Cpu).unwrap();
+    let chroma = tch::no_grad(|| {
+        let neural = plain.model.est.forward_t(&batch.est_input, true).unwrap();
+        let pred = plain.model.renderer.forward_maps(&neural, &batch.out_wi, &batch.out_wo).unwrap();
+        losses::chroma_l1(&pred, &crate::spaces::to_log(&batch.targets)).double_value(&[])
+    });
+    assert!(chroma > 1e-3, "an untrained model's colours are off: {chroma}");
+    let loss_est = |weight_chroma: f64| Trainer::new(TrainConfig { weight_chroma, ..cfg.clone() }, tch::Device::Cpu).unwrap().train_step(&batch).unwrap().loss_est;
+    let added = loss_est(2.0) - loss_est(0.0);
+    assert!((added - 2.0 * chroma).abs() < 1e-4 * (1.0 + chroma), "added {added}, expected {}", 2.0 * chroma);
+}
+
 /// `--anchor`: the outputs that are not co-located take the anchor's
 /// renders as targets (a model anchored to its own weights matches them
 /// exactly before any update), the co-located ones keep the truth; after
