@@ -69,6 +69,9 @@ pub struct TrainArgs {
     /// Also write DIR/model.safetensors (an f16 export, as `flashmat export`) at every checkpoint and at the end.
     #[arg(long, value_name = "DIR")]
     pub export_dir: Option<PathBuf>,
+    /// Also keep each checkpoint's export as DIR/step-N.safetensors (for `flashmat average`).
+    #[arg(long, requires = "export_dir")]
+    pub keep_exports: bool,
     /// Total training steps (with --resume: the new total).
     #[arg(long)]
     pub steps: Option<u64>,
@@ -262,6 +265,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         max_steps_this_run: a.max_steps_now,
         max_minutes: a.minutes,
         export_dir: a.export_dir.clone(),
+        keep_exports: a.keep_exports,
         new_lr: a.resume.as_ref().and(a.lr),
         checkerboard_free: a.resume.is_some() && a.checkerboard_free,
         new_colour_augment: a.resume.as_ref().and(a.colour_augment),

@@ -282,6 +282,10 @@ pub struct RunOptions {
     /// Also write `model.safetensors` (an f16 export) here at every
     /// checkpoint: what a time-limited GPU job brings back.
     pub export_dir: Option<PathBuf>,
+    /// With `export_dir`: also keep each checkpoint's export as
+    /// `step-N.safetensors` beside it, for `flashmat average` over a run's
+    /// last checkpoints (a model averaged over them beat each of them).
+    pub keep_exports: bool,
     /// With a resume: a new learning rate from the resumed step on (how a
     /// diverged run continues from its last good checkpoint), recorded in
     /// the configuration of its next checkpoints.
@@ -301,7 +305,7 @@ pub struct RunOptions {
 impl RunOptions {
     /// Options of a plain run in `run_dir` (no step, time or export limits).
     pub fn new(run_dir: impl Into<PathBuf>, device: Device, progress: bool) -> Self {
-        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, new_lr: None, checkerboard_free: false, new_colour_augment: None, new_colocated_outputs: None, progress }
+        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, keep_exports: false, new_lr: None, checkerboard_free: false, new_colour_augment: None, new_colocated_outputs: None, progress }
     }
 }
 
@@ -326,6 +330,11 @@ const PHOTO_CHECK_SIZE: usize = 128;
 
 /// File name of the model that `RunOptions::export_dir` receives.
 pub const EXPORT_FILE: &str = "model.safetensors";
+
+/// File name of the export kept at `steps` with `RunOptions::keep_exports`.
+pub fn kept_export_name(steps: u64) -> String {
+    format!("step-{steps}.safetensors")
+}
 
 /// Starts a new flashmat run (fails if the folder already holds a checkpoint).
 pub fn start(config: TrainConfig, opts: &RunOptions) -> Result<Trainer> {
@@ -426,6 +435,10 @@ fn save_all<T: RunTrainer>(trainer: &T, opts: &RunOptions) -> Result<()> {
     if let Some(dir) = &opts.export_dir {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create export folder {}", dir.display()))?;
         trainer.export_model(&dir.join(EXPORT_FILE), true)?;
+        if opts.keep_exports {
+            let kept = dir.join(kept_export_name(trainer.steps_done()));
+            std::fs::copy(dir.join(EXPORT_FILE), &kept).with_context(|| format!("cannot write {}", kept.display()))?;
+        }
     }
     Ok(())
 }

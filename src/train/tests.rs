@@ -348,7 +348,7 @@ fn time_limit_stops_with_checkpoint_and_export_then_warm_start_continues_the_ste
     let dir = tempfile::tempdir().unwrap();
     let export = dir.path().join("export");
     // A zero-minute budget stops after the first step, saved and exported.
-    let opts = RunOptions { max_minutes: Some(0.0), export_dir: Some(export.clone()), ..RunOptions::new(dir.path().join("a"), tch::Device::Cpu, false) };
+    let opts = RunOptions { max_minutes: Some(0.0), export_dir: Some(export.clone()), keep_exports: true, ..RunOptions::new(dir.path().join("a"), tch::Device::Cpu, false) };
     let cfg = TrainConfig { weight_lpips: 0.0, ..tiny_config() };
     let a = run::start(cfg.clone(), &opts).unwrap();
     assert_eq!(a.step, 1);
@@ -363,6 +363,8 @@ fn time_limit_stops_with_checkpoint_and_export_then_warm_start_continues_the_ste
     let file = export.join(run::EXPORT_FILE);
     let (model, info) = crate::model::Model::load(&file, tch::Device::Cpu).unwrap();
     assert_eq!(info, crate::model::ModelInfo { ldr_input: false, steps: 1 });
+    // keep_exports: the same file, kept under its step.
+    assert_eq!(std::fs::read(export.join(run::kept_export_name(1))).unwrap(), std::fs::read(&file).unwrap());
     // The export holds the trained M_est (f16 storage: close, not exact).
     let (ours, theirs) = (a.model.named_variables(), model.named_variables());
     for ((n, x), (_, y)) in ours.iter().zip(&theirs) {
