@@ -436,8 +436,9 @@ fn save_all<T: RunTrainer>(trainer: &T, opts: &RunOptions) -> Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create export folder {}", dir.display()))?;
         trainer.export_model(&dir.join(EXPORT_FILE), true)?;
         if opts.keep_exports {
-            let kept = dir.join(kept_export_name(trainer.steps_done()));
-            std::fs::copy(dir.join(EXPORT_FILE), &kept).with_context(|| format!("cannot write {}", kept.display()))?;
+            // Copied all-or-nothing, as the export itself is written.
+            let export = dir.join(EXPORT_FILE);
+            crate::io::atomic_write(&dir.join(kept_export_name(trainer.steps_done())), |tmp| std::fs::copy(&export, tmp).map(drop).map_err(Into::into))?;
         }
     }
     Ok(())
