@@ -15,7 +15,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
 cargo build --release --quiet
-FLASHMAT=target/release/flashmat
+FLASHMAT="$FLASHMAT_RELEASE_BIN"
 FRAMES=${FLASHMAT_ORBIT_FRAMES:-24}
 
 photos=()

@@ -26,3 +26,8 @@ export PYTHON_SYS_EXECUTABLE="$FLASHMAT_VENV/bin/python"
 FLASHMAT_TORCH_LIB="$("$FLASHMAT_VENV/bin/python" -c 'import torch,os; print(os.path.join(os.path.dirname(torch.__file__),"lib"))')"
 export FLASHMAT_TORCH_LIB
 export LD_LIBRARY_PATH="$FLASHMAT_TORCH_LIB${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+
+# The release binary the scripts run: cargo's, wherever a shared
+# CARGO_TARGET_DIR puts it (relative to the clone, as cargo reads it).
+FLASHMAT_RELEASE_BIN="$(realpath -m "${CARGO_TARGET_DIR:-target}")/release/flashmat"
+export FLASHMAT_RELEASE_BIN

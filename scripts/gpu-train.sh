@@ -272,7 +272,7 @@ stage() {
   source scripts/env.sh
   cargo build --release --bin flashmat
   mkdir -p .gpu
-  cp target/release/flashmat .gpu/flashmat
+  cp "$FLASHMAT_RELEASE_BIN" .gpu/flashmat
   # A campaign continues the bundled model (the first campaign's lesson,
   # docs/GPU.md) unless a resume model is already staged or FLASHMAT_GPU_FRESH=1;
   # a preset of fewer direction frequencies than the bundled model's
@@ -297,10 +297,10 @@ cpu_dry_run() {
   trap 'rm -rf "$DRY_RUN_DIR"' EXIT
   local tmp="$DRY_RUN_DIR"
   source scripts/env.sh
-  [ -x target/release/flashmat ] || cargo build --release --bin flashmat
+  [ -x "$FLASHMAT_RELEASE_BIN" ] || cargo build --release --bin flashmat
   export FLASHMAT_GPU_DEVICE=cpu FLASHMAT_GPU_PRESET=tiny FLASHMAT_GPU_CROP=32 FLASHMAT_GPU_BATCH=2 \
     FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_COLOCATED=1 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
-    FLASHMAT_GPU_WORK="$tmp/machine" FLASHMAT_GPU_BIN="$ROOT/target/release/flashmat" \
+    FLASHMAT_GPU_WORK="$tmp/machine" FLASHMAT_GPU_BIN="$FLASHMAT_RELEASE_BIN" \
     FLASHMAT_GPU_RESUME="$tmp/resume.safetensors" FLASHMAT_TORCH_LIB="$FLASHMAT_TORCH_LIB" \
     FLASHMAT_GPU_TEACHER_STEPS=20 FLASHMAT_GPU_TEACHER_PIXELS=1024 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/teacher.safetensors"
   local self="$ROOT/scripts/gpu-train.sh"

@@ -15,7 +15,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
 cargo build --release --quiet
-FLASHMAT=target/release/flashmat
+FLASHMAT="$FLASHMAT_RELEASE_BIN"
 CONFIGS=${1:-16}
 M=models
 # The bundled model until 2026-11-24, from git history; the reports made
