@@ -123,6 +123,10 @@ pub struct TrainArgs {
     /// the renderer where light and view meet near the normal. With --resume: from the resumed step on.
     #[arg(long, value_name = "N")]
     pub colocated_outputs: Option<usize>,
+    /// Of each material's output renders, draw N (before the co-located ones) as the Hemisphere case does: light and
+    /// camera independently anywhere on the radius-4 hemisphere, mostly away from the highlight (default and paper: 0).
+    #[arg(long, value_name = "N", conflicts_with = "resume")]
+    pub hemisphere_outputs: Option<usize>,
     /// Keep M_est's upsampling kernels checkerboard-free (projected after every update: a flat photo
     /// gives a flat neural map; paper: free). With --resume: from the resumed step on.
     #[arg(long)]
@@ -315,6 +319,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         frozen_bn_from: a.frozen_bn_from,
         colour_augment: a.colour_augment.unwrap_or(0.0),
         colocated_outputs: a.colocated_outputs.unwrap_or(0),
+        hemisphere_outputs: a.hemisphere_outputs.unwrap_or(0),
         checkerboard_free: a.checkerboard_free,
         freeze_estimator: a.freeze_estimator,
         freeze_renderer: a.freeze_renderer,

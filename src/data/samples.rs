@@ -33,6 +33,14 @@ pub struct SampleConfig {
     /// renderer is free to spike there (issue 15).
     #[serde(default)]
     pub colocated_outputs: usize,
+    /// Of each material's outputs, this many (just before the co-located
+    /// ones) are drawn with "hemisphere" sampling instead: light and camera
+    /// independently anywhere above the material, as the paper's Hemisphere
+    /// case draws them. "reflect" always puts the mirror highlight in view,
+    /// so without them a code that glows away from its highlight is never
+    /// seen dark (the rings of a glossy material's flash highlight).
+    #[serde(default)]
+    pub hemisphere_outputs: usize,
     /// Hard shadows from the materials' height fields (integrated from the
     /// normals where missing) in the input and output renders.
     #[serde(default)]
@@ -54,6 +62,7 @@ impl Default for SampleConfig {
             ldr_input: false,
             output_sampling: Sampling::Reflect,
             colocated_outputs: 0,
+            hemisphere_outputs: 0,
             shadows: false,
             height_scale: 1.0,
         }
@@ -173,6 +182,21 @@ fn with_colocated_outputs<R: Rng>(configs: &mut [LightView], k: usize, colocated
     Ok(())
 }
 
+/// Replaces the `hemisphere` configurations before the last `colocated` of
+/// every `k` with "hemisphere" draws (`SampleConfig::hemisphere_outputs`),
+/// drawn after the others, as `with_colocated_outputs`.
+fn with_hemisphere_outputs<R: Rng>(configs: &mut [LightView], k: usize, hemisphere: usize, colocated: usize, rng: &mut R) -> Result<()> {
+    if hemisphere + colocated > k {
+        bail!("{hemisphere} hemisphere and {colocated} co-located outputs asked of {k} outputs per material");
+    }
+    for material in configs.chunks_mut(k) {
+        for config in &mut material[k - colocated - hemisphere..k - colocated] {
+            *config = crate::geometry::sample_hemisphere(rng, crate::geometry::HEMISPHERE_RADIUS);
+        }
+    }
+    Ok(())
+}
+
 /// Builds one training batch: input renders plus K sampled output renders.
 pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R, device: Device) -> Result<TrainingBatch> {
     let maps = stack_maps(materials, device)?;
@@ -184,6 +208,7 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
     let hz = half_vector_z(&in_wi, &in_wo).expand([n, 1, h as i64, w as i64], false);
     let mut configs = sample_configs(rng, cfg.output_sampling, (n * k) as usize, cfg.fov_deg);
     with_colocated_outputs(&mut configs, k as usize, cfg.colocated_outputs, cfg.fov_deg, rng)?;
+    with_hemisphere_outputs(&mut configs, k as usize, cfg.hemisphere_outputs, cfg.colocated_outputs, rng)?;
     // Input and outputs are rendered together by the f32 CPU renderer (much
     // faster than tensor ops on a CPU), then moved to the device.
     let shadows = ShadowOptions { height_scale: cfg.height_scale, ..Default::default() };
@@ -277,6 +302,31 @@ mod tests {
         let too_many = SampleConfig { colocated_outputs: 5, ..plain };
         let err = make_batch(&mats, &too_many, &mut Pcg64::seed_from_u64(5), Device::Cpu).err().unwrap();
         assert!(err.to_string().contains("5 co-located outputs asked of 4"), "{err}");
+    }
+
+    #[test]
+    fn hemisphere_outputs_sit_before_the_colocated_ones() {
+        let mats = vec![material(16, 16, 0.3), material(16, 16, 0.6)];
+        let plain = SampleConfig { outputs_per_material: 4, colocated_outputs: 1, ..Default::default() };
+        let with = SampleConfig { hemisphere_outputs: 1, ..plain.clone() };
+        let a = make_batch(&mats, &plain, &mut Pcg64::seed_from_u64(7), Device::Cpu).unwrap();
+        let b = make_batch(&mats, &with, &mut Pcg64::seed_from_u64(7), Device::Cpu).unwrap();
+        let norm = |p: [f64; 3]| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+        for i in 0..2 {
+            // Reflect draws and the Identity output as without the option.
+            assert_eq!(&a.configs[i * 4..i * 4 + 2], &b.configs[i * 4..i * 4 + 2]);
+            assert_eq!(a.configs[i * 4 + 3], b.configs[i * 4 + 3]);
+            // The third: light and camera apart, both on the radius-4 hemisphere.
+            let h = b.configs[i * 4 + 2];
+            assert_ne!(h, a.configs[i * 4 + 2]);
+            assert_ne!(h.light, h.view);
+            for p in [h.light, h.view] {
+                assert!((norm(p) - crate::geometry::HEMISPHERE_RADIUS).abs() < 1e-9 && p[2] >= 0.0, "{p:?}");
+            }
+        }
+        let too_many = SampleConfig { hemisphere_outputs: 4, ..plain };
+        let err = make_batch(&mats, &too_many, &mut Pcg64::seed_from_u64(7), Device::Cpu).err().unwrap();
+        assert!(err.to_string().contains("4 hemisphere and 1 co-located outputs asked of 4"), "{err}");
     }
 
     #[test]

@@ -120,6 +120,7 @@ pub fn batch_for_step(cfg: &TrainConfig, materials: &[Svbrdf], step: u64, device
     let sample_cfg = SampleConfig {
         outputs_per_material: cfg.outputs_per_material,
         colocated_outputs: cfg.colocated_outputs,
+        hemisphere_outputs: cfg.hemisphere_outputs,
         ldr_input: cfg.ldr_input,
         shadows: cfg.shadows,
         height_scale: cfg.height_scale,

@@ -120,6 +120,11 @@ pub struct TrainConfig {
     /// `SampleConfig::colocated_outputs`); 0 is the paper's "reflect" only.
     #[serde(default, skip_serializing_if = "is_zero_count")]
     pub colocated_outputs: usize,
+    /// Of each material's outputs, this many (before the co-located ones)
+    /// light and view independently on the hemisphere, as the Hemisphere
+    /// case (`SampleConfig::hemisphere_outputs`); 0 is the paper's.
+    #[serde(default, skip_serializing_if = "is_zero_count")]
+    pub hemisphere_outputs: usize,
     /// Keep M_est's upsampling kernels checkerboard-free: projected
     /// (`MEst::project_checkerboard_free`) when the run starts or resumes
     /// and after every update, so a flat photo gives a flat neural map
@@ -211,6 +216,7 @@ impl Default for TrainConfig {
             frozen_bn_from: None,
             colour_augment: 0.0,
             colocated_outputs: 0,
+            hemisphere_outputs: 0,
             checkerboard_free: false,
             freeze_estimator: false,
             freeze_renderer: false,
@@ -298,6 +304,13 @@ impl TrainConfig {
             self.colocated_outputs,
             self.outputs_per_material
         );
+        anyhow::ensure!(
+            self.colocated_outputs + self.hemisphere_outputs <= self.outputs_per_material,
+            "--hemisphere-outputs {} and --colocated-outputs {} are more than the {} outputs per material",
+            self.hemisphere_outputs,
+            self.colocated_outputs,
+            self.outputs_per_material
+        );
         anyhow::ensure!(self.pixel_fraction > 0.0 && self.pixel_fraction <= 1.0, "pixel fraction must be in (0, 1]");
         anyhow::ensure!(self.lr > 0.0 && self.lr.is_finite(), "learning rate must be positive");
         anyhow::ensure!(self.init_from.is_none() || self.warm_start.is_none(), "--init-from and --warm-start exclude each other");
@@ -367,6 +380,10 @@ mod tests {
             assert!(TrainConfig { grad_clip: Some(clip), ..Default::default() }.validate().is_err(), "{clip}");
         }
         assert!(TrainConfig { grad_clip: Some(1.0), ..Default::default() }.validate().is_ok());
+        // Hemisphere and co-located outputs share the material's outputs (8 by default).
+        assert!(TrainConfig { hemisphere_outputs: 6, colocated_outputs: 2, ..Default::default() }.validate().is_ok());
+        let e = TrainConfig { hemisphere_outputs: 7, colocated_outputs: 2, ..Default::default() }.validate().unwrap_err().to_string();
+        assert!(e.contains("--hemisphere-outputs 7 and --colocated-outputs 2 are more than the 8 outputs"), "{e}");
     }
 
     #[test]
