@@ -3,7 +3,7 @@
 # models/MODEL.md: the paper's table with the baselines and the LDR vs HDR
 # ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
 # Deterministic: the same models give the same numbers. Only the bundled
-# model (models/flashmat.safetensors: 26,500 steps since 2026-11-25) is in
+# model (models/flashmat.safetensors: 33,000 steps since 2026-11-25) is in
 # the tree; the others (the 4,000-, 10,400-, 13,500- and 24,115-step
 # bundled models too, 16 and 8 frequencies,
 # taken from git history below) left it to keep the tree
@@ -135,13 +135,25 @@ $FLASHMAT eval --model target/trunc8-24115.safetensors --dataset procedural-test
 cp target/eval-trunc8-24115/trunc8-24115.csv reports/frequencies/
 cargo run --release --quiet --example compare_models -- target/flashmat-24115.safetensors target/trunc8-24115.safetensors reports/frequencies/photos.jpg
 
-# The bundled model since 2026-11-25 (later; 26,500 steps, the renderer
-# fine-tuned with M_est frozen; reports/frozen.md): its held-out CSV, the
-# uniform check and the photos against the 8-frequency model. The other
-# arms' runs live in the cache (commands in the report).
-cp $M/flashmat.safetensors target/C-26500.safetensors
+# The bundled model of 2026-11-25 (later; 26,500 steps, the renderer
+# fine-tuned with M_est frozen; reports/frozen.md), from git history: its
+# held-out CSV, the uniform check and the photos against the 8-frequency
+# model. The other arms' runs live in the cache (commands in the report).
+[ -f target/C-26500.safetensors ] || git show 4425586:models/flashmat.safetensors > target/C-26500.safetensors
 $FLASHMAT eval --model target/C-26500.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input -o target/eval-C-26500
 cp target/eval-C-26500/C-26500.csv reports/frozen/
 $FLASHMAT eval --uniform --model target/C-26500.safetensors -o target/uniform-C-26500
 cp target/uniform-C-26500/uniform.md reports/frozen/uniform-26500.md
-cargo run --release --quiet --example compare_models -- target/trunc8-24115.safetensors $M/flashmat.safetensors reports/frozen/photos.jpg
+cargo run --release --quiet --example compare_models -- target/trunc8-24115.safetensors target/C-26500.safetensors reports/frozen/photos.jpg
+
+# The bundled model since 2026-11-25 (night; 33,000 steps, M_est trained
+# alone and averaged with the 26,500-step one's; reports/colour.md): its
+# held-out CSV, the uniform check and the photos against 26,500 (the
+# committed reports/colour/photos-mixE3.jpg is three rows of this grid).
+cp $M/flashmat.safetensors target/mixE3.safetensors
+$FLASHMAT eval --model target/mixE3.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input -o target/eval-mixE3
+cp target/eval-mixE3/mixE3.csv reports/colour/
+$FLASHMAT eval --uniform --model target/mixE3.safetensors -o target/uniform-mixE3
+cp target/uniform-mixE3/uniform.md reports/colour/uniform-mixE3.md
+cargo run --release --quiet --example compare_models -- target/C-26500.safetensors $M/flashmat.safetensors target/photos-mixE3.jpg \
+    | grep '^|' > reports/colour/photos-mixE3.md
