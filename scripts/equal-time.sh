@@ -15,7 +15,9 @@ name=$1 marks=$2
 shift 2
 [ "${1:-}" = "--" ] && shift
 runs=${RUNS:-$HOME/.cache/flashmat/runs/eqt}
-bin=${FLASHMAT:-target/release/flashmat}
+# cargo's release binary, wherever CARGO_TARGET_DIR puts it (env.sh).
+source scripts/env.sh
+bin=${FLASHMAT:-$FLASHMAT_RELEASE_BIN}
 mkdir -p "$runs"
 for mark in $marks; do
     snap="$runs/$name-$mark.safetensors"
