@@ -28,6 +28,13 @@
 #             collects a constant-rate run's gain, reports/bundled-10400.md;
 #             FLASHMAT_GPU_FINAL_LR), then the verdict: 8 files, a job's limit
 #
+#   GPU:    bash scripts/gpu-train.sh frozen [MINUTES]
+#             the two halves fine-tuned alone, side by side on the one GPU
+#             (M_est against the frozen renderer, the renderer against the
+#             frozen M_est), from .gpu/resume.safetensors or the bundled
+#             model; writes estimator.safetensors and renderer.safetensors
+#             (each run's late exports averaged), frozen.md and frozen.tgz
+#
 #   bash scripts/gpu-train.sh --cpu-dry-run
 #             the same steps on the CPU with the tiny preset (smoke test,
 #             chunks with a resume from the export and from the checkpoint,
@@ -50,6 +57,13 @@ WARMUP="${FLASHMAT_GPU_WARMUP:-200}"
 BANK="${FLASHMAT_GPU_BANK:-4000}"
 SEED="${FLASHMAT_GPU_SEED:-1}"
 CONFIGS="${FLASHMAT_GPU_CONFIGS:-128}"
+# The frozen-halves job (frozen): hemisphere outputs per material (with one
+# co-located), learning rate, checkpoint (= export) interval, CPU threads
+# per run (two runs share the machine's 16 cores).
+HEMISPHERE="${FLASHMAT_GPU_HEMISPHERE:-2}"
+FROZEN_LR="${FLASHMAT_GPU_FROZEN_LR:-5e-5}"
+FROZEN_EVERY="${FLASHMAT_GPU_FROZEN_EVERY:-200}"
+FROZEN_THREADS="${FLASHMAT_GPU_FROZEN_THREADS:-8}"
 # M_est's upsampling kept checkerboard-free (reports/checkerboard.md: level
 # held-out LPIPS, no 2x2 pattern); 0 for the paper's free kernels.
 CHECKERBOARD_FREE="${FLASHMAT_GPU_CHECKERBOARD_FREE:-1}"
@@ -218,6 +232,68 @@ print(f"- last 100 steps: L1 {mean('l1'):.4f}, LPIPS {mean('lpips'):.3f}, render
 EOF
 }
 
+# M_est alone against the frozen renderer (reports/colour.md's E3 recipe) and
+# the renderer alone against the frozen M_est (reports/frozen.md), side by
+# side: one run keeps the GPU about 45% busy, the two about 70%
+# (reports/gpu-campaign-2026-11-25/). Each run's later half of exports is
+# averaged (the CPU runs' lesson: late-checkpoint means beat the last one).
+frozen() {
+  local minutes="${1:-5.5}" out="${OUT:?set OUT to the folder that comes back}"
+  use_machine_libtorch
+  mkdir -p "$WORK" "$out"
+  smoke
+  local base="$RESUME_MODEL" dir="$WORK/frozen"
+  [ -f "$base" ] || base="$ROOT/models/flashmat.safetensors"
+  rm -rf "$dir" && mkdir -p "$dir"
+  local common=(--preset "$PRESET" --ldr --warm-start "$base" --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS"
+    --colocated-outputs 1 --hemisphere-outputs "$HEMISPHERE" --lr "$FROZEN_LR" --warmup-steps 50
+    --straight-through-output --checkerboard-free --adv-weight 0 --lpips-weight 0.1 --chroma-weight 1
+    --bank "$BANK" --steps 100000000 --minutes "$minutes" --checkpoint-every "$FROZEN_EVERY"
+    --preview-every 1000000 --keep-exports --device "$DEVICE" --threads "$FROZEN_THREADS")
+  start_util_sampler "$dir/gpu-util.csv"
+  local t0; t0=$(date +%s)
+  "$BIN" train --out "$dir/estimator" "${common[@]}" --freeze-renderer --frozen-bn-from 0 --colour-augment 0.6 \
+    --seed "$((SEED + 20))" --export-dir "$dir/estimator-exports" >"$dir/estimator.log" 2>&1 &
+  local estimator_pid=$!
+  "$BIN" train --out "$dir/renderer" "${common[@]}" --freeze-estimator \
+    --seed "$((SEED + 21))" --export-dir "$dir/renderer-exports" >"$dir/renderer.log" 2>&1 &
+  local renderer_pid=$!
+  local failed=""
+  wait "$estimator_pid" || failed+=" estimator"
+  wait "$renderer_pid" || failed+=" renderer"
+  local t1; t1=$(date +%s)
+  [ -n "$UTIL_PID" ] && kill "$UTIL_PID" 2>/dev/null || true
+  [ -z "$failed" ] || { tail -n 3 "$dir"/*.log >&2; die "frozen: the${failed} run failed (lines above)"; }
+  local half exports late
+  {
+    echo "# Frozen halves side by side (warm start from $(basename "$base"))"
+    echo
+    echo "- GPU: $(gpu_info); $((t1 - t0)) s of wall time for both runs"
+  } >"$out/frozen.md"
+  for half in estimator renderer; do
+    mapfile -t exports < <(ls "$dir/$half-exports"/step-*.safetensors | sort -V)
+    late=("${exports[@]:$(( ${#exports[@]} / 2 ))}")
+    "$BIN" average "${late[@]}" -o "$out/$half.safetensors"
+    python3 - "$dir/$half/log.jsonl" "$half" "$BATCH" >>"$out/frozen.md" <<'EOF'
+import json, sys
+steps = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
+seconds = sum(s["seconds"] for s in steps)
+last = steps[-100:]
+key = "l1" if sys.argv[2] == "estimator" else "l1_render"
+print(f"- {sys.argv[2]} alone: steps {steps[0]['step']} to {steps[-1]['step']}, {len(steps) / seconds:.2f} steps/s "
+      f"({len(steps) * int(sys.argv[3]) / seconds:.1f} materials/s), last 100 steps' L1 {sum(s[key] for s in last) / len(last):.4f}")
+EOF
+    echo "  - averaged: ${late[*]##*/}" >>"$out/frozen.md"
+    [ -f "$dir/$half/colour.jsonl" ] && echo "  - uniform-colour check at its last checkpoint: \`$(tail -n 1 "$dir/$half/colour.jsonl")\`" >>"$out/frozen.md"
+  done
+  {
+    [ -s "$dir/gpu-util.csv" ] && awk -F, '$1 ~ /^ *[0-9]/ { s += $1; n++ } END { if (n) printf "- GPU busy: %.0f%% (mean of %d samples)\n", s / n, n }' "$dir/gpu-util.csv"
+    echo "- recipe: \`flashmat train ${common[*]}\` with \`--freeze-renderer --frozen-bn-from 0 --colour-augment 0.6 --seed $((SEED + 20))\` (estimator) or \`--freeze-estimator --seed $((SEED + 21))\` (renderer); the later half of each run's exports averaged (\`flashmat average\`)"
+  } >>"$out/frozen.md"
+  tar czf "$out/frozen.tgz" -C "$dir" --exclude='*.safetensors' --exclude=previews .
+  cat "$out/frozen.md"
+}
+
 verdict() {
   local out="${OUT:?set OUT to the folder that comes back}" keep_model="${1:-yes}"
   use_machine_libtorch
@@ -328,6 +404,14 @@ cpu_dry_run() {
   done
   local n; n=$(find "$tmp/out3" -type f | wc -l)
   [ "$n" -le 8 ] || die "dry run: the final job brings back $n files (a job returns at most 8)"
+  echo "== frozen halves side by side (from the final chunk's export)"
+  cp "$tmp/out3/model.safetensors" "$tmp/resume.safetensors"
+  FLASHMAT_GPU_HEMISPHERE=1 FLASHMAT_GPU_FROZEN_EVERY=2 FLASHMAT_GPU_FROZEN_THREADS=1 OUT="$tmp/out4" bash "$self" frozen 0.1
+  for f in estimator.safetensors renderer.safetensors frozen.md frozen.tgz; do
+    [ -f "$tmp/out4/$f" ] || die "dry run: the frozen job brought back no $f"
+  done
+  grep -q "estimator alone: steps" "$tmp/out4/frozen.md" && grep -q "renderer alone: steps" "$tmp/out4/frozen.md" \
+    || die "dry run: frozen.md lacks a run's steps"
   echo "gpu-train: CPU dry run passed"
 }
 
@@ -340,6 +424,7 @@ case "${1:-}" in
   chunk) shift; chunk "$@" ;;
   verdict) verdict yes ;;
   final) shift; CHUNK_LR="$FINAL_LR" chunk "$@"; verdict no ;;
+  frozen) shift; frozen "$@" ;;
   --cpu-dry-run) cpu_dry_run ;;
-  *) die "usage: gpu-train.sh stage | chunk [MINUTES] | verdict | final [MINUTES] | --cpu-dry-run" ;;
+  *) die "usage: gpu-train.sh stage | chunk [MINUTES] | verdict | final [MINUTES] | frozen [MINUTES] | --cpu-dry-run" ;;
 esac
