@@ -3,7 +3,7 @@
 # models/MODEL.md: the paper's table with the baselines and the LDR vs HDR
 # ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
 # Deterministic: the same models give the same numbers. Only the bundled
-# model (models/flashmat.safetensors: 33,000 steps since 2026-11-25) is in
+# model (models/flashmat.safetensors: 36,181 steps since 2026-11-26) is in
 # the tree; the others (the 4,000-, 10,400-, 13,500- and 24,115-step
 # bundled models too, 16 and 8 frequencies,
 # taken from git history below) left it to keep the tree
@@ -146,14 +146,25 @@ $FLASHMAT eval --uniform --model target/C-26500.safetensors -o target/uniform-C-
 cp target/uniform-C-26500/uniform.md reports/frozen/uniform-26500.md
 cargo run --release --quiet --example compare_models -- target/trunc8-24115.safetensors target/C-26500.safetensors reports/frozen/photos.jpg
 
-# The bundled model since 2026-11-25 (night; 33,000 steps, M_est trained
+# The bundled model of 2026-11-25 (night; 33,000 steps, M_est trained
 # alone and averaged with the 26,500-step one's; reports/colour.md): its
 # held-out CSV, the uniform check and the photos against 26,500 (the
 # committed reports/colour/photos-mixE3.jpg is three rows of this grid).
-cp $M/flashmat.safetensors target/mixE3.safetensors
+[ -f target/mixE3.safetensors ] || git show 8ecbdd4:models/flashmat.safetensors > target/mixE3.safetensors
 $FLASHMAT eval --model target/mixE3.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input -o target/eval-mixE3
 cp target/eval-mixE3/mixE3.csv reports/colour/
 $FLASHMAT eval --uniform --model target/mixE3.safetensors -o target/uniform-mixE3
 cp target/uniform-mixE3/uniform.md reports/colour/uniform-mixE3.md
-cargo run --release --quiet --example compare_models -- target/C-26500.safetensors $M/flashmat.safetensors target/photos-mixE3.jpg \
+cargo run --release --quiet --example compare_models -- target/C-26500.safetensors target/mixE3.safetensors target/photos-mixE3.jpg \
     | grep '^|' > reports/colour/photos-mixE3.md
+
+# The bundled model since 2026-11-26 (36,181 steps: the frozen halves on a
+# GPU, reports/gpu-campaign-2026-11-25/): its held-out CSV, the uniform
+# check and the photos against 33,000.
+cp $M/flashmat.safetensors target/mixG2B.safetensors
+$FLASHMAT eval --model target/mixG2B.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input -o target/eval-mixG2B
+cp target/eval-mixG2B/mixG2B.csv reports/gpu-campaign-2026-11-25/
+$FLASHMAT eval --uniform --model target/mixG2B.safetensors -o target/uniform-mixG2B
+cp target/uniform-mixG2B/uniform.md reports/gpu-campaign-2026-11-25/uniform-36181.md
+cargo run --release --quiet --example compare_models -- target/mixE3.safetensors $M/flashmat.safetensors target/photos-36181.jpg \
+    | grep '^|' > reports/gpu-campaign-2026-11-25/photos.md
