@@ -33,7 +33,8 @@
 #             (M_est against the frozen renderer, the renderer against the
 #             frozen M_est), from .gpu/resume.safetensors or the bundled
 #             model; writes estimator.safetensors and renderer.safetensors
-#             (each run's late exports averaged), frozen.md and frozen.tgz
+#             (each run's late exports averaged), frozen.md (with their
+#             and their means' scores, on the GPU) and frozen.tgz
 #
 #   bash scripts/gpu-train.sh --cpu-dry-run
 #             the same steps on the CPU with the tiny preset (smoke test,
@@ -64,6 +65,11 @@ HEMISPHERE="${FLASHMAT_GPU_HEMISPHERE:-2}"
 FROZEN_LR="${FLASHMAT_GPU_FROZEN_LR:-5e-5}"
 FROZEN_EVERY="${FLASHMAT_GPU_FROZEN_EVERY:-200}"
 FROZEN_THREADS="${FLASHMAT_GPU_FROZEN_THREADS:-8}"
+# Scoring the frozen job's models on the GPU before they come back (0: off),
+# the configurations per held-out material and each evaluation's time limit.
+FROZEN_SCORE="${FLASHMAT_GPU_FROZEN_SCORE:-1}"
+FROZEN_CONFIGS="${FLASHMAT_GPU_FROZEN_CONFIGS:-16}"
+FROZEN_SCORE_SECONDS="${FLASHMAT_GPU_FROZEN_SCORE_SECONDS:-150}"
 # M_est's upsampling kept checkerboard-free (reports/checkerboard.md: level
 # held-out LPIPS, no 2x2 pattern); 0 for the paper's free kernels.
 CHECKERBOARD_FREE="${FLASHMAT_GPU_CHECKERBOARD_FREE:-1}"
@@ -232,6 +238,39 @@ print(f"- last 100 steps: L1 {mean('l1'):.4f}, LPIPS {mean('lpips'):.3f}, render
 EOF
 }
 
+# Mean LPIPS per case of each candidate's CSV (`flashmat eval`) against the
+# first's, paired over the materials both scored: mean (difference, materials
+# better), and whether it is better in all three cases. $1: base CSV; $2...:
+# candidates.
+paired_table() {
+  python3 - "$@" <<'EOF'
+import csv, os, sys
+def load(path):
+    rows = {}
+    for r in csv.DictReader(open(path)):
+        rows.setdefault(r["case"], {})[r["material"]] = float(r["lpips"])
+    return rows
+name = lambda path: os.path.splitext(os.path.basename(path))[0]
+base = load(sys.argv[1])
+print(f"| model | Reflect | Identity | Hemisphere | better than {name(sys.argv[1])} in all three |")
+print("|---|---|---|---|---|")
+for path in sys.argv[2:]:
+    new, cells, better = load(path), [], True
+    for case in ["reflect", "identity", "hemisphere"]:
+        mats = sorted(set(new.get(case, {})) & set(base.get(case, {})))
+        if not mats:
+            cells.append("-")
+            better = False
+            continue
+        a = sum(new[case][m] for m in mats) / len(mats)
+        b = sum(base[case][m] for m in mats) / len(mats)
+        wins = sum(new[case][m] < base[case][m] for m in mats)
+        cells.append(f"{a:.3f} ({a - b:+.3f}, {wins} of {len(mats)})")
+        better &= a < b
+    print(f"| {name(path)} | {' | '.join(cells)} | {'yes' if better else 'no'} |")
+EOF
+}
+
 # M_est alone against the frozen renderer (reports/colour.md's E3 recipe) and
 # the renderer alone against the frozen M_est (reports/frozen.md), side by
 # side: one run keeps the GPU about 45% busy, the two about 70%
@@ -290,8 +329,39 @@ EOF
     [ -s "$dir/gpu-util.csv" ] && awk -F, '$1 ~ /^ *[0-9]/ { s += $1; n++ } END { if (n) printf "- GPU busy: %.0f%% (mean of %d samples)\n", s / n, n }' "$dir/gpu-util.csv"
     echo "- recipe: \`flashmat train ${common[*]}\` with \`--freeze-renderer --frozen-bn-from 0 --colour-augment 0.6 --seed $((SEED + 20))\` (estimator) or \`--freeze-estimator --seed $((SEED + 21))\` (renderer); the later half of each run's exports averaged (\`flashmat average\`)"
   } >>"$out/frozen.md"
+  [ "$FROZEN_SCORE" = 1 ] && frozen_scores "$base" "$dir" "$out"
   tar czf "$out/frozen.tgz" -C "$dir" --exclude='*.safetensors' --exclude=previews .
   cat "$out/frozen.md"
+}
+
+# The frozen job's two models, and each one's mean with the starting model
+# (the mean brought the near-black highlight back within 2x,
+# reports/gpu-campaign-2026-11-25/), scored on the GPU against the starting
+# model: held-out LPIPS (FLASHMAT_GPU_FROZEN_CONFIGS configurations) and the
+# uniform-colour check, into frozen.md. Each evaluation is time-boxed so the
+# models come back whatever happens. $1: starting model; $2: work folder; $3: $OUT.
+frozen_scores() {
+  local base="$1" dir="$2" out="$3"
+  cp "$base" "$dir/start.safetensors"
+  "$BIN" average "$base" "$out/estimator.safetensors" -o "$dir/estimator-mean.safetensors"
+  "$BIN" average "$base" "$out/renderer.safetensors" -o "$dir/renderer-mean.safetensors"
+  local models=("$out/estimator.safetensors" "$dir/estimator-mean.safetensors" "$out/renderer.safetensors" "$dir/renderer-mean.safetensors" "$dir/start.safetensors")
+  local args=() m
+  for m in "${models[@]}"; do args+=(--model "$m"); done
+  if timeout "$FROZEN_SCORE_SECONDS" "$BIN" eval "${args[@]}" --dataset procedural-test --configs "$FROZEN_CONFIGS" --ldr-input \
+    --device "$DEVICE" -o "$dir/held-out" "${EVAL_EXTRA[@]}" >"$dir/held-out.log" 2>&1; then
+    {
+      echo
+      echo "Held-out LPIPS ($FROZEN_CONFIGS configurations, 8-bit photos; mean (paired difference, materials better) against the starting model):"
+      echo
+      paired_table "$dir/held-out/start.csv" "$dir/held-out/"{estimator,estimator-mean,renderer,renderer-mean}.csv
+    } >>"$out/frozen.md"
+  else
+    echo "- held-out scores: not finished in ${FROZEN_SCORE_SECONDS} s (\`held-out.log\` in frozen.tgz)" >>"$out/frozen.md"
+  fi
+  if timeout "$FROZEN_SCORE_SECONDS" "$BIN" eval --uniform "${args[@]}" --device "$DEVICE" -o "$dir/uniform" >"$dir/uniform.log" 2>&1; then
+    { echo; grep -h '^## Uniform-colour check: \|^Mean chromaticity' "$dir/uniform/uniform.md"; } >>"$out/frozen.md"
+  fi
 }
 
 verdict() {
@@ -315,32 +385,17 @@ verdict() {
   mkdir -p "$out/verdict"
   cp "$WORK/eval/summary.md" "$WORK/eval/candidate.csv" "$WORK/eval/flashmat.csv" "$out/verdict/"
   [ "$keep_model" = yes ] && cp "$candidate" "$out/candidate.safetensors"
-  python3 - "$WORK/eval/candidate.csv" "$WORK/eval/flashmat.csv" >"$out/verdict/verdict.md" <<'EOF'
-import csv, sys
-def load(p):
-    rows = {}
-    for r in csv.DictReader(open(p)):
-        rows.setdefault(r["case"], {})[r["material"]] = float(r["lpips"])
-    return rows
-new, old = load(sys.argv[1]), load(sys.argv[2])
-print("# Verdict: candidate against the bundled model (LPIPS, lower is better)\n")
-print("| case | candidate | bundled | paired difference | candidate better on |")
-print("|---|---|---|---|---|")
-better = True
-for case in ["reflect", "identity", "hemisphere"]:
-    mats = sorted(set(new.get(case, {})) & set(old.get(case, {})))
-    if not mats:
-        better = False
-        continue
-    a = sum(new[case][m] for m in mats) / len(mats)
-    b = sum(old[case][m] for m in mats) / len(mats)
-    wins = sum(new[case][m] < old[case][m] for m in mats)
-    print(f"| {case} | {a:.3f} | {b:.3f} | {a - b:+.3f} | {wins} of {len(mats)} materials |")
-    better &= a < b
-print()
-print("VERDICT: the candidate is better in all three cases: bundle it (docs/GPU.md, step 5)." if better
-      else "VERDICT: the candidate is not better in all three cases: keep the bundled model.")
-EOF
+  {
+    echo "# Verdict: candidate against the bundled model (LPIPS, lower is better)"
+    echo
+    paired_table "$WORK/eval/flashmat.csv" "$WORK/eval/candidate.csv"
+    echo
+  } >"$out/verdict/verdict.md"
+  if grep -q '| yes |$' "$out/verdict/verdict.md"; then
+    echo "VERDICT: the candidate is better in all three cases: bundle it (docs/GPU.md, step 5)." >>"$out/verdict/verdict.md"
+  else
+    echo "VERDICT: the candidate is not better in all three cases: keep the bundled model." >>"$out/verdict/verdict.md"
+  fi
   cat "$out/verdict/verdict.md"
 }
 
@@ -406,12 +461,15 @@ cpu_dry_run() {
   [ "$n" -le 8 ] || die "dry run: the final job brings back $n files (a job returns at most 8)"
   echo "== frozen halves side by side (from the final chunk's export)"
   cp "$tmp/out3/model.safetensors" "$tmp/resume.safetensors"
-  FLASHMAT_GPU_HEMISPHERE=1 FLASHMAT_GPU_FROZEN_EVERY=2 FLASHMAT_GPU_FROZEN_THREADS=1 OUT="$tmp/out4" bash "$self" frozen 0.1
+  FLASHMAT_GPU_HEMISPHERE=1 FLASHMAT_GPU_FROZEN_EVERY=2 FLASHMAT_GPU_FROZEN_THREADS=1 FLASHMAT_GPU_FROZEN_CONFIGS=1 \
+    FLASHMAT_GPU_EVAL_EXTRA="--limit 2 --size 64" OUT="$tmp/out4" bash "$self" frozen 0.1
   for f in estimator.safetensors renderer.safetensors frozen.md frozen.tgz; do
     [ -f "$tmp/out4/$f" ] || die "dry run: the frozen job brought back no $f"
   done
   grep -q "estimator alone: steps" "$tmp/out4/frozen.md" && grep -q "renderer alone: steps" "$tmp/out4/frozen.md" \
     || die "dry run: frozen.md lacks a run's steps"
+  grep -q '^| renderer-mean | ' "$tmp/out4/frozen.md" && grep -q '^## Uniform-colour check: start' "$tmp/out4/frozen.md" \
+    || die "dry run: frozen.md lacks the held-out or the uniform scores"
   echo "gpu-train: CPU dry run passed"
 }
 
