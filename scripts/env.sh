@@ -31,3 +31,11 @@ export LD_LIBRARY_PATH="$FLASHMAT_TORCH_LIB${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
 # CARGO_TARGET_DIR puts it (relative to the clone, as cargo reads it).
 FLASHMAT_RELEASE_BIN="$(realpath -m "${CARGO_TARGET_DIR:-target}")/release/flashmat"
 export FLASHMAT_RELEASE_BIN
+
+# The checkout whose models/ and assets/ flashmat reads (`bundled_root`):
+# this one, whichever checkout built the binary. Clones that share one
+# CARGO_TARGET_DIR share their binaries (cargo does not rebuild for another
+# checkout of the same sources), and a binary otherwise reads the files of
+# the checkout that built it.
+FLASHMAT_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+export FLASHMAT_ROOT

@@ -278,6 +278,7 @@ EOF
 # averaged (the CPU runs' lesson: late-checkpoint means beat the last one).
 frozen() {
   local minutes="${1:-5.5}" out="${OUT:?set OUT to the folder that comes back}"
+  [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "frozen: MINUTES must be a number, not '$minutes'"
   use_machine_libtorch
   mkdir -p "$WORK" "$out"
   smoke
@@ -298,11 +299,11 @@ frozen() {
     --seed "$((SEED + 21))" --export-dir "$dir/renderer-exports" >"$dir/renderer.log" 2>&1 &
   local renderer_pid=$!
   local failed=""
-  wait "$estimator_pid" || failed+=" estimator"
-  wait "$renderer_pid" || failed+=" renderer"
+  wait "$estimator_pid" || failed="estimator"
+  wait "$renderer_pid" || failed+="${failed:+ and }renderer"
   local t1; t1=$(date +%s)
   [ -n "$UTIL_PID" ] && kill "$UTIL_PID" 2>/dev/null || true
-  [ -z "$failed" ] || { tail -n 3 "$dir"/*.log >&2; die "frozen: the${failed} run failed (lines above)"; }
+  [ -z "$failed" ] || die "frozen: training failed ($failed): $(grep -h -m 1 '^error' "$dir"/estimator.log "$dir"/renderer.log | head -n 1)"
   local half exports late
   {
     echo "# Frozen halves side by side (warm start from $(basename "$base"))"

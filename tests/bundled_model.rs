@@ -147,7 +147,7 @@ fn bundled_model_keeps_the_co_located_highlight_spike_down() {
 #[test]
 fn bundled_model_records_its_method_and_steps() {
     use flashmat::model::file::{read_header_metadata, METHOD_KEY};
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
+    let root = flashmat::infer::models_dir();
     for (file, method, steps, ldr) in [
         ("flashmat.safetensors", "flashmat", "36181", true),
     ] {
