@@ -27,11 +27,6 @@ FLASHMAT_TORCH_LIB="$("$FLASHMAT_VENV/bin/python" -c 'import torch,os; print(os.
 export FLASHMAT_TORCH_LIB
 export LD_LIBRARY_PATH="$FLASHMAT_TORCH_LIB${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 
-# The release binary the scripts run: cargo's, wherever a shared
-# CARGO_TARGET_DIR puts it (relative to the clone, as cargo reads it).
-FLASHMAT_RELEASE_BIN="$(realpath -m "${CARGO_TARGET_DIR:-target}")/release/flashmat"
-export FLASHMAT_RELEASE_BIN
-
 # The checkout whose models/ and assets/ flashmat reads (`bundled_root`):
 # this one, whichever checkout built the binary. Clones that share one
 # CARGO_TARGET_DIR share their binaries (cargo does not rebuild for another
@@ -39,3 +34,9 @@ export FLASHMAT_RELEASE_BIN
 # the checkout that built it.
 FLASHMAT_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 export FLASHMAT_ROOT
+
+# The release binary the scripts run: cargo's, wherever a shared
+# CARGO_TARGET_DIR puts it (a relative one read from the checkout, as the
+# scripts run cargo there, whatever folder sourced this file).
+FLASHMAT_RELEASE_BIN="$(cd "$FLASHMAT_ROOT" && realpath -m "${CARGO_TARGET_DIR:-target}")/release/flashmat"
+export FLASHMAT_RELEASE_BIN

@@ -36,6 +36,13 @@
 #             (each run's late exports averaged), frozen.md (with their
 #             and their means' scores, on the GPU) and frozen.tgz
 #
+#   GPU:    bash scripts/gpu-train.sh frozen-chain [MINUTES_A] [MINUTES_B]
+#             two frozen jobs in one call (one machine start): the first into
+#             $OUT/a, unscored; the second from its estimator.safetensors
+#             into $OUT/b, scored against the first's starting model, so
+#             b/renderer.safetensors is M_est trained, then a renderer
+#             trained for it (8 files, a job's limit)
+#
 #   bash scripts/gpu-train.sh --cpu-dry-run
 #             the same steps on the CPU with the tiny preset (smoke test,
 #             chunks with a resume from the export and from the checkpoint,
@@ -65,11 +72,18 @@ HEMISPHERE="${FLASHMAT_GPU_HEMISPHERE:-2}"
 FROZEN_LR="${FLASHMAT_GPU_FROZEN_LR:-5e-5}"
 FROZEN_EVERY="${FLASHMAT_GPU_FROZEN_EVERY:-200}"
 FROZEN_THREADS="${FLASHMAT_GPU_FROZEN_THREADS:-8}"
+# Co-located outputs of the frozen job's 8 (docs/GPU.md: more may hold the
+# near-black highlight that every fine-tune pushed past 2x).
+FROZEN_COLOCATED="${FLASHMAT_GPU_FROZEN_COLOCATED:-1}"
 # Scoring the frozen job's models on the GPU before they come back (0: off),
 # the configurations per held-out material and each evaluation's time limit.
 FROZEN_SCORE="${FLASHMAT_GPU_FROZEN_SCORE:-1}"
 FROZEN_CONFIGS="${FLASHMAT_GPU_FROZEN_CONFIGS:-16}"
 FROZEN_SCORE_SECONDS="${FLASHMAT_GPU_FROZEN_SCORE_SECONDS:-150}"
+# The model the frozen job's models are scored and averaged against (default:
+# the one it started from; the bundled model when a second job in the same
+# call starts from the first's estimator).
+FROZEN_SCORE_AGAINST="${FLASHMAT_GPU_FROZEN_SCORE_AGAINST:-}"
 # M_est's upsampling kept checkerboard-free (reports/checkerboard.md: level
 # held-out LPIPS, no 2x2 pattern); 0 for the paper's free kernels.
 CHECKERBOARD_FREE="${FLASHMAT_GPU_CHECKERBOARD_FREE:-1}"
@@ -286,7 +300,7 @@ frozen() {
   [ -f "$base" ] || base="$ROOT/models/flashmat.safetensors"
   rm -rf "$dir" && mkdir -p "$dir"
   local common=(--preset "$PRESET" --ldr --warm-start "$base" --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS"
-    --colocated-outputs 1 --hemisphere-outputs "$HEMISPHERE" --lr "$FROZEN_LR" --warmup-steps 50
+    --colocated-outputs "$FROZEN_COLOCATED" --hemisphere-outputs "$HEMISPHERE" --lr "$FROZEN_LR" --warmup-steps 50
     --straight-through-output --checkerboard-free --adv-weight 0 --lpips-weight 0.1 --chroma-weight 1
     --bank "$BANK" --steps 100000000 --minutes "$minutes" --checkpoint-every "$FROZEN_EVERY"
     --preview-every 1000000 --keep-exports --device "$DEVICE" --threads "$FROZEN_THREADS")
@@ -330,9 +344,23 @@ EOF
     [ -s "$dir/gpu-util.csv" ] && awk -F, '$1 ~ /^ *[0-9]/ { s += $1; n++ } END { if (n) printf "- GPU busy: %.0f%% (mean of %d samples)\n", s / n, n }' "$dir/gpu-util.csv"
     echo "- recipe: \`flashmat train ${common[*]}\` with \`--freeze-renderer --frozen-bn-from 0 --colour-augment 0.6 --seed $((SEED + 20))\` (estimator) or \`--freeze-estimator --seed $((SEED + 21))\` (renderer); the later half of each run's exports averaged (\`flashmat average\`)"
   } >>"$out/frozen.md"
-  [ "$FROZEN_SCORE" = 1 ] && frozen_scores "$base" "$dir" "$out"
+  [ "$FROZEN_SCORE" = 1 ] && frozen_scores "${FROZEN_SCORE_AGAINST:-$base}" "$dir" "$out"
   tar czf "$out/frozen.tgz" -C "$dir" --exclude='*.safetensors' --exclude=previews .
   cat "$out/frozen.md"
+}
+
+# Two frozen jobs in one call: the renderer retrained for a new M_est gained
+# more than more M_est steps did (reports/gpu-campaign-2026-11-25/), and one
+# call saves a machine start (reports/gpu-campaign-2026-11-26/).
+frozen_chain() {
+  local first="${1:-2.5}" second="${2:-1.8}" out="${OUT:?set OUT to the folder that comes back}"
+  local start="$RESUME_MODEL"
+  [ -f "$start" ] || start="$ROOT/models/flashmat.safetensors"
+  local staged="$WORK/chain-start.safetensors"
+  mkdir -p "$WORK" && cp "$start" "$staged"
+  FLASHMAT_GPU_RESUME="$staged" FLASHMAT_GPU_FROZEN_SCORE=0 OUT="$out/a" bash "$ROOT/scripts/gpu-train.sh" frozen "$first"
+  FLASHMAT_GPU_RESUME="$out/a/estimator.safetensors" FLASHMAT_GPU_FROZEN_SCORE_AGAINST="$staged" OUT="$out/b" \
+    bash "$ROOT/scripts/gpu-train.sh" frozen "$second"
 }
 
 # The frozen job's two models, and each one's mean with the starting model
@@ -460,17 +488,26 @@ cpu_dry_run() {
   done
   local n; n=$(find "$tmp/out3" -type f | wc -l)
   [ "$n" -le 8 ] || die "dry run: the final job brings back $n files (a job returns at most 8)"
-  echo "== frozen halves side by side (from the final chunk's export)"
+  echo "== frozen halves side by side, two jobs chained (from the final chunk's export)"
   cp "$tmp/out3/model.safetensors" "$tmp/resume.safetensors"
   FLASHMAT_GPU_HEMISPHERE=1 FLASHMAT_GPU_FROZEN_EVERY=2 FLASHMAT_GPU_FROZEN_THREADS=1 FLASHMAT_GPU_FROZEN_CONFIGS=1 \
-    FLASHMAT_GPU_EVAL_EXTRA="--limit 2 --size 64" OUT="$tmp/out4" bash "$self" frozen 0.1
-  for f in estimator.safetensors renderer.safetensors frozen.md frozen.tgz; do
-    [ -f "$tmp/out4/$f" ] || die "dry run: the frozen job brought back no $f"
+    FLASHMAT_GPU_EVAL_EXTRA="--limit 2 --size 64" OUT="$tmp/out4" bash "$self" frozen-chain 0.1 0.1
+  local job
+  for job in a b; do
+    for f in estimator.safetensors renderer.safetensors frozen.md frozen.tgz; do
+      [ -f "$tmp/out4/$job/$f" ] || die "dry run: the frozen chain's job $job brought back no $f"
+    done
+    grep -q "estimator alone: steps" "$tmp/out4/$job/frozen.md" && grep -q "renderer alone: steps" "$tmp/out4/$job/frozen.md" \
+      || die "dry run: job $job's frozen.md lacks a run's steps"
   done
-  grep -q "estimator alone: steps" "$tmp/out4/frozen.md" && grep -q "renderer alone: steps" "$tmp/out4/frozen.md" \
-    || die "dry run: frozen.md lacks a run's steps"
-  grep -q '^| renderer-mean | ' "$tmp/out4/frozen.md" && grep -q '^## Uniform-colour check: start' "$tmp/out4/frozen.md" \
-    || die "dry run: frozen.md lacks the held-out or the uniform scores"
+  grep -q "warm start from estimator.safetensors" "$tmp/out4/b/frozen.md" || die "dry run: the chain's second job did not start from the first's estimator"
+  grep -q '^| renderer-mean | ' "$tmp/out4/b/frozen.md" && grep -q '^## Uniform-colour check: start' "$tmp/out4/b/frozen.md" \
+    || die "dry run: the chain's frozen.md lacks the held-out or the uniform scores"
+  grep -q '^Held-out LPIPS' "$tmp/out4/a/frozen.md" && die "dry run: the chain's first job was scored (it should save that time)"
+  cmp -s "$tmp/machine/frozen/start.safetensors" "$tmp/resume.safetensors" \
+    || die "dry run: the chain's second job was not scored against the chain's starting model"
+  n=$(find "$tmp/out4" -type f | wc -l)
+  [ "$n" -le 8 ] || die "dry run: the frozen chain brings back $n files (a job returns at most 8)"
   echo "gpu-train: CPU dry run passed"
 }
 
@@ -484,6 +521,7 @@ case "${1:-}" in
   verdict) verdict yes ;;
   final) shift; CHUNK_LR="$FINAL_LR" chunk "$@"; verdict no ;;
   frozen) shift; frozen "$@" ;;
+  frozen-chain) shift; frozen_chain "$@" ;;
   --cpu-dry-run) cpu_dry_run ;;
-  *) die "usage: gpu-train.sh stage | chunk [MINUTES] | verdict | final [MINUTES] | frozen [MINUTES] | --cpu-dry-run" ;;
+  *) die "usage: gpu-train.sh stage | chunk [MINUTES] | verdict | final [MINUTES] | frozen [MINUTES] | frozen-chain [MINUTES_A] [MINUTES_B] | --cpu-dry-run" ;;
 esac

@@ -3,7 +3,7 @@
 # models/MODEL.md: the paper's table with the baselines and the LDR vs HDR
 # ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
 # Deterministic: the same models give the same numbers. Only the bundled
-# model (models/flashmat.safetensors: 36,181 steps since 2026-11-26) is in
+# model (models/flashmat.safetensors: 41,607 steps since 2026-11-26) is in
 # the tree; the others (the 4,000-, 10,400-, 13,500- and 24,115-step
 # bundled models too, 16 and 8 frequencies,
 # taken from git history below) left it to keep the tree
@@ -158,13 +158,25 @@ cp target/uniform-mixE3/uniform.md reports/colour/uniform-mixE3.md
 cargo run --release --quiet --example compare_models -- target/C-26500.safetensors target/mixE3.safetensors target/photos-mixE3.jpg \
     | grep '^|' > reports/colour/photos-mixE3.md
 
-# The bundled model since 2026-11-26 (36,181 steps: the frozen halves on a
-# GPU, reports/gpu-campaign-2026-11-25/): its held-out CSV, the uniform
-# check and the photos against 33,000.
-cp $M/flashmat.safetensors target/mixG2B.safetensors
+# The bundled model of 2026-11-26 until the morning (36,181 steps: the
+# frozen halves on a GPU, reports/gpu-campaign-2026-11-25/): its held-out
+# CSV, the uniform check and the photos against 33,000.
+[ -f target/mixG2B.safetensors ] || git show 293782f:models/flashmat.safetensors > target/mixG2B.safetensors
 $FLASHMAT eval --model target/mixG2B.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input -o target/eval-mixG2B
 cp target/eval-mixG2B/mixG2B.csv reports/gpu-campaign-2026-11-25/
 $FLASHMAT eval --uniform --model target/mixG2B.safetensors -o target/uniform-mixG2B
 cp target/uniform-mixG2B/uniform.md reports/gpu-campaign-2026-11-25/uniform-36181.md
-cargo run --release --quiet --example compare_models -- target/mixE3.safetensors $M/flashmat.safetensors target/photos-36181.jpg \
+cargo run --release --quiet --example compare_models -- target/mixE3.safetensors target/mixG2B.safetensors target/photos-36181.jpg \
     | grep '^|' > reports/gpu-campaign-2026-11-25/photos.md
+
+# The bundled model since 2026-11-26 (morning; 41,607 steps: the frozen
+# halves chained on a GPU, the renderer settled on the CPU,
+# reports/gpu-campaign-2026-11-26/): its held-out CSV, the uniform check and
+# the photos against 36,181.
+cp $M/flashmat.safetensors target/bundled-41607.safetensors
+$FLASHMAT eval --model target/bundled-41607.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input -o target/eval-bundled-41607
+cp target/eval-bundled-41607/bundled-41607.csv reports/gpu-campaign-2026-11-26/
+$FLASHMAT eval --uniform --model target/bundled-41607.safetensors -o target/uniform-bundled-41607
+cp target/uniform-bundled-41607/uniform.md reports/gpu-campaign-2026-11-26/uniform-41607.md
+cargo run --release --quiet --example compare_models -- target/mixG2B.safetensors $M/flashmat.safetensors target/photos-41607.jpg \
+    | grep '^|' > reports/gpu-campaign-2026-11-26/photos.md
