@@ -8,8 +8,15 @@ use flashmat::data::procedural::{generate_many, training_seed};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
-    let count: u64 = args.get(1).map_or(Ok(400), |s| s.parse()).expect("N: a number of materials");
-    let size: usize = args.get(2).map_or(Ok(64), |s| s.parse()).expect("SIZE: a map size");
+    // One error line and a non-zero exit for bad arguments, never a backtrace.
+    let (Ok(count), Ok(size)) = (args.get(1).map_or(Ok(400u64), |s| s.parse()), args.get(2).map_or(Ok(64usize), |s| s.parse())) else {
+        eprintln!("material_stats: N and SIZE must be whole numbers (usage: material_stats [N] [SIZE])");
+        std::process::exit(2);
+    };
+    if count == 0 || size == 0 {
+        eprintln!("material_stats: N and SIZE must be at least 1");
+        std::process::exit(2);
+    }
     let seeds: Vec<u64> = (0..count).map(training_seed).collect();
     let materials = generate_many(&seeds, size);
     // [kind][rough]: pixel counts; kinds: dark dielectric, metal, other.
