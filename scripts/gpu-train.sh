@@ -43,6 +43,14 @@
 #             b/renderer.safetensors is M_est trained, then a renderer
 #             trained for it (8 files, a job's limit)
 #
+#   here:   OUT=DIR bash scripts/gpu-train.sh settle MODEL [MINUTES]
+#             after the GPU jobs, on this CPU: MODEL's renderer alone at the
+#             small recipe (one co-located output of four, 64x64), which
+#             brought the near-black matte highlight of a GPU renderer run
+#             back within 2x (reports/gpu-campaign-2026-11-26/); writes
+#             DIR/settled.safetensors and DIR/uniform.md (the check to judge
+#             it by); run it again to continue from its checkpoint
+#
 #   bash scripts/gpu-train.sh --cpu-dry-run
 #             the same steps on the CPU with the tiny preset (smoke test,
 #             chunks with a resume from the export and from the checkpoint,
@@ -428,6 +436,30 @@ verdict() {
   cat "$out/verdict/verdict.md"
 }
 
+# The CPU step after a campaign: the renderer alone at the recipe that made
+# the 41,607-step model from the GPU's G5B (models/MODEL.md).
+settle() {
+  local model="${1:-}" minutes="${2:-28}" out="${OUT:?set OUT to the folder for the settled model}"
+  [ -f "$model" ] || die "settle: no model file '$model' (usage: OUT=DIR gpu-train.sh settle MODEL [MINUTES])"
+  [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "settle: MINUTES must be a number, not '$minutes'"
+  source scripts/env.sh
+  local bin="${FLASHMAT_GPU_BIN_HERE:-$FLASHMAT_RELEASE_BIN}"
+  [ -x "$bin" ] || cargo build --release --bin flashmat
+  mkdir -p "$out"
+  "$bin" train --preset "$PRESET" --ldr --out "$out/run" --warm-start "$model" --crop "${FLASHMAT_SETTLE_CROP:-64}" \
+    --outputs 4 --colocated-outputs 1 --batch 2 --lr 5e-5 --warmup-steps 50 --straight-through-output --checkerboard-free \
+    --freeze-estimator --adv-weight 0 --lpips-weight 0.1 --chroma-weight 1 --pixel-sampling inverse-norm \
+    --steps 100000000 --minutes "$minutes" --checkpoint-every "${FLASHMAT_SETTLE_EVERY:-250}" --seed 1 \
+    --threads "${FLASHMAT_SETTLE_THREADS:-1}" --export-dir "$out/exports" --preview-every 1000000 \
+    || die "settle: training failed (the lines above)"
+  cp "$out/exports/model.safetensors" "$out/settled.safetensors"
+  "$bin" eval --uniform --model "$out/settled.safetensors" ${FLASHMAT_SETTLE_UNIFORM_SIZE:+--size "$FLASHMAT_SETTLE_UNIFORM_SIZE"} -o "$out/uniform-check" \
+    || die "settle: the uniform check failed (the lines above)"
+  cp "$out/uniform-check/uniform.md" "$out/uniform.md"
+  echo "gpu-train: settled $out/settled.safetensors; its uniform check (both near-black highlights within 2x is the bundling bound):"
+  grep -h '^Mean chromaticity\|| near-black | identity |' "$out/uniform.md"
+}
+
 stage() {
   source scripts/env.sh
   cargo build --release --bin flashmat
@@ -508,6 +540,13 @@ cpu_dry_run() {
     || die "dry run: the chain's second job was not scored against the chain's starting model"
   n=$(find "$tmp/out4" -type f | wc -l)
   [ "$n" -le 8 ] || die "dry run: the frozen chain brings back $n files (a job returns at most 8)"
+  echo "== settle the chain's renderer on the CPU"
+  FLASHMAT_SETTLE_CROP=32 FLASHMAT_SETTLE_EVERY=2 FLASHMAT_SETTLE_UNIFORM_SIZE=32 OUT="$tmp/out5" \
+    bash "$self" settle "$tmp/out4/b/renderer.safetensors" 0.05
+  [ -f "$tmp/out5/settled.safetensors" ] && grep -q '^Mean chromaticity' "$tmp/out5/uniform.md" \
+    || die "dry run: settle brought no model or no uniform check"
+  grep -q '"freeze_estimator": true' "$tmp/out5/run/config.json" && grep -q '"colocated_outputs": 1' "$tmp/out5/run/config.json" \
+    || die "dry run: settle did not train the renderer alone with one co-located output"
   echo "gpu-train: CPU dry run passed"
 }
 
@@ -522,6 +561,7 @@ case "${1:-}" in
   final) shift; CHUNK_LR="$FINAL_LR" chunk "$@"; verdict no ;;
   frozen) shift; frozen "$@" ;;
   frozen-chain) shift; frozen_chain "$@" ;;
+  settle) shift; settle "$@" ;;
   --cpu-dry-run) cpu_dry_run ;;
-  *) die "usage: gpu-train.sh stage | chunk [MINUTES] | verdict | final [MINUTES] | frozen [MINUTES] | frozen-chain [MINUTES_A] [MINUTES_B] | --cpu-dry-run" ;;
+  *) die "usage: gpu-train.sh stage | chunk [MINUTES] | verdict | final [MINUTES] | frozen [MINUTES] | frozen-chain [MINUTES_A] [MINUTES_B] | settle MODEL [MINUTES] | --cpu-dry-run" ;;
 esac
