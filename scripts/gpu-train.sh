@@ -362,6 +362,9 @@ EOF
 # call saves a machine start (reports/gpu-campaign-2026-11-26/).
 frozen_chain() {
   local first="${1:-2.5}" second="${2:-1.8}" out="${OUT:?set OUT to the folder that comes back}"
+  # Both checked before the first job spends GPU time.
+  [[ "$first" =~ ^[0-9]+([.][0-9]+)?$ && "$second" =~ ^[0-9]+([.][0-9]+)?$ ]] \
+    || die "frozen-chain: MINUTES_A and MINUTES_B must be numbers, not '$first' and '$second'"
   local start="$RESUME_MODEL"
   [ -f "$start" ] || start="$ROOT/models/flashmat.safetensors"
   local staged="$WORK/chain-start.safetensors"
@@ -443,7 +446,7 @@ settle() {
   [ -f "$model" ] || die "settle: no model file '$model' (usage: OUT=DIR gpu-train.sh settle MODEL [MINUTES])"
   [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "settle: MINUTES must be a number, not '$minutes'"
   source scripts/env.sh
-  local bin="${FLASHMAT_GPU_BIN_HERE:-$FLASHMAT_RELEASE_BIN}"
+  local bin="$FLASHMAT_RELEASE_BIN"
   [ -x "$bin" ] || cargo build --release --bin flashmat
   mkdir -p "$out"
   "$bin" train --preset "$PRESET" --ldr --out "$out/run" --warm-start "$model" --crop "${FLASHMAT_SETTLE_CROP:-64}" \
