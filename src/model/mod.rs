@@ -14,6 +14,7 @@ pub(crate) mod layers;
 pub mod m_est;
 pub mod m_render;
 pub mod nd_enc;
+pub mod winograd;
 
 pub use config::{ModelConfig, PRESETS};
 pub use discriminator::Discriminator;
@@ -290,13 +291,16 @@ pub struct InferTimings {
     /// Seconds of one naive M_est forward (eval-mode BatchNorm, autograd
     /// recording), the baseline the inference path is compared with.
     pub naive_est_s: f64,
+    /// Median seconds of the folded M_est forward with every conv direct
+    /// (no Winograd), the baseline of [`crate::model::winograd`].
+    pub direct_est_s: f64,
 }
 
 impl std::fmt::Display for InferTimings {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "{} @ {}x{} ({} threads, median of {}): M_est {:.3} s ({:.1} GFLOP, {:.1} GFLOP/s; naive eval-mode forward with autograd {:.3} s, {:.2}x slower); ND_enc+M_render {:.3} s/frame ({:.1} GFLOP, {:.1} GFLOP/s)",
+            "{} @ {}x{} ({} threads, median of {}): M_est {:.3} s ({:.1} GFLOP, {:.1} GFLOP/s; every conv direct, no Winograd: {:.3} s, {:.2}x slower; naive eval-mode forward with autograd {:.3} s, {:.2}x slower); ND_enc+M_render {:.3} s/frame ({:.1} GFLOP, {:.1} GFLOP/s)",
             self.model_id,
             self.size,
             self.size,
@@ -305,6 +309,8 @@ impl std::fmt::Display for InferTimings {
             self.est_s,
             self.est_gflop,
             self.est_gflop / self.est_s,
+            self.direct_est_s,
+            self.direct_est_s / self.est_s,
             self.naive_est_s,
             self.naive_est_s / self.est_s,
             self.render_s,
@@ -340,10 +346,11 @@ fn median_time(runs: usize, device: Device, mut f: impl FnMut() -> Result<()>) -
 /// current `tch::get_num_threads()`.
 ///
 /// Measured at 256x256 on the 2-core development machine (release build,
-/// OMP_WAIT_POLICY=PASSIVE, 2 threads; 1 thread in parentheses):
-/// paper M_est 7.4 s (12.2 s), ND_enc + M_render 1.09 s/frame (1.71 s);
-/// compact 0.73 s (0.97 s) and 0.23 s/frame (0.37 s); tiny 0.28 s and
-/// 0.18 s/frame. The authors' PyTorch M_est takes about 20 s there.
+/// OMP_WAIT_POLICY=PASSIVE, 2 threads): paper M_est 8.8 s with the default
+/// Winograd policy against 11.1 s with every conv direct, ND_enc + M_render
+/// 1.4 s/frame; compact 1.18 s and 0.25 s/frame (`reports/winograd.md`;
+/// the machine is shared, expect +-20%). The authors' PyTorch M_est takes
+/// about 20 s there.
 pub fn bench_infer(cfg: &ModelConfig, size: usize, device: Device) -> Result<InferTimings> {
     bench_infer_runs(cfg, size, device, 3)
 }
@@ -359,6 +366,10 @@ pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: us
     let x = Tensor::cat(&[Tensor::rand([1, 3, s, s], opts), crate::svbrdf::render::half_vector_z(&wi, &wo)], 1);
     let est_s = median_time(runs, device, || folded.forward(&x).map(drop))?;
     let map = folded.forward(&x)?;
+    let mut direct = model.est.fold_batchnorm();
+    direct.set_winograd(None);
+    let direct_est_s = median_time(runs, device, || direct.forward(&x).map(drop))?;
+    drop(direct);
     let t0 = Instant::now();
     let _ = model.est.forward_t(&x, false)?;
     sync(device);
@@ -380,6 +391,7 @@ pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: us
         est_gflop: est_flops(cfg, s, s) / 1e9,
         render_gflop: renderer_flops_per_row(cfg) * px / 1e9,
         naive_est_s,
+        direct_est_s,
     })
 }
 

@@ -136,6 +136,16 @@ fn folded_batchnorm_equals_eval_forward() {
     folded_cl.set_channels_last(true);
     let diff = (folded_cl.forward(&x).unwrap() - &eval).abs().max().double_value(&[]);
     assert!(diff <= 1e-4 * scale.max(1.0), "channels-last folded differs by {diff} (scale {scale})");
+    // Every stride-1 3x3 conv by Winograd F(4x4, 3x3) (the tiny preset is
+    // below the default policy's width), odd sizes included: same result.
+    let mut folded_wino = m.est.fold_batchnorm();
+    folded_wino.set_winograd(Some(crate::model::m_est::WinogradPolicy::ALWAYS));
+    let diff = (folded_wino.forward(&x).unwrap() - &eval).abs().max().double_value(&[]);
+    assert!(diff <= 1e-4 * scale.max(1.0), "Winograd folded differs by {diff} (scale {scale})");
+    let mut folded_direct = m.est.fold_batchnorm();
+    folded_direct.set_winograd(None);
+    let diff_wd = (folded_wino.forward(&x).unwrap() - folded_direct.forward(&x).unwrap()).abs().max().double_value(&[]);
+    assert!(diff_wd > 0.0, "the Winograd path did not run (bit-equal to the direct convs)");
     // In float64 the two agree to rounding: the folding algebra is exact.
     let mut m64 = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
     m64.est_vs.copy(&m.est_vs).unwrap();

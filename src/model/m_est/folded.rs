@@ -15,12 +15,14 @@
 //! stride 1; gate and incep.c at stride 2) run as one wider convolution.
 
 use super::*;
+use crate::model::winograd::Winograd3x3;
+use tch::Device;
 
 impl MEst {
     /// Inference-only copy with every BatchNorm folded away (eval-mode
     /// statistics) and convs sharing an input merged. See [`FoldedMEst`].
     pub fn fold_batchnorm(&self) -> FoldedMEst {
-        tch::no_grad(|| FoldedMEst {
+        let mut folded = tch::no_grad(|| FoldedMEst {
             stem: self.stem.detach().copy(),
             enc: self.enc.iter().map(|s| s.iter().map(FoldedRes::new).collect()).collect(),
             dec: self
@@ -30,7 +32,9 @@ impl MEst {
                 .collect(),
             head: self.head.detach().copy(),
             channels_last: false,
-        })
+        });
+        folded.set_winograd(Some(WinogradPolicy::default()));
+        folded
     }
 }
 
@@ -43,6 +47,67 @@ pub struct FoldedMEst {
     dec: Vec<FoldedDec>,
     head: Tensor,
     channels_last: bool,
+}
+
+/// Which stride-1 3x3 convs of [`FoldedMEst`] run by Winograd F(4x4, 3x3)
+/// ([`Winograd3x3`]): those with at least `min_channels` input and output
+/// channels, on inputs of at least `min_pixels`. Below that the tile
+/// transforms cost more than the smaller GEMMs save (the default is where
+/// they broke even on the 2-core development CPU:
+/// `cargo run --release --example winograd`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct WinogradPolicy {
+    pub min_channels: i64,
+    pub min_pixels: i64,
+}
+
+impl Default for WinogradPolicy {
+    fn default() -> Self {
+        Self { min_channels: 64, min_pixels: 32 * 32 }
+    }
+}
+
+impl WinogradPolicy {
+    /// Every stride-1 3x3 conv (for tests of the Winograd path).
+    pub const ALWAYS: Self = Self { min_channels: 1, min_pixels: 1 };
+
+    /// The Winograd form of w `[P, C, 3, 3]` (+ bias `[P]`) if the policy
+    /// takes convs of its width.
+    fn make(policy: Option<Self>, w: &Tensor, b: Option<&Tensor>) -> Option<WinoConv> {
+        let policy = policy?;
+        let min_channels = w.size()[0].min(w.size()[1]);
+        (min_channels >= policy.min_channels).then(|| WinoConv { conv: Winograd3x3::new(w, b), min_pixels: policy.min_pixels })
+    }
+}
+
+/// A conv's Winograd form and the smallest input it is used on.
+#[derive(Debug)]
+struct WinoConv {
+    conv: Winograd3x3,
+    min_pixels: i64,
+}
+
+/// The Winograd F(4x4, 3x3) forms of one HA layer's stride-1 3x3 convs.
+#[derive(Debug, Default)]
+struct HaWinograd {
+    merged: Option<WinoConv>,
+    incep_a: Option<WinoConv>,
+    incep_b: Option<WinoConv>,
+    feat: Option<WinoConv>,
+}
+
+/// xp (padded) -> conv(xp, w, b, stride), by Winograd when `wino` is set,
+/// the stride is 1, the input f32 on the CPU and large enough.
+/// xp: `[N, C, H + 2, W + 2]` -> `[N, P, H', W']`.
+fn conv3(xp: &Tensor, w: &Tensor, b: Option<&Tensor>, stride: i64, wino: Option<&WinoConv>) -> Tensor {
+    let pays = |wg: &WinoConv| {
+        let pixels = (xp.size()[2] - 2) * (xp.size()[3] - 2);
+        stride == 1 && xp.kind() == Kind::Float && xp.device() == Device::Cpu && pixels >= wg.min_pixels
+    };
+    match wino {
+        Some(wg) if pays(wg) => wg.conv.forward(xp),
+        _ => conv(xp, w, b, stride),
+    }
 }
 
 #[derive(Debug)]
@@ -59,6 +124,7 @@ struct FoldedHa {
     feat_scale: Option<Tensor>,
     stride: i64,
     out: i64,
+    wino: HaWinograd,
 }
 
 impl FoldedHa {
@@ -101,22 +167,40 @@ impl FoldedHa {
             feat_scale,
             stride: ha.stride,
             out: p,
+            wino: HaWinograd::default(),
         }
+    }
+
+    /// Builds (or drops) the Winograd forms of the stride-1 3x3 convs.
+    fn set_winograd(&mut self, policy: Option<WinogradPolicy>) {
+        let make = |w: &Tensor, b: Option<&Tensor>| WinogradPolicy::make(policy, w, b);
+        self.wino = if self.stride == 1 {
+            HaWinograd {
+                merged: make(&self.merged, Some(&self.merged_bias)),
+                incep_a: None,
+                incep_b: make(&self.incep_b, Some(&self.incep_b_bias)),
+                feat: make(&self.feat, None),
+            }
+        } else {
+            HaWinograd { incep_a: self.incep_a.as_ref().and_then(|w| make(w, None)), ..HaWinograd::default() }
+        };
     }
 
     /// x: `[N, C, H, W]` -> `[N, P, H/s, W/s]` = bn(ha(x)); the instance
     /// norm takes its statistics as `norm` says.
     fn forward(&self, x: &Tensor, norm: &mut NormStats) -> Tensor {
         let (p, half, s) = (self.out, self.out / 2, self.stride);
+        let wg = &self.wino;
         let xp = pad_rep(x, 1);
-        let m = conv(&xp, &self.merged, Some(&self.merged_bias), s);
+        let m = conv3(&xp, &self.merged, Some(&self.merged_bias), s, wg.merged.as_ref());
         let gate = m.narrow(1, 0, p).sigmoid();
         let (a, c) = match &self.incep_a {
             None => (m.narrow(1, p, p), m.narrow(1, 2 * p, half)),
-            Some(wa) => (conv(&xp, wa, None, 1), m.narrow(1, p, half)),
+            Some(wa) => (conv3(&xp, wa, None, 1, wg.incep_a.as_ref()), m.narrow(1, p, half)),
         };
-        let b = conv_rep(&a, &self.incep_b, Some(&self.incep_b_bias), s);
-        let mut feat = leaky(&conv_rep(&norm.normalize(x), &self.feat, None, s), HA_FEAT_SLOPE);
+        let b = conv3(&pad_rep(&a, 1), &self.incep_b, Some(&self.incep_b_bias), s, wg.incep_b.as_ref());
+        let feat = conv3(&pad_rep(&norm.normalize(x), 1), &self.feat, None, s, wg.feat.as_ref());
+        let mut feat = leaky(&feat, HA_FEAT_SLOPE);
         if let Some(sc) = &self.feat_scale {
             feat *= sc;
         }
@@ -179,6 +263,7 @@ struct FoldedUp {
     tconv: FoldedConv,
     conv: FoldedConv,
     skip: FoldedConv,
+    conv_wino: Option<WinoConv>,
 }
 
 impl FoldedUp {
@@ -187,12 +272,13 @@ impl FoldedUp {
             tconv: FoldedConv::tconv(&u.tconv, &u.bn1),
             conv: FoldedConv::conv(&u.conv, &u.bn2),
             skip: FoldedConv::tconv(&u.skip_tconv, &u.skip_bn),
+            conv_wino: None,
         }
     }
 
     fn forward(&self, x: &Tensor) -> Tensor {
         let out = conv_t(x, &self.tconv.w, Some(&self.tconv.b), 2, 1).relu();
-        let out = conv_rep(&out, &self.conv.w, Some(&self.conv.b), 1);
+        let out = conv3(&pad_rep(&out, 1), &self.conv.w, Some(&self.conv.b), 1, self.conv_wino.as_ref());
         let id = conv_t(x, &self.skip.w, Some(&self.skip.b), 2, 0);
         (out + id).relu()
     }
@@ -247,6 +333,26 @@ impl FoldedMEst {
             }
         }
         h
+    }
+
+    /// Runs the stride-1 3x3 convs that `policy` takes (of all but the
+    /// stride-2 ones, the 7x7 stem and head, the 1x1 skips and the
+    /// transposed convs) by Winograd F(4x4, 3x3) on f32 CPU inputs
+    /// ([`Winograd3x3`]); None: every conv direct. The default policy is
+    /// on; the transformed kernels are taken from the weights as they are
+    /// now.
+    pub fn set_winograd(&mut self, policy: Option<WinogradPolicy>) {
+        let res = |r: &mut FoldedRes| {
+            r.ha1.set_winograd(policy);
+            r.ha2.set_winograd(policy);
+        };
+        self.enc.iter_mut().flatten().for_each(res);
+        for d in &mut self.dec {
+            d.blocks.iter_mut().for_each(res);
+            if let Some(u) = d.up.as_mut() {
+                u.conv_wino = WinogradPolicy::make(policy, &u.conv.w, Some(&u.conv.b));
+            }
+        }
     }
 
     /// Converts every weight to `kind` (e.g. Double for checks).

@@ -372,7 +372,7 @@ impl MEst {
 
 mod folded;
 
-pub use folded::{tile_spans, FoldedMEst, NormStats, TileSpan, LAYER_HALO};
+pub use folded::{WinogradPolicy, tile_spans, FoldedMEst, NormStats, TileSpan, LAYER_HALO};
 
 /// Same logical `[N, C, H, W]` tensor with NHWC strides.
 pub fn to_channels_last(t: &Tensor) -> Tensor {
