@@ -345,12 +345,12 @@ fn median_time(runs: usize, device: Device, mut f: impl FnMut() -> Result<()>) -
 /// for one size x size frame; medians of 3 runs after a warm-up. Uses the
 /// current `tch::get_num_threads()`.
 ///
-/// Measured at 256x256 on the 2-core development machine (release build,
-/// OMP_WAIT_POLICY=PASSIVE, 2 threads): paper M_est 8.8 s with the default
-/// Winograd policy against 11.1 s with every conv direct, ND_enc + M_render
-/// 1.4 s/frame; compact 1.18 s and 0.25 s/frame (`reports/winograd.md`;
-/// the machine is shared, expect +-20%). The authors' PyTorch M_est takes
-/// about 20 s there.
+/// Measured at 256x256 on the 2-core development machine (the `flashmat`
+/// binary: OMP_WAIT_POLICY=PASSIVE, freed memory kept in the heap; 2
+/// threads): paper M_est 6.1 s with the default Winograd policy against
+/// 7.6 s with every conv direct, ND_enc + M_render 1.2 s/frame; compact
+/// 0.79 s and 0.23 s/frame (`reports/inference-speed.md`; the machine is
+/// shared, expect +-15%). The authors' PyTorch M_est takes about 20 s there.
 pub fn bench_infer(cfg: &ModelConfig, size: usize, device: Device) -> Result<InferTimings> {
     bench_infer_runs(cfg, size, device, 3)
 }

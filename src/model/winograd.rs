@@ -8,8 +8,9 @@
 //! GEMMs stay libtorch's. Inference only: f32 on the CPU, no autograd.
 //!
 //! The image is walked in bands of tile rows sized to stay in the last-level
-//! cache (the transformed tiles are 2.25x the input), which is what keeps the
-//! GEMMs near the machine's matmul rate at 256x256 and above.
+//! cache (the transformed tiles are 2.25x the input): over a whole 64-channel
+//! 256x256 image at once the GEMMs fell to 42 GFLOP/s, in bands they ran at
+//! about 62 (`reports/inference-speed.md`).
 
 use rayon::prelude::*;
 use tch::{Device, Kind, Tensor};

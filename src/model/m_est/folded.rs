@@ -72,9 +72,10 @@ impl WinogradPolicy {
     pub const ALWAYS: Self = Self { min_channels: 1, min_pixels: 1 };
 
     /// The Winograd form of w `[P, C, 3, 3]` (+ bias `[P]`) if the policy
-    /// takes convs of its width.
+    /// takes convs of its width; none for weights off the CPU (the
+    /// Winograd path is CPU-only).
     fn make(policy: Option<Self>, w: &Tensor, b: Option<&Tensor>) -> Option<WinoConv> {
-        let policy = policy?;
+        let policy = policy.filter(|_| w.device() == Device::Cpu)?;
         let min_channels = w.size()[0].min(w.size()[1]);
         (min_channels >= policy.min_channels).then(|| WinoConv { conv: Winograd3x3::new(w, b), min_pixels: policy.min_pixels })
     }
