@@ -27,7 +27,9 @@ fn ensure_passive_openmp() {
 /// layer of every forward. Keeping freed memory in the heap for reuse
 /// (no mmap, no trimming) made the compact M_est at 768x768 2.1x faster
 /// and the paper's at 256x256 1.2x; a 1024x1024 `estimate` took half the
-/// time with a 10-13% higher peak (`reports/inference-speed.md`). Freed
+/// time (`reports/inference-speed.md`). The heap fragments, so the whole
+/// forward's peak grows (1.1x at 1024x1024, up to 1.5x at 1536x1024; the
+/// memory plan allows for it: `infer::tiles::WHOLE_HEAP_SLACK`). Freed
 /// memory is returned at exit.
 /// FLASHMAT_MALLOC_DEFAULTS=1 keeps glibc's defaults (for A/B timings).
 fn keep_freed_memory() {
