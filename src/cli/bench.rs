@@ -200,25 +200,44 @@ fn bench_train(args: &TrainBenchArgs) -> Result<()> {
     let device = flashmat::device::parse_device(&args.device)?;
     let model = flashmat::model::ModelConfig::preset(&args.preset)?;
     println!("flashmat bench train: {} preset, crop {}, 2 materials x (1 + {}) renders, {device:?}, {} torch threads", args.preset, args.crop, args.outputs, tch::get_num_threads());
-    let mut results = vec![];
-    for scheme in [UpdateScheme::Alternating, UpdateScheme::Combined] {
-        let cfg = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), outputs_per_material: args.outputs, scheme, ..Default::default() };
-        let mut trainer = Trainer::new(cfg.clone(), device)?;
-        let stream = flashmat::train::batches::MaterialStream::open(&cfg)?;
-        let batches: Vec<_> = (0..=args.steps as u64).map(|s| batch_for_step(&cfg, &stream.materials(&cfg, s)?, s, device)).collect::<Result<_>>()?;
-        trainer.train_step(&batches[0])?;
-        let t = Instant::now();
-        for b in &batches[1..] {
-            trainer.train_step(b)?;
+    // Three trainers on the same batches, one step each in turn (so load
+    // changes hit all three alike); the median step of each.
+    let variants = [
+        ("alternating, reference (two passes, Adam in tensor ops)", UpdateScheme::Alternating, true),
+        ("alternating (one shared forward, fused Adam)", UpdateScheme::Alternating, false),
+        ("combined (one update)", UpdateScheme::Combined, false),
+    ];
+    let base = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), outputs_per_material: args.outputs, ..Default::default() };
+    let stream = flashmat::train::batches::MaterialStream::open(&base)?;
+    let batches: Vec<_> = (0..=args.steps as u64).map(|s| batch_for_step(&base, &stream.materials(&base, s)?, s, device)).collect::<Result<_>>()?;
+    let mut trainers = vec![];
+    for (_, scheme, reference) in &variants {
+        let mut trainer = Trainer::new(TrainConfig { scheme: *scheme, ..base.clone() }, device)?;
+        if *reference {
+            trainer.use_reference_step();
         }
-        if let Device::Cuda(_) = device {
-            tch::Cuda::synchronize(0);
-        }
-        let ms = t.elapsed().as_secs_f64() * 1000.0 / args.steps as f64;
-        println!("{scheme:?}: {ms:9.1} ms/step");
-        results.push(ms);
+        trainer.train_step(&batches[0])?; // warm-up
+        trainers.push(trainer);
     }
-    println!("combined / alternating: {:.2}x the time per step", results[1] / results[0]);
+    let mut times = vec![vec![]; variants.len()];
+    for b in &batches[1..] {
+        for (trainer, t) in trainers.iter_mut().zip(&mut times) {
+            let start = Instant::now();
+            trainer.train_step(b)?;
+            if let Device::Cuda(i) = device {
+                tch::Cuda::synchronize(i as i64);
+            }
+            t.push(start.elapsed().as_secs_f64() * 1000.0);
+        }
+    }
+    let median = |t: &mut Vec<f64>| {
+        t.sort_by(f64::total_cmp);
+        t[t.len() / 2]
+    };
+    let ms: Vec<f64> = times.iter_mut().map(median).collect();
+    for ((name, _, _), t) in variants.iter().zip(&ms) {
+        println!("{name:<58} {t:9.1} ms/step (median of {})  {:.2}x the reference's steps per second", args.steps, ms[0] / t);
+    }
     step_breakdown(args, &model, device)?;
     if let Some(gib) = peak_memory_gib() {
         println!("peak resident memory: {gib:.2} GiB");

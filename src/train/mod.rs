@@ -69,6 +69,11 @@ pub struct Trainer {
     pub anchor: Option<Model>,
     /// Steps completed.
     pub step: u64,
+    /// Runs the alternating scheme as two passes (M_est's update, then
+    /// the renderer's on a second forward) instead of the one shared
+    /// forward that gives the same gradients: the reference for the
+    /// equivalence test and `bench train`.
+    pub two_pass: bool,
 }
 
 /// Trainable variables of a store, by name (what an optimizer updates).
@@ -129,11 +134,21 @@ impl Trainer {
             }
             None => None,
         };
-        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, anchor, step: 0 })
+        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, anchor, step: 0, two_pass: false })
     }
 
     pub fn device(&self) -> Device {
         self.model.device()
+    }
+
+    /// The step as it ran until 2026-11-26: the alternating scheme in two
+    /// passes and Adam with tensor operations (same updates to float
+    /// rounding; `bench train` times it against the default).
+    pub fn use_reference_step(&mut self) {
+        self.two_pass = true;
+        for opt in [&mut self.opt_est, &mut self.opt_render, &mut self.opt_disc] {
+            opt.fused = false;
+        }
     }
 
     /// One training step on a batch; returns its losses. A NaN/Inf loss or
@@ -142,6 +157,7 @@ impl Trainer {
         let lr = self.config.lr_at(self.step);
         let weight_adv = self.config.adv_weight_at(self.step);
         let out = restoring_buffers_if_skipped(self.buffers(), || match self.config.scheme {
+            UpdateScheme::Alternating if self.shares_one_forward() => self.shared_forward_step(batch, lr, weight_adv),
             UpdateScheme::Alternating => self.alternating_step(batch, lr, weight_adv),
             UpdateScheme::Combined => self.combined_step(batch, lr, weight_adv),
         })?;
@@ -226,6 +242,104 @@ impl Trainer {
         self.renderer_and_discriminator_updates(b, neural.detach(), &code, &truth_log, lr, weight_adv, out)
     }
 
+    /// Whether the step's two alternating updates can share one forward
+    /// pass: both networks train (neither is frozen) and both see the same
+    /// targets (no anchor), so the two halves' losses differ only in their
+    /// L1 term.
+    fn shares_one_forward(&self) -> bool {
+        !self.two_pass && !self.config.freeze_estimator && !self.config.freeze_renderer && self.anchor.is_none()
+    }
+
+    /// The alternating scheme's step from one forward pass. The two-pass
+    /// step ([`Trainer::alternating_step`]) renders the same prediction
+    /// twice (the optimizers step only at the end, so both halves see the
+    /// same weights) and runs LPIPS and the discriminator's generator term
+    /// on it twice, though its halves' losses differ only in the L1 term
+    /// (the whole image for M_est, the sampled pixels for the renderer).
+    /// Here the graph is cut at the neural map and at the prediction: the
+    /// shared terms' gradient with respect to the prediction is computed
+    /// once, each half's is that plus its own L1's, and each is pulled back
+    /// only into the networks it updates (M_est's through the renderer's
+    /// input side, without the renderer's or the discriminator's weight
+    /// gradients, which the two-pass step computes and throws away). Same
+    /// gradients, same updates, up to float rounding
+    /// (`shared_forward_step_matches_two_passes`).
+    fn shared_forward_step(&mut self, b: &TrainingBatch, lr: f64, weight_adv: f64) -> Result<StepLosses> {
+        use tch::Kind;
+        let cfg = self.config.clone();
+        let truth_log = crate::spaces::to_log(&b.targets);
+        let photo_log = b.est_input.narrow(1, 0, 3);
+        let mut out = StepLosses::default();
+        self.zero_all();
+
+        // Forward, with the graph cut at the neural map and at the prediction.
+        let neural = self.model.est.forward_t(&b.est_input, cfg.est_batch_stats_at(self.step))?;
+        let neural_in = neural.detach().set_requires_grad(true);
+        let code = self.model.renderer.encode_maps(&b.out_wi, &b.out_wo)?;
+        let rendered = self.model.renderer.render_code(&neural_in, &code)?;
+        let pred = rendered.detach().set_requires_grad(true);
+
+        // Both halves' losses on the one prediction.
+        let l1 = (&pred - &truth_log).abs().mean(Kind::Float);
+        let mut rng = batches::step_rng(cfg.seed, self.step, 3);
+        let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling, &mut rng);
+        let l1_r = losses::masked_l1(&pred, &truth_log, &mask);
+        let lp = losses::perceptual(self.lpips.as_ref(), &pred, &truth_log)?;
+        let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
+        let shared = &lp * cfg.weight_lpips + &adv * weight_adv + chroma_term(&cfg, &pred, &truth_log);
+        let weight_code = cfg.code_weight_at(self.step);
+        let code_term = match (&self.teacher, weight_code > 0.0) {
+            (Some(t), true) => Some(losses::code_l1(&neural, &tch::no_grad(|| t.encoder.forward_maps(&b.maps))) * weight_code),
+            _ => None,
+        };
+        let mut loss_est = &l1 * cfg.weight_l1 + &shared;
+        if let Some(c) = &code_term {
+            out.code = c.double_value(&[]) / weight_code;
+            loss_est = loss_est + c;
+        }
+        let loss_render = &l1_r * cfg.weight_l1 + &shared;
+        out.l1 = l1.double_value(&[]);
+        out.lpips = lp.double_value(&[]);
+        out.adv = adv.double_value(&[]);
+        out.loss_est = loss_est.double_value(&[]);
+        out.param_norm = losses::mean_param_norm(&neural);
+        out.l1_render = l1_r.double_value(&[]);
+        out.loss_render = loss_render.double_value(&[]);
+        if !(out.loss_est.is_finite() && out.loss_render.is_finite()) {
+            self.zero_all();
+            return Ok(StepLosses { skipped: true, ..out });
+        }
+
+        // d(loss)/d(prediction): the shared terms' once, each L1's on its own.
+        let grad_of = |loss: &Tensor| {
+            let g = if loss.requires_grad() { Tensor::run_backward(&[loss], &[&pred], true, false).pop() } else { None };
+            g.filter(|g| g.defined()).unwrap_or_else(|| pred.zeros_like())
+        };
+        let grad_shared = grad_of(&shared);
+        let grad_est = &grad_shared + grad_of(&(&l1 * cfg.weight_l1));
+        let grad_render = grad_shared + grad_of(&(&l1_r * cfg.weight_l1));
+
+        // M_est: through the renderer's input side only, then into M_est.
+        let grad_neural = Tensor::run_backward(&[(&rendered * &grad_est).sum(Kind::Float)], &[&neural_in], true, false).remove(0);
+        let mut est_objective = (&neural * &grad_neural).sum(Kind::Float);
+        if let Some(c) = code_term {
+            est_objective = est_objective + c;
+        }
+        est_objective.backward();
+        if !self.opt_est.grad_norm().is_finite() {
+            self.zero_all();
+            return Ok(StepLosses { skipped: true, ..out });
+        }
+        // The renderer's weights (ND_enc and M_render).
+        (&rendered * &grad_render).sum(Kind::Float).backward();
+        if !self.opt_render.grad_norm().is_finite() {
+            self.zero_all();
+            return Ok(StepLosses { skipped: true, ..out });
+        }
+
+        self.discriminator_update_and_steps(&pred.detach(), &truth_log, &photo_log, lr, weight_adv, out)
+    }
+
     /// M_est as at inference (`TrainConfig::freeze_estimator`): no
     /// gradient, BatchNorm on its running statistics. -> `[B, C, H, W]`.
     fn frozen_neural_map(&self, b: &TrainingBatch) -> Result<Tensor> {
@@ -255,7 +369,6 @@ impl Trainer {
             None => truth_log.shallow_clone(),
         };
         let photo_log = b.est_input.narrow(1, 0, 3);
-        let clip = cfg.grad_clip;
         // 2. Renderer update on the detached neural map, pixel-sampled L1.
         self.opt_render.zero_grad();
         self.opt_disc.zero_grad();
@@ -282,9 +395,17 @@ impl Trainer {
             return Ok(StepLosses { skipped: true, ..out });
         }
 
-        // 3. Discriminator update.
+        self.discriminator_update_and_steps(&pred_r.detach(), truth_log, &photo_log, lr, weight_adv, out)
+    }
+
+    /// The discriminator's update on the detached prediction, then, when
+    /// every loss and gradient is finite, the optimizer steps (M_est's too
+    /// unless it is frozen). pred, truth_log: `[B, K, 3, H, W]` log
+    /// renders; photo_log: `[B, 3, H, W]`.
+    fn discriminator_update_and_steps(&mut self, pred: &Tensor, truth_log: &Tensor, photo_log: &Tensor, lr: f64, weight_adv: f64, mut out: StepLosses) -> Result<StepLosses> {
+        let clip = self.config.grad_clip;
         self.opt_disc.zero_grad();
-        let loss_disc = losses::discriminator_loss(&self.disc, &pred_r.detach(), truth_log, &photo_log, weight_adv)?;
+        let loss_disc = losses::discriminator_loss(&self.disc, pred, truth_log, photo_log, weight_adv)?;
         out.loss_disc = loss_disc.double_value(&[]);
         let disc_ok = out.loss_disc.is_finite() && {
             if weight_adv > 0.0 {
@@ -298,7 +419,7 @@ impl Trainer {
         }
 
         // Every loss and gradient is finite: apply the three updates.
-        if !cfg.freeze_estimator {
+        if !self.config.freeze_estimator {
             self.opt_est.step(lr, clip);
         }
         self.opt_render.step(lr, clip);
