@@ -131,18 +131,33 @@ impl Lpips {
             self.device
         );
         let n = sa[0];
-        // One pass for both images: [2N, 3, H, W].
-        let x = Tensor::cat(&[a.to_kind(Kind::Float), b.to_kind(Kind::Float)], 0);
-        let mut x = (x - &self.shift) / &self.scale;
+        let prepare = |t: &Tensor| (t.to_kind(Kind::Float) - &self.shift) / &self.scale;
+        // One pass for both images, [2N, 3, H, W]; or, when only `a` takes
+        // a gradient (a training loss against a fixed target), `b` in its
+        // own pass without a graph, so the backward pass covers N images
+        // instead of 2N.
+        let (mut xa, mut xb) = if a.requires_grad() && !b.requires_grad() && !crate::reference_paths::on() {
+            (prepare(a), Some(prepare(b)))
+        } else {
+            (prepare(&Tensor::cat(&[a, b], 0)), None)
+        };
         let mut total: Option<Tensor> = None;
         for (l, ((w, bias), &(_, _, _, _, stride, pad))) in self.convs.iter().zip(&CONVS).enumerate() {
-            // AlexNet: max-pool (3, stride 2) before conv2 and conv3.
-            if l == 1 || l == 2 {
-                x = x.max_pool2d([3, 3], [2, 2], [0, 0], [1, 1], false);
-            }
-            x = x.conv2d(w, Some(bias), [stride, stride], [pad, pad], [1, 1], 1).relu();
-            let f = unit_normalise(&x); // [2N, C, h, w]
-            let d = (f.narrow(0, 0, n) - f.narrow(0, n, n)).square(); // [N, C, h, w]
+            let layer = |x: &Tensor| {
+                // AlexNet: max-pool (3, stride 2) before conv2 and conv3.
+                let x = if l == 1 || l == 2 { x.max_pool2d([3, 3], [2, 2], [0, 0], [1, 1], false) } else { x.shallow_clone() };
+                x.conv2d(w, Some(bias), [stride, stride], [pad, pad], [1, 1], 1).relu()
+            };
+            xa = layer(&xa);
+            xb = xb.map(|x| tch::no_grad(|| layer(&x)));
+            let (fa, fb) = match &xb {
+                Some(xb) => (unit_normalise(&xa), tch::no_grad(|| unit_normalise(xb))),
+                None => {
+                    let f = unit_normalise(&xa); // [2N, C, h, w]
+                    (f.narrow(0, 0, n), f.narrow(0, n, n))
+                }
+            };
+            let d = (fa - fb).square(); // [N, C, h, w]
             let layer = d
                 .conv2d(&self.lins[l], None::<Tensor>, [1, 1], [0, 0], [1, 1], 1) // [N, 1, h, w]
                 .mean_dim([1i64, 2, 3].as_slice(), false, Kind::Float); // [N]
@@ -247,6 +262,13 @@ mod tests {
         assert!(g.defined(), "no gradient on the input");
         assert!(g.isfinite().all().int64_value(&[]) != 0, "non-finite gradient");
         assert!(g.abs().max().double_value(&[]) > 0.0, "zero gradient");
+        // The fixed target's own pass without a graph (a takes a gradient, b
+        // does not) gives the one-pass distance and gradient.
+        let a2 = a.detach().set_requires_grad(true);
+        let d2 = m.distance_01(&a2, &b.set_requires_grad(true));
+        assert!((&d - &d2).abs().max().double_value(&[]) <= 1e-6, "{d} vs {d2}");
+        d2.sum(Kind::Float).backward();
+        assert!((a2.grad() - &g).abs().max().double_value(&[]) <= 1e-6 * g.abs().max().double_value(&[]));
         // Weights stay frozen.
         assert!(m.convs.iter().all(|(w, b)| !w.requires_grad() && !b.requires_grad()));
         assert!(m.lins.iter().all(|w| !w.requires_grad()));

@@ -203,27 +203,28 @@ fn bench_train(args: &TrainBenchArgs) -> Result<()> {
     // Three trainers on the same batches, one step each in turn (so load
     // changes hit all three alike); the median step of each.
     let variants = [
-        ("alternating, reference (two passes, Adam in tensor ops)", UpdateScheme::Alternating, true),
+        ("alternating, the previous step (reference)", UpdateScheme::Alternating, true),
         ("alternating (one shared forward, fused Adam)", UpdateScheme::Alternating, false),
         ("combined (one update)", UpdateScheme::Combined, false),
     ];
     let base = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), outputs_per_material: args.outputs, ..Default::default() };
     let stream = flashmat::train::batches::MaterialStream::open(&base)?;
     let batches: Vec<_> = (0..=args.steps as u64).map(|s| batch_for_step(&base, &stream.materials(&base, s)?, s, device)).collect::<Result<_>>()?;
+    let step = |t: &mut Trainer, b, reference: bool| if reference { flashmat::reference_paths::with(|| t.train_step(b)) } else { t.train_step(b) };
     let mut trainers = vec![];
     for (_, scheme, reference) in &variants {
         let mut trainer = Trainer::new(TrainConfig { scheme: *scheme, ..base.clone() }, device)?;
         if *reference {
             trainer.use_reference_step();
         }
-        trainer.train_step(&batches[0])?; // warm-up
+        step(&mut trainer, &batches[0], *reference)?; // warm-up
         trainers.push(trainer);
     }
     let mut times = vec![vec![]; variants.len()];
     for b in &batches[1..] {
-        for (trainer, t) in trainers.iter_mut().zip(&mut times) {
+        for ((trainer, t), (_, _, reference)) in trainers.iter_mut().zip(&mut times).zip(&variants) {
             let start = Instant::now();
-            trainer.train_step(b)?;
+            step(trainer, b, *reference)?;
             if let Device::Cuda(i) = device {
                 tch::Cuda::synchronize(i as i64);
             }

@@ -141,9 +141,10 @@ impl Trainer {
         self.model.device()
     }
 
-    /// The step as it ran until 2026-11-26: the alternating scheme in two
-    /// passes and Adam with tensor operations (same updates to float
-    /// rounding; `bench train` times it against the default).
+    /// The step as it ran before the shared forward: the alternating
+    /// scheme in two passes and Adam in tensor operations (the same
+    /// updates to float rounding). `bench train` times it against the
+    /// default, inside [`crate::reference_paths::with`] for the rest.
     pub fn use_reference_step(&mut self) {
         self.two_pass = true;
         for opt in [&mut self.opt_est, &mut self.opt_render, &mut self.opt_disc] {
