@@ -294,13 +294,17 @@ pub struct InferTimings {
     /// Median seconds of the folded M_est forward with every conv direct
     /// (no Winograd), the baseline of [`crate::model::winograd`].
     pub direct_est_s: f64,
+    /// Median seconds of the frame with the direction encoding in tensor
+    /// operations ([`crate::reference_paths`]), the baseline of the host
+    /// encoding.
+    pub reference_render_s: f64,
 }
 
 impl std::fmt::Display for InferTimings {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "{} @ {}x{} ({} threads, median of {}): M_est {:.3} s ({:.1} GFLOP, {:.1} GFLOP/s; every conv direct, no Winograd: {:.3} s, {:.2}x slower; naive eval-mode forward with autograd {:.3} s, {:.2}x slower); ND_enc+M_render {:.3} s/frame ({:.1} GFLOP, {:.1} GFLOP/s)",
+            "{} @ {}x{} ({} threads, median of {}): M_est {:.3} s ({:.1} GFLOP, {:.1} GFLOP/s; every conv direct, no Winograd: {:.3} s, {:.2}x slower; naive eval-mode forward with autograd {:.3} s, {:.2}x slower); ND_enc+M_render {:.3} s/frame ({:.1} GFLOP, {:.1} GFLOP/s; direction encoding in tensor operations: {:.3} s, {:.2}x slower)",
             self.model_id,
             self.size,
             self.size,
@@ -315,7 +319,9 @@ impl std::fmt::Display for InferTimings {
             self.naive_est_s / self.est_s,
             self.render_s,
             self.render_gflop,
-            self.render_gflop / self.render_s
+            self.render_gflop / self.render_s,
+            self.reference_render_s,
+            self.reference_render_s / self.render_s
         )
     }
 }
@@ -380,6 +386,7 @@ pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: us
     };
     let (wi, wo) = (dirs(1.0), dirs(1.0));
     let render_s = tch::no_grad(|| median_time(runs, device, || model.renderer.forward_maps(&map, &wi, &wo).map(drop)))?;
+    let reference_render_s = crate::reference_paths::with(|| tch::no_grad(|| median_time(runs, device, || model.renderer.forward_maps(&map, &wi, &wo).map(drop))))?;
     let px = (s * s) as f64;
     Ok(InferTimings {
         model_id: cfg.model_id(),
@@ -392,6 +399,7 @@ pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: us
         render_gflop: renderer_flops_per_row(cfg) * px / 1e9,
         naive_est_s,
         direct_est_s,
+        reference_render_s,
     })
 }
 
