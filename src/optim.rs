@@ -171,6 +171,17 @@ impl Adam {
         });
     }
 
+    /// The first moment of the variable `name` (after one update from
+    /// fresh moments: (1 - beta1) times its gradient).
+    pub fn first_moment(&self, name: &str) -> Option<&Tensor> {
+        self.exp_avg.get(name)
+    }
+
+    /// Names of the variables this optimizer updates, sorted.
+    pub fn names(&self) -> impl Iterator<Item = &str> {
+        self.params.keys().map(String::as_str)
+    }
+
     /// Stores the moments under `prefix` and the step count in metadata.
     pub fn save_into(&self, archive: &mut Archive, prefix: &str) {
         for (k, v) in &self.exp_avg {

@@ -326,19 +326,38 @@ impl Trainer {
         if let Some(c) = code_term {
             est_objective = est_objective + c;
         }
-        est_objective.backward();
-        if !self.opt_est.grad_norm().is_finite() {
+        // Three independent backward passes at once: M_est's here, the
+        // renderer's weights' and the discriminator's update in two more
+        // threads. Each touches only its own network, and the small ops
+        // of M_est's low-resolution layers leave cores idle that the
+        // others fill.
+        let render_objective = (&rendered * &grad_render).sum(Kind::Float);
+        let (pred, photo) = (pred.detach(), photo_log.shallow_clone());
+        let truth = truth_log.shallow_clone();
+        let disc = OneThread(&self.disc);
+        self.opt_disc.zero_grad();
+        let loss_disc = std::thread::scope(|scope| {
+            let renderer = scope.spawn(move || render_objective.backward());
+            let discriminator = scope.spawn(move || -> Result<f64> {
+                let loss = losses::discriminator_loss(disc.get(), &pred, &truth, &photo, weight_adv)?;
+                let value = loss.double_value(&[]);
+                if value.is_finite() && weight_adv > 0.0 {
+                    loss.backward();
+                }
+                Ok(value)
+            });
+            est_objective.backward();
+            renderer.join().map_err(|_| anyhow::anyhow!("the renderer's backward pass panicked"))?;
+            discriminator.join().map_err(|_| anyhow::anyhow!("the discriminator's update panicked"))?
+        })?;
+        out.loss_disc = loss_disc;
+        let finite = self.opt_est.grad_norm().is_finite() && self.opt_render.grad_norm().is_finite() && loss_disc.is_finite() && self.opt_disc.grad_norm().is_finite();
+        if !finite {
             self.zero_all();
             return Ok(StepLosses { skipped: true, ..out });
         }
-        // The renderer's weights (ND_enc and M_render).
-        (&rendered * &grad_render).sum(Kind::Float).backward();
-        if !self.opt_render.grad_norm().is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
-        }
-
-        self.discriminator_update_and_steps(&pred.detach(), &truth_log, &photo_log, lr, weight_adv, out)
+        self.apply_steps(lr, weight_adv);
+        Ok(out)
     }
 
     /// M_est as at inference (`TrainConfig::freeze_estimator`): no
@@ -404,7 +423,6 @@ impl Trainer {
     /// unless it is frozen). pred, truth_log: `[B, K, 3, H, W]` log
     /// renders; photo_log: `[B, 3, H, W]`.
     fn discriminator_update_and_steps(&mut self, pred: &Tensor, truth_log: &Tensor, photo_log: &Tensor, lr: f64, weight_adv: f64, mut out: StepLosses) -> Result<StepLosses> {
-        let clip = self.config.grad_clip;
         self.opt_disc.zero_grad();
         let loss_disc = losses::discriminator_loss(&self.disc, pred, truth_log, photo_log, weight_adv)?;
         out.loss_disc = loss_disc.double_value(&[]);
@@ -419,7 +437,15 @@ impl Trainer {
             return Ok(StepLosses { skipped: true, ..out });
         }
 
-        // Every loss and gradient is finite: apply the three updates.
+        self.apply_steps(lr, weight_adv);
+        Ok(out)
+    }
+
+    /// Every loss and gradient is finite: the three optimizer steps (M_est's
+    /// unless it is frozen, the discriminator's while it has a weight),
+    /// then the gradients cleared.
+    fn apply_steps(&mut self, lr: f64, weight_adv: f64) {
+        let clip = self.config.grad_clip;
         if !self.config.freeze_estimator {
             self.opt_est.step(lr, clip);
         }
@@ -428,7 +454,6 @@ impl Trainer {
             self.opt_disc.step(lr, clip);
         }
         self.zero_all();
-        Ok(out)
     }
 
     fn combined_step(&mut self, b: &TrainingBatch, lr: f64, weight_adv: f64) -> Result<StepLosses> {
@@ -450,6 +475,24 @@ impl Trainer {
         };
         let out = combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv)?;
         Ok(StepLosses { param_norm, ..out })
+    }
+}
+
+/// A borrowed network handed to one scoped thread of a training step.
+/// tch's `Tensor` is `Send` but not `Sync` because nothing stops two
+/// threads from mutating one tensor at once; the step gives each network
+/// to exactly one thread while its threads run, which is what libtorch's
+/// own multithreaded autograd requires.
+struct OneThread<'a, T>(&'a T);
+
+// SAFETY: see the type's documentation; only the receiving thread uses
+// the network until the scope joins it.
+unsafe impl<T> Send for OneThread<'_, T> {}
+
+impl<'a, T> OneThread<'a, T> {
+    /// The borrow (a method, so a closure captures the whole wrapper).
+    fn get(self) -> &'a T {
+        self.0
     }
 }
 

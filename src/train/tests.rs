@@ -677,36 +677,43 @@ fn a_resume_can_turn_colour_augmentation_on_and_it_stays_on() {
 
 #[test]
 fn shared_forward_step_matches_two_passes() {
-    // The one-forward alternating step with the fused Adam computes the
-    // two-pass step's gradients and updates: after 3 steps with every loss term on (L1, the sampled
-    // L1, LPIPS, the discriminator, the colour balance), every trainable
-    // weight and every logged loss agrees to float rounding, far below how
-    // far the steps moved the weights.
-    let cfg = TrainConfig { weight_chroma: 0.1, lr: 1e-3, ..tiny_config() };
+    // The one-forward alternating step (its three backward passes in
+    // threads, the fused Adam) computes the two-pass step's losses and
+    // gradients. With a learning rate of 1e-20 the weights stay put (to
+    // f32 precision) and each
+    // optimizer's first moment after a step is 0.1 x its gradient, so
+    // two steps compare every gradient of all three networks with every
+    // loss term on (L1, the sampled L1, LPIPS, the discriminator, the
+    // colour balance). Summation order may differ between the paths
+    // (threads), so the check is relative; comparing weights after
+    // several real steps would not be: Adam turns a rounding difference
+    // in a near-zero gradient into a full step of either sign.
+    let cfg = TrainConfig { weight_chroma: 0.1, lr: 1e-20, ..tiny_config() };
     let stream = batches::MaterialStream::open(&cfg).unwrap();
-    let batch_at = |s: u64| batches::batch_for_step(&cfg, &stream.materials(&cfg, s).unwrap(), s, tch::Device::Cpu).unwrap();
     let mut shared = Trainer::new(cfg.clone(), tch::Device::Cpu).unwrap();
     let mut two_pass = Trainer::new(cfg.clone(), tch::Device::Cpu).unwrap();
     two_pass.use_reference_step();
-    let start: Vec<(String, tch::Tensor)> = all_weights(&shared).into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
-    for s in 0..3 {
-        let b = batch_at(s);
+    let mut compared = 0;
+    for s in 0..2 {
+        let b = batches::batch_for_step(&cfg, &stream.materials(&cfg, s).unwrap(), s, tch::Device::Cpu).unwrap();
         let (a, t) = (shared.train_step(&b).unwrap(), two_pass.train_step(&b).unwrap());
         assert!(!a.skipped && !t.skipped);
         for (name, x, y) in [("l1", a.l1, t.l1), ("lpips", a.lpips, t.lpips), ("adv", a.adv, t.adv), ("l1_render", a.l1_render, t.l1_render), ("loss_disc", a.loss_disc, t.loss_disc)] {
             assert!((x - y).abs() <= 1e-5 * y.abs().max(1e-3), "step {s} {name}: {x} vs {y}");
         }
-    }
-    let (mut moved, mut differ) = (0f64, 0f64);
-    for (((name, a), (_, t)), (_, s0)) in all_weights(&shared).iter().zip(&all_weights(&two_pass)).zip(&start) {
-        if !a.requires_grad() {
-            continue; // BatchNorm statistics: the two-pass step runs the discriminator's generator term twice
+        for (x, y) in [(&shared.opt_est, &two_pass.opt_est), (&shared.opt_render, &two_pass.opt_render), (&shared.opt_disc, &two_pass.opt_disc)] {
+            for name in x.names() {
+                let (mx, my) = (x.first_moment(name).unwrap(), y.first_moment(name).unwrap());
+                let scale = my.abs().max().double_value(&[]);
+                if name.contains("compat") {
+                    continue; // unused variables (see m_est): no gradient
+                }
+                assert!(scale > 0.0, "step {s}: {name} got no gradient");
+                let d = (mx - my).abs().max().double_value(&[]);
+                assert!(d <= 1e-4 * scale, "step {s}: the gradients of {name} differ by {d} (largest {scale})");
+                compared += 1;
+            }
         }
-        moved = moved.max((t - s0).abs().max().double_value(&[]));
-        let d = (a - t).abs().max().double_value(&[]);
-        assert!(d <= 1e-5, "{name} differs by {d}");
-        differ = differ.max(d);
     }
-    assert!(moved > 1e-3, "the steps moved the weights by only {moved}");
-    eprintln!("weights moved up to {moved:.2e}; the two steps differ by up to {differ:.2e}");
+    assert!(compared > 100, "{compared}");
 }
