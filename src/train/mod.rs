@@ -262,7 +262,8 @@ impl Trainer {
     /// once, each half's is that plus its own L1's, and each is pulled back
     /// only into the networks it updates (M_est's through the renderer's
     /// input side, without the renderer's or the discriminator's weight
-    /// gradients, which the two-pass step computes and throws away). Same
+    /// gradients, which the two-pass step computes and throws away); the
+    /// three backward passes that remain run in three threads. Same
     /// gradients, same updates, up to float rounding
     /// (`shared_forward_step_matches_two_passes`).
     fn shared_forward_step(&mut self, b: &TrainingBatch, lr: f64, weight_adv: f64) -> Result<StepLosses> {
