@@ -143,13 +143,13 @@ impl Lpips {
         };
         let mut total: Option<Tensor> = None;
         for (l, ((w, bias), &(_, _, _, _, stride, pad))) in self.convs.iter().zip(&CONVS).enumerate() {
-            let layer = |x: &Tensor| {
+            let features = |x: &Tensor| {
                 // AlexNet: max-pool (3, stride 2) before conv2 and conv3.
                 let x = if l == 1 || l == 2 { x.max_pool2d([3, 3], [2, 2], [0, 0], [1, 1], false) } else { x.shallow_clone() };
                 x.conv2d(w, Some(bias), [stride, stride], [pad, pad], [1, 1], 1).relu()
             };
-            xa = layer(&xa);
-            xb = xb.map(|x| tch::no_grad(|| layer(&x)));
+            xa = features(&xa);
+            xb = xb.map(|x| tch::no_grad(|| features(&x)));
             let (fa, fb) = match &xb {
                 Some(xb) => (unit_normalise(&xa), tch::no_grad(|| unit_normalise(xb))),
                 None => {

@@ -131,7 +131,10 @@ impl Adam {
             }
             total += match host_f32(&g).filter(|_| self.fused) {
                 // SAFETY: a contiguous f32 CPU gradient, read while no update runs.
-                Some(g) => unsafe { g.slice() }.par_chunks(CHUNK).map(|c| c.iter().map(|&x| (x * x) as f64).sum::<f64>()).sum::<f64>(),
+                // The chunks' sums are added in order (rayon's own reduction
+                // pairs them as its threads happen to split the work), so the
+                // norm, and a clipped step, repeat exactly run to run.
+                Some(g) => unsafe { g.slice() }.par_chunks(CHUNK).map(|c| c.iter().map(|&x| (x * x) as f64).sum::<f64>()).collect::<Vec<f64>>().iter().sum::<f64>(),
                 None => g.square().sum(tch::Kind::Double).double_value(&[]),
             };
         }

@@ -46,16 +46,12 @@ fn encode_directions_host(wi: &Tensor, wo: &Tensor, frequencies: usize) -> Tenso
     use rayon::prelude::*;
     let dims = wi.size();
     let (wi, wo) = (wi.contiguous(), wo.contiguous());
-    let host = |t: &Tensor| -> Vec<f32> { Vec::try_from(t.flatten(0, -1)).expect("a contiguous f32 CPU tensor") };
-    let (wi, wo) = (host(&wi), host(&wo));
+    let (wi, wo) = (super::winograd::as_slice(&wi), super::winograd::as_slice(&wo));
     let width = 9 + 18 * frequencies;
     let mut shape = dims;
     *shape.last_mut().expect("[..., 3]") = width as i64;
-    let encoded = Tensor::empty(shape.as_slice(), (Kind::Float, tch::Device::Cpu));
-    // SAFETY: a fresh contiguous f32 tensor of wi.len() / 3 * width
-    // elements that nothing else holds yet.
-    let out = unsafe { std::slice::from_raw_parts_mut(encoded.data_ptr() as *mut f32, wi.len() / 3 * width) };
-    out.par_chunks_mut(width * ROWS_PER_TASK).enumerate().for_each(|(task, out)| {
+    let mut encoded = Tensor::empty(shape.as_slice(), (Kind::Float, tch::Device::Cpu));
+    super::winograd::as_mut_slice(&mut encoded).par_chunks_mut(width * ROWS_PER_TASK).enumerate().for_each(|(task, out)| {
         let mut phases = vec![0f32; 9 * frequencies];
         for (r, row) in out.chunks_mut(width).enumerate() {
             let i = 3 * (task * ROWS_PER_TASK + r);

@@ -57,7 +57,7 @@ impl SharedOut {
 
 /// A CPU f32 tensor's elements. t must be contiguous and stay alive (and
 /// unwritten by anyone else) while the slice is used.
-fn as_slice(t: &Tensor) -> &[f32] {
+pub(super) fn as_slice(t: &Tensor) -> &[f32] {
     assert!(t.is_contiguous() && t.kind() == Kind::Float && t.device() == Device::Cpu);
     let len = t.numel();
     if len == 0 {
@@ -66,6 +66,19 @@ fn as_slice(t: &Tensor) -> &[f32] {
     // SAFETY: a contiguous f32 CPU tensor owns `len` initialised floats at
     // data_ptr, alive as long as `t` is borrowed.
     unsafe { std::slice::from_raw_parts(t.data_ptr() as *const f32, len) }
+}
+
+/// [`as_slice`] to write: t must be contiguous, f32 on the CPU and held by
+/// no one else while the slice is used (a tensor just made, for one).
+pub(super) fn as_mut_slice(t: &mut Tensor) -> &mut [f32] {
+    assert!(t.is_contiguous() && t.kind() == Kind::Float && t.device() == Device::Cpu);
+    let len = t.numel();
+    if len == 0 {
+        return &mut [];
+    }
+    // SAFETY: as in `as_slice`; the exclusive borrow of `t` and the caller's
+    // promise keep every other reader and writer away.
+    unsafe { std::slice::from_raw_parts_mut(t.data_ptr() as *mut f32, len) }
 }
 
 impl Winograd3x3 {

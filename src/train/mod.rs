@@ -72,8 +72,8 @@ pub struct Trainer {
     /// Runs the alternating scheme as two passes (M_est's update, then
     /// the renderer's on a second forward) instead of the one shared
     /// forward that gives the same gradients: the reference for the
-    /// equivalence test and `bench train`.
-    pub two_pass: bool,
+    /// equivalence test and `bench train` ([`Trainer::use_reference_step`]).
+    two_pass: bool,
 }
 
 /// Trainable variables of a store, by name (what an optimizer updates).
