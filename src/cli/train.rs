@@ -158,6 +158,14 @@ pub struct TrainArgs {
     /// (paper: none). Weighs a dark channel's error like a bright one's, which the log L1 does not.
     #[arg(long, default_value_t = 0.0, value_name = "W")]
     pub chroma_weight: f64,
+    /// Weight of a shift-consistency term (paper: none): each material is photographed again with camera and flash
+    /// moved by up to --shift-pixels, and M_est's codes of the two photos must agree where they overlap (a code
+    /// describes the material, not where the flash was). Costs a second M_est pass; needs --scheme alternating.
+    #[arg(long, default_value_t = 0.0, value_name = "W")]
+    pub shift_weight: f64,
+    /// Largest shift of the second photo, in pixels per axis (with --shift-weight).
+    #[arg(long, default_value_t = 16, value_name = "PIXELS")]
+    pub shift_pixels: usize,
     #[arg(long, default_value_t = 250)]
     pub checkpoint_every: u64,
     #[arg(long, default_value_t = 250)]
@@ -328,6 +336,8 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         weight_lpips: a.lpips_weight,
         weight_adv: a.adv_weight,
         weight_chroma: a.chroma_weight,
+        weight_shift: a.shift_weight,
+        shift_pixels: a.shift_pixels,
         steps: a.steps.unwrap_or(TrainConfig::default().steps),
         checkpoint_every: a.checkpoint_every,
         preview_every: a.preview_every,

@@ -85,6 +85,17 @@ pub struct TrainingBatch {
     pub targets: Tensor,
     /// The output configurations, `N * K` in material-major order.
     pub configs: Vec<LightView>,
+    /// The same materials photographed again with camera and flash moved
+    /// (the shift-consistency term, `TrainConfig::weight_shift`); None: the paper's batch.
+    pub shifted: Option<ShiftedPhotos>,
+}
+
+/// Second photos of a batch's materials, each of the window `offsets[i]`
+/// = (rows, columns) away from the first photo's (positive: down, right).
+pub struct ShiftedPhotos {
+    /// M_est input `[N, 4, H, W]`.
+    pub est_input: Tensor,
+    pub offsets: Vec<(i64, i64)>,
 }
 
 /// Stacks materials into `[N, 10, H, W]` on `device`.
@@ -220,7 +231,20 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
     }
     let est = est_input(&input_linear, &hz);
 
-    Ok(TrainingBatch { maps, input_linear, est_input: est.to_kind(Kind::Float), out_wi, out_wo, targets, configs })
+    Ok(TrainingBatch { maps, input_linear, est_input: est.to_kind(Kind::Float), out_wi, out_wo, targets, configs, shifted: None })
+}
+
+/// M_est's input for the co-located photo of each material alone (no
+/// outputs), as `make_batch` renders it. -> `[N, 4, H, W]` on `device`.
+pub fn input_only(materials: &[Svbrdf], cfg: &SampleConfig, device: Device) -> Result<Tensor> {
+    let Some(first) = materials.first() else { bail!("empty material batch") };
+    let (n, h, w) = (materials.len() as i64, first.height(), first.width());
+    let shadows = ShadowOptions { height_scale: cfg.height_scale, ..Default::default() };
+    let (input, ..) = render_on_cpu(materials, &[], cfg.fov_deg, 0, cfg.shadows.then_some(&shadows), device)?;
+    let input = if cfg.ldr_input { spaces::ldr_clamp(&input) } else { input };
+    let (in_wi, in_wo) = input_directions(h, w, cfg.fov_deg, device);
+    let hz = half_vector_z(&in_wi, &in_wo).expand([n, 1, h as i64, w as i64], false);
+    Ok(est_input(&input, &hz).to_kind(Kind::Float))
 }
 
 #[cfg(test)]

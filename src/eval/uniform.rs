@@ -78,6 +78,15 @@ pub struct ColourRow {
     pub highlight_ratio: f64,
     /// Period-2 amplitude of the render in ln(1 + RGB), beyond the truth's.
     pub checkerboard: f64,
+    /// Mean per-pixel |ln(1 + render) - ln(1 + truth)| (on the clamped
+    /// colours where those are scored): rings and a hole where the flash
+    /// was show here, not in the means.
+    pub log_l1: f64,
+    /// The estimated neural map's mean distance to its mean code, over the
+    /// mean code's norm (the same on both renders of a material): a flat
+    /// material needs one code, so anything above 0 is the flash's
+    /// position written into the map.
+    pub code_spread: f64,
 }
 
 /// Mean colour and mean luminance of the brightest 1% of pixels of a `[3, H, W]` image.
@@ -113,7 +122,8 @@ fn score(set: &'static str, material: &'static str, render: &'static str, pred: 
     let chroma_error = chromaticity_distance(mp, mt);
     let log_ratio = [0, 1, 2].map(|c| (mp[c].max(1e-6) / mt[c].max(1e-6)).ln());
     let checkerboard = super::metrics::checkerboard_amplitude(pred, truth)?;
-    Ok(ColourRow { set, material, render, chroma_error, log_ratio, highlight_ratio: ratio_of_highlights(hp, ht), checkerboard })
+    let log_l1 = pred.data.iter().zip(&truth.data).map(|(&p, &t)| ((p.max(0.0) as f64).ln_1p() - (t.max(0.0) as f64).ln_1p()).abs()).sum::<f64>() / pred.data.len().max(1) as f64;
+    Ok(ColourRow { set, material, render, chroma_error, log_ratio, highlight_ratio: ratio_of_highlights(hp, ht), checkerboard, log_l1, code_spread: 0.0 })
 }
 
 fn ratio_of_highlights(predicted: f64, truth: f64) -> f64 {
@@ -146,13 +156,24 @@ fn colour_rows(model: &Model, info: &ModelInfo, size: usize) -> Result<Vec<Colou
         let truth = crate::svbrdf::render::render_material(&material, &[identity, side])?;
         let photo = PreparedPhoto::at_model_view(truth[0].clone(), info.ldr_input, "uniform-colour check");
         let estimated = infer::estimate(model, info, &photo)?;
+        let spread = code_spread(&estimated.neural_map);
         for (name, config, reference) in [("identity", identity, &truth[0]), ("relit", side, &truth[1])] {
             let pred = estimated.render_image(&config)?;
             // An LDR model is judged on what its photo shows: values up to 1.
-            rows.push(score_render(set, u.name, name, &pred, reference, info.ldr_input && name == "identity")?);
+            let row = score_render(set, u.name, name, &pred, reference, info.ldr_input && name == "identity")?;
+            rows.push(ColourRow { code_spread: spread, ..row });
         }
     }
     Ok(rows)
+}
+
+/// Mean distance of a neural map's codes to their mean, over the mean
+/// code's norm. map: `[C, H, W]`.
+pub fn code_spread(map: &tch::Tensor) -> f64 {
+    use tch::Kind;
+    let mean = map.mean_dim([1i64, 2].as_slice(), true, Kind::Float);
+    let distance = (map - &mean).square().sum_dim_intlist([0i64].as_slice(), false, Kind::Float).sqrt().mean(Kind::Float).double_value(&[]);
+    distance / mean.square().sum(Kind::Float).sqrt().double_value(&[]).max(1e-12)
 }
 
 /// Summary numbers of a check: mean chromaticity error of the identity
@@ -164,31 +185,43 @@ pub struct ColourSummary {
     pub relit_chroma_error: f64,
     pub near_black_highlight_ratio: f64,
     pub checkerboard: f64,
+    /// Mean per-pixel log error of the relit renders (`ColourRow::log_l1`).
+    pub relit_log_l1: f64,
+    /// Mean `ColourRow::code_spread` over the materials.
+    pub code_spread: f64,
 }
 
 pub fn summarize(rows: &[ColourRow]) -> ColourSummary {
-    let mean = |render: &str| {
-        let v: Vec<f64> = rows.iter().filter(|r| r.render == render).map(|r| r.chroma_error).collect();
+    let mean_of = |render: &str, value: fn(&ColourRow) -> f64| {
+        let v: Vec<f64> = rows.iter().filter(|r| r.render == render).map(value).collect();
         v.iter().sum::<f64>() / v.len().max(1) as f64
     };
+    let mean = |render: &str| mean_of(render, |r| r.chroma_error);
     let near_black = rows.iter().find(|r| r.set == "glossy" && r.material == "near-black" && r.render == "identity").map_or(f64::NAN, |r| r.highlight_ratio);
     let checkerboard = rows.iter().map(|r| r.checkerboard).sum::<f64>() / rows.len().max(1) as f64;
-    ColourSummary { identity_chroma_error: mean("identity"), relit_chroma_error: mean("relit"), near_black_highlight_ratio: near_black, checkerboard }
+    ColourSummary {
+        identity_chroma_error: mean("identity"),
+        relit_chroma_error: mean("relit"),
+        near_black_highlight_ratio: near_black,
+        checkerboard,
+        relit_log_l1: mean_of("relit", |r| r.log_l1),
+        code_spread: mean_of("identity", |r| r.code_spread),
+    }
 }
 
 /// A markdown table of the rows and the summary line.
 pub fn markdown(model_name: &str, rows: &[ColourRow]) -> String {
     let s = summarize(rows);
     let mut out = format!(
-        "## Uniform-colour check: {model_name}\n\nMean chromaticity error: identity {:.4}, relit {:.4}. Near-black glossy highlight: {:.2}x the truth. Mean checkerboard amplitude: {:.4}.\n\n",
-        s.identity_chroma_error, s.relit_chroma_error, s.near_black_highlight_ratio, s.checkerboard
+        "## Uniform-colour check: {model_name}\n\nMean chromaticity error: identity {:.4}, relit {:.4}. Near-black glossy highlight: {:.2}x the truth. Mean checkerboard amplitude: {:.4}. Relit per-pixel log error: {:.4}. Code spread: {:.3}.\n\n",
+        s.identity_chroma_error, s.relit_chroma_error, s.near_black_highlight_ratio, s.checkerboard, s.relit_log_l1, s.code_spread
     );
-    out.push_str("| set | material | render | chromaticity error | ln ratio R / G / B | highlight ratio | checkerboard |\n|---|---|---|---|---|---|---|\n");
+    out.push_str("| set | material | render | chromaticity error | ln ratio R / G / B | highlight ratio | checkerboard | per-pixel log error | code spread |\n|---|---|---|---|---|---|---|---|---|\n");
     for r in rows {
         let _ = writeln!(
             out,
-            "| {} | {} | {} | {:.4} | {:+.2} / {:+.2} / {:+.2} | {:.2} | {:.4} |",
-            r.set, r.material, r.render, r.chroma_error, r.log_ratio[0], r.log_ratio[1], r.log_ratio[2], r.highlight_ratio, r.checkerboard
+            "| {} | {} | {} | {:.4} | {:+.2} / {:+.2} / {:+.2} | {:.2} | {:.4} | {:.4} | {:.3} |",
+            r.set, r.material, r.render, r.chroma_error, r.log_ratio[0], r.log_ratio[1], r.log_ratio[2], r.highlight_ratio, r.checkerboard, r.log_l1, r.code_spread
         );
     }
     out
@@ -203,11 +236,14 @@ mod tests {
         let truth = Image::from_fn(3, 10, 10, |c, _, _| [0.6, 0.1, 0.1][c]);
         // Identical: no error, ratios 1.
         let same = score("matte", "red", "identity", &truth, &truth).unwrap();
-        assert!(same.checkerboard == 0.0 && same.chroma_error < 1e-12 && same.log_ratio.iter().all(|v| v.abs() < 1e-9) && (same.highlight_ratio - 1.0).abs() < 1e-9);
+        assert!(same.checkerboard == 0.0 && same.log_l1 == 0.0 && same.chroma_error < 1e-12 && same.log_ratio.iter().all(|v| v.abs() < 1e-9) && (same.highlight_ratio - 1.0).abs() < 1e-9);
         // Twice as bright: same chromaticity, ln 2 in every channel.
         let bright = truth.map(|v| 2.0 * v);
         let r = score("matte", "red", "identity", &bright, &truth).unwrap();
         assert!(r.chroma_error < 1e-9 && r.log_ratio.iter().all(|v| (v - 2f64.ln()).abs() < 1e-6));
+        // Per pixel: the mean over channels of ln(1 + 2v) - ln(1 + v).
+        let expected = [0.6f64, 0.1, 0.1].iter().map(|v| (1.0 + 2.0 * v).ln() - (1.0 + v).ln()).sum::<f64>() / 3.0;
+        assert!((r.log_l1 - expected).abs() < 1e-6, "{} vs {expected}", r.log_l1);
         assert!((r.highlight_ratio - 2.0).abs() < 1e-6);
         // Grey instead of red: chromaticity (0.75, 0.125, 0.125) against (1/3, 1/3, 1/3).
         let grey = Image::filled(3, 10, 10, 0.2667);
@@ -244,12 +280,23 @@ mod tests {
         assert!((before_the_fix.highlight_ratio - 1.0 / 0.66).abs() < 1e-5);
     }
 
+    /// One code everywhere: 0; half the pixels at (3, 4), half at (3, 6):
+    /// the mean (3, 5), distance 1 everywhere, over its norm sqrt(34).
+    #[test]
+    fn code_spread_of_known_maps() {
+        let flat = tch::Tensor::from_slice(&[3.0f32, 4.0]).view([2, 1, 1]).expand([2, 4, 4], false).contiguous();
+        assert!(code_spread(&flat) < 1e-7);
+        let halves = flat.copy();
+        let _ = halves.narrow(0, 1, 1).narrow(2, 2, 2).fill_(6.0);
+        assert!((code_spread(&halves) - 1.0 / 34f64.sqrt()).abs() < 1e-6, "{}", code_spread(&halves));
+    }
+
     #[test]
     fn check_runs_on_a_tiny_model_and_summarizes_every_material() {
         let model = Model::new(&crate::model::ModelConfig::tiny(), tch::Device::Cpu).unwrap();
         let rows = colour_check(&model, &ModelInfo { ldr_input: true, steps: 0 }, 16).unwrap();
         assert_eq!(rows.len(), 2 * 9 * 2);
-        assert!(rows.iter().all(|r| r.chroma_error.is_finite() && r.highlight_ratio > 0.0 && r.checkerboard.is_finite()));
+        assert!(rows.iter().all(|r| r.chroma_error.is_finite() && r.highlight_ratio > 0.0 && r.checkerboard.is_finite() && r.log_l1 > 0.0 && r.code_spread > 0.0));
         let s = summarize(&rows);
         assert!(s.near_black_highlight_ratio.is_finite());
         let md = markdown("tiny", &rows);

@@ -5,7 +5,7 @@
 use super::TrainConfig;
 use crate::data::loaders::{open_dataset, random_crop, SvbrdfSource};
 use crate::data::procedural;
-use crate::data::samples::{make_batch, SampleConfig, TrainingBatch};
+use crate::data::samples::{input_only, make_batch, SampleConfig, ShiftedPhotos, TrainingBatch};
 use crate::svbrdf::height::ensure_height_field;
 use crate::svbrdf::Svbrdf;
 use anyhow::Result;
@@ -83,7 +83,7 @@ impl MaterialStream {
                     .map(|_| {
                         let m = &bank[rng.random_range(0..bank.len())];
                         let code = rng.random_range(0..8u8);
-                        random_crop(m, cfg.crop, &mut rng).map(|c| c.dihedral(code))
+                        random_crop(m, cfg.material_crop(), &mut rng).map(|c| c.dihedral(code))
                     })
                     .collect();
             }
@@ -96,7 +96,7 @@ impl MaterialStream {
         } else {
             full
         };
-        full.iter().map(|m| random_crop(m, cfg.crop, &mut rng)).collect()
+        full.iter().map(|m| random_crop(m, cfg.material_crop(), &mut rng)).collect()
     }
 }
 
@@ -115,7 +115,10 @@ pub fn generate_bank(count: usize, size: usize) -> Vec<Svbrdf> {
     bank
 }
 
-/// Renders the batch of a step on `device`.
+/// Renders the batch of a step on `device`. With the shift-consistency
+/// term the materials carry the shift's margin (`TrainConfig::material_crop`):
+/// the batch is cut from each at one random offset, the second photo
+/// (`TrainingBatch::shifted`) at another.
 pub fn batch_for_step(cfg: &TrainConfig, materials: &[Svbrdf], step: u64, device: Device) -> Result<TrainingBatch> {
     let sample_cfg = SampleConfig {
         outputs_per_material: cfg.outputs_per_material,
@@ -127,7 +130,25 @@ pub fn batch_for_step(cfg: &TrainConfig, materials: &[Svbrdf], step: u64, device
         ..Default::default()
     };
     let mut rng = step_rng(cfg.seed, step, 2);
-    tch::no_grad(|| make_batch(materials, &sample_cfg, &mut rng, device))
+    if cfg.weight_shift <= 0.0 {
+        return tch::no_grad(|| make_batch(materials, &sample_cfg, &mut rng, device));
+    }
+    // Its own random stream, as the recolouring's.
+    let mut shift_rng = step_rng(cfg.seed, step, 4);
+    let (mut first, mut second, mut offsets) = (vec![], vec![], vec![]);
+    for m in materials {
+        let margin = m.height().min(m.width()).saturating_sub(cfg.crop);
+        let mut corner = || (shift_rng.random_range(0..=margin), shift_rng.random_range(0..=margin));
+        let (a, b) = (corner(), corner());
+        first.push(m.crop(a.0, a.1, cfg.crop, cfg.crop)?);
+        second.push(m.crop(b.0, b.1, cfg.crop, cfg.crop)?);
+        offsets.push((b.0 as i64 - a.0 as i64, b.1 as i64 - a.1 as i64));
+    }
+    tch::no_grad(|| {
+        let mut batch = make_batch(&first, &sample_cfg, &mut rng, device)?;
+        batch.shifted = Some(ShiftedPhotos { est_input: input_only(&second, &sample_cfg, device)?, offsets });
+        Ok(batch)
+    })
 }
 
 /// Prepares the materials of upcoming steps on a background thread.

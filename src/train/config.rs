@@ -164,6 +164,18 @@ pub struct TrainConfig {
     /// weighs every channel's share alike (0: none, the paper).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub weight_chroma: f64,
+    /// Weight of the shift-consistency term (`losses::shift_consistency`):
+    /// every material is photographed a second time with camera and flash
+    /// moved by up to `shift_pixels` pixels, and M_est's codes of the two
+    /// photos must agree where they overlap. A code describes the material
+    /// at its pixel, not where the flash was; without the term M_est wrote
+    /// the highlight's position into flat materials' codes (rings, and a
+    /// hole where the highlight was under any other light). 0: none, the paper.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub weight_shift: f64,
+    /// Largest shift of the second photo in pixels (each axis).
+    #[serde(default = "default_shift_pixels")]
+    pub shift_pixels: usize,
     pub pixel_fraction: f64,
     pub pixel_sampling: PixelSampling,
     pub scheme: UpdateScheme,
@@ -178,6 +190,10 @@ pub struct TrainConfig {
 
 fn is_zero_count(v: &usize) -> bool {
     *v == 0
+}
+
+fn default_shift_pixels() -> usize {
+    16
 }
 
 fn is_zero(v: &f64) -> bool {
@@ -225,6 +241,8 @@ impl Default for TrainConfig {
             weight_lpips: 0.01,
             weight_adv: 0.03,
             weight_chroma: 0.0,
+            weight_shift: 0.0,
+            shift_pixels: default_shift_pixels(),
             pixel_fraction: 0.6,
             pixel_sampling: PixelSampling::InverseNorm,
             scheme: UpdateScheme::Alternating,
@@ -239,6 +257,17 @@ impl Default for TrainConfig {
 
 impl TrainConfig {
     /// Learning rate at a step: linear warm-up, then the paper's step decay.
+    /// Side of the crops taken from the materials: the crop, plus the
+    /// shift's margin when the shift-consistency term is on (both photos
+    /// are cut from it, `batches::batch_for_step`).
+    pub fn material_crop(&self) -> usize {
+        if self.weight_shift > 0.0 {
+            self.crop + self.shift_pixels
+        } else {
+            self.crop
+        }
+    }
+
     pub fn lr_at(&self, step: u64) -> f64 {
         let warmup = if step < self.warmup_steps { (step + 1) as f64 / self.warmup_steps as f64 } else { 1.0 };
         warmup * self.lr * self.lr_decay.powi((step / self.lr_decay_every.max(1)) as i32)
@@ -292,10 +321,28 @@ impl TrainConfig {
             anyhow::ensure!(c.is_finite() && c > 0.0, "--grad-clip must be a finite number > 0 (got {c})");
         }
         anyhow::ensure!(self.lr_decay.is_finite() && self.lr_decay > 0.0, "the learning-rate decay must be a finite number > 0 (got {})", self.lr_decay);
-        for (name, w) in [("L1", self.weight_l1), ("LPIPS", self.weight_lpips), ("adversarial", self.weight_adv), ("chromaticity", self.weight_chroma)] {
+        for (name, w) in [("L1", self.weight_l1), ("LPIPS", self.weight_lpips), ("adversarial", self.weight_adv), ("chromaticity", self.weight_chroma), ("shift-consistency", self.weight_shift)] {
             anyhow::ensure!(w.is_finite() && w >= 0.0, "the {name} weight must be a finite number >= 0 (got {w})");
         }
         anyhow::ensure!(self.material_size >= self.crop, "material size {} is smaller than the crop {}", self.material_size, self.crop);
+        if self.weight_shift > 0.0 {
+            anyhow::ensure!(self.method.is_flashmat(), "--shift-weight applies to --method flashmat only");
+            anyhow::ensure!(!self.freeze_estimator, "--shift-weight trains M_est: not with --freeze-estimator");
+            anyhow::ensure!(self.scheme == UpdateScheme::Alternating, "--shift-weight applies to --scheme alternating only");
+            anyhow::ensure!(
+                self.shift_pixels >= 1 && self.shift_pixels < self.crop,
+                "--shift-pixels must be between 1 and the crop minus 1 ({}), got {}",
+                self.crop.saturating_sub(1),
+                self.shift_pixels
+            );
+            anyhow::ensure!(
+                self.material_size >= self.crop + self.shift_pixels,
+                "--shift-pixels {}: the crop plus the shift ({}) is larger than the materials ({})",
+                self.shift_pixels,
+                self.crop + self.shift_pixels,
+                self.material_size
+            );
+        }
         anyhow::ensure!(self.materials_per_batch >= 2 || self.weight_adv == 0.0, "the discriminator needs at least 2 materials per batch");
         anyhow::ensure!(self.outputs_per_material >= 1, "at least one output render per material");
         anyhow::ensure!(

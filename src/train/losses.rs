@@ -73,7 +73,6 @@ pub fn discriminator_loss(disc: &Discriminator, pred_log: &Tensor, target_log: &
     Ok((real - 1.0).square().mean(Kind::Float) + fake.square().mean(Kind::Float) + wrong.square().mean(Kind::Float))
 }
 
-/// Mean L2 norm of the neural parameter vectors. neural: `[N, C, H, W]`.
 /// The curriculum's dense code target: mean |neural - target| over the
 /// mean |target|, so the term's scale does not depend on how large the
 /// teacher's codes came out. neural, target: `[N, C, H, W]`.
@@ -81,8 +80,35 @@ pub fn code_l1(neural: &Tensor, target: &Tensor) -> Tensor {
     (neural - target).abs().mean(tch::Kind::Float) / target.abs().mean(tch::Kind::Float).clamp_min(1e-6)
 }
 
+/// Mean L2 norm of the neural parameter vectors. neural: `[N, C, H, W]`.
 pub fn mean_param_norm(neural: &Tensor) -> f64 {
     neural.detach().square().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).sqrt().mean(Kind::Float).double_value(&[])
+}
+
+/// The shift-consistency term: M_est's codes of two photos of the same
+/// materials, the second's window `offsets[i]` = (rows, columns) from the
+/// first's, compared where the windows overlap: mean |a - b| over the
+/// overlaps, over the mean |a| (held constant, so the term cannot shrink
+/// by shrinking the codes). first, second: `[N, C, H, W]` -> scalar.
+pub fn shift_consistency(first: &Tensor, second: &Tensor, offsets: &[(i64, i64)]) -> Tensor {
+    let (h, w) = (first.size()[2], first.size()[3]);
+    // The window of one photo that the other also shows: start in its own
+    // pixels for an offset `d` of the other's, and length.
+    let span = |d: i64, n: i64| (d.max(0), (-d).max(0), n - d.abs());
+    let mut total = Tensor::zeros([], (Kind::Float, first.device()));
+    let mut count = 0i64;
+    for (i, &(dy, dx)) in offsets.iter().enumerate() {
+        let ((ya, yb, rows), (xa, xb, cols)) = (span(dy, h), span(dx, w));
+        if rows <= 0 || cols <= 0 {
+            continue;
+        }
+        let a = first.get(i as i64).narrow(1, ya, rows).narrow(2, xa, cols);
+        let b = second.get(i as i64).narrow(1, yb, rows).narrow(2, xb, cols);
+        count += a.numel() as i64;
+        total = total + (a - b).abs().sum(Kind::Float);
+    }
+    let scale = first.detach().abs().mean(Kind::Float).clamp_min(1e-6);
+    total / (count.max(1) as f64) / scale
 }
 
 /// Pixel mask for the renderer's data term: `fraction` of the pixels drawn
@@ -143,6 +169,36 @@ mod tests {
         let pred = Tensor::zeros([1, 1, 3, 4, 4], (Kind::Float, Device::Cpu)).set_requires_grad(true);
         chroma_l1(&pred, &red).backward();
         assert!(pred.grad().isfinite().all().int64_value(&[]) == 1);
+    }
+
+    /// A map and the same map seen from a window (dy, dx) further on agree
+    /// on their overlap: 0 for the right offset, not for the wrong sign;
+    /// two constant maps a and b give |a - b| / |a|; a window that misses
+    /// the other photo adds nothing; the gradient reaches both maps.
+    #[test]
+    fn shift_consistency_compares_the_overlap_only() {
+        let (h, w) = (6i64, 7i64);
+        let plane = Tensor::arange(2 * 9 * 10, (Kind::Float, Device::Cpu)).view([2, 9, 10]) * 0.1; // [C, rows, cols] of a material
+        let window = |y: i64, x: i64| plane.narrow(1, y, h).narrow(2, x, w).unsqueeze(0);
+        let first = Tensor::cat(&[window(1, 2), window(3, 0)], 0);
+        let second = Tensor::cat(&[window(3, 1), window(0, 3)], 0); // offsets (2, -1) and (-3, 3)
+        let right = shift_consistency(&first, &second, &[(2, -1), (-3, 3)]).double_value(&[]);
+        assert!(right.abs() < 1e-7, "{right}");
+        assert!(shift_consistency(&first, &second, &[(-2, 1), (3, -3)]).double_value(&[]) > 0.1);
+        let constant = |v: f64| Tensor::full([1, 2, h, w], v, (Kind::Float, Device::Cpu));
+        let value = shift_consistency(&constant(2.0), &constant(1.5), &[(1, 1)]).double_value(&[]);
+        assert!((value - 0.25).abs() < 1e-6, "{value}");
+        // The second material's windows do not overlap: only the first counts.
+        let two = |v: f64| Tensor::cat(&[constant(2.0), constant(v)], 0);
+        let value = shift_consistency(&two(9.0), &two(-9.0), &[(1, 1), (h, 0)]).double_value(&[]);
+        assert!((value - 0.0).abs() < 1e-6, "{value}");
+        let (a, b) = (constant(2.0).set_requires_grad(true), constant(1.5).set_requires_grad(true));
+        shift_consistency(&a, &b, &[(0, 2)]).backward();
+        let (ga, gb) = (a.grad(), b.grad());
+        // d/da of mean |a - b| / 2 over the overlap's 2 * 6 * 5 values: 1 / (60 * 2) each; none outside it.
+        assert!((ga.narrow(3, 2, 5).mean(Kind::Float).double_value(&[]) - 1.0 / 120.0).abs() < 1e-7);
+        assert_eq!(ga.narrow(3, 0, 2).abs().sum(Kind::Float).double_value(&[]), 0.0);
+        assert!((gb.narrow(3, 0, 5).mean(Kind::Float).double_value(&[]) + 1.0 / 120.0).abs() < 1e-7);
     }
 
     #[test]

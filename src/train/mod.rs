@@ -45,6 +45,9 @@ pub struct StepLosses {
     /// without a teacher).
     #[serde(default)]
     pub code: f64,
+    /// Shift-consistency term, unweighted (0 without it).
+    #[serde(default)]
+    pub shift: f64,
     /// Mean L2 norm of the neural parameters (watch for "garbage" vectors).
     pub param_norm: f64,
     /// True when the step was skipped because a loss or gradient was NaN/Inf.
@@ -208,7 +211,7 @@ impl Trainer {
         let photo_log = b.est_input.narrow(1, 0, 3);
 
         // 1. M_est update; the renderer takes part in the graph but is not stepped.
-        let neural = self.model.est.forward_t(&b.est_input, cfg.est_batch_stats_at(self.step))?;
+        let (neural, shift_term) = self.estimate(b)?;
         let pred = self.model.renderer.render_code(&neural, &code.detach())?;
         let l1 = (&pred - &truth_log).abs().mean(tch::Kind::Float);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &truth_log)?;
@@ -219,6 +222,10 @@ impl Trainer {
             let code = losses::code_l1(&neural, &tch::no_grad(|| t.encoder.forward_maps(&b.maps)));
             out.code = code.double_value(&[]);
             loss_est = loss_est + code * weight_code;
+        }
+        if let Some(t) = shift_term {
+            out.shift = t.double_value(&[]) / cfg.weight_shift;
+            loss_est = loss_est + t;
         }
         out.l1 = l1.double_value(&[]);
         out.lpips = lp.double_value(&[]);
@@ -275,7 +282,7 @@ impl Trainer {
         self.zero_all();
 
         // Forward, with the graph cut at the neural map and at the prediction.
-        let neural = self.model.est.forward_t(&b.est_input, cfg.est_batch_stats_at(self.step))?;
+        let (neural, shift_term) = self.estimate(b)?;
         let neural_in = neural.detach().set_requires_grad(true);
         let code = self.model.renderer.encode_maps(&b.out_wi, &b.out_wo)?;
         let rendered = self.model.renderer.render_code(&neural_in, &code)?;
@@ -298,6 +305,10 @@ impl Trainer {
         if let Some(c) = &code_term {
             out.code = c.double_value(&[]) / weight_code;
             loss_est = loss_est + c;
+        }
+        if let Some(t) = &shift_term {
+            out.shift = t.double_value(&[]) / cfg.weight_shift;
+            loss_est = loss_est + t;
         }
         let loss_render = &l1_r * cfg.weight_l1 + &shared;
         out.l1 = l1.double_value(&[]);
@@ -324,8 +335,8 @@ impl Trainer {
         // M_est: through the renderer's input side only, then into M_est.
         let grad_neural = Tensor::run_backward(&[(&rendered * &grad_est).sum(Kind::Float)], &[&neural_in], true, false).remove(0);
         let mut est_objective = (&neural * &grad_neural).sum(Kind::Float);
-        if let Some(c) = code_term {
-            est_objective = est_objective + c;
+        for term in [code_term, shift_term].into_iter().flatten() {
+            est_objective = est_objective + term;
         }
         // Three independent backward passes at once: M_est's here, the
         // renderer's weights' and the discriminator's update in two more
@@ -359,6 +370,24 @@ impl Trainer {
         }
         self.apply_steps(lr, weight_adv);
         Ok(out)
+    }
+
+    /// M_est's neural map of the batch `[N, C, H, W]` and, with the
+    /// shift-consistency term on and a batch that has second photos, the
+    /// weighted term (`losses::shift_consistency`): both photos go through
+    /// one forward.
+    fn estimate(&self, b: &TrainingBatch) -> Result<(Tensor, Option<Tensor>)> {
+        let batch_stats = self.config.est_batch_stats_at(self.step);
+        match (&b.shifted, self.config.weight_shift > 0.0) {
+            (Some(second), true) => {
+                let n = b.est_input.size()[0];
+                let both = self.model.est.forward_t(&Tensor::cat(&[&b.est_input, &second.est_input], 0), batch_stats)?;
+                let (first, shifted) = (both.narrow(0, 0, n), both.narrow(0, n, n));
+                let term = losses::shift_consistency(&first, &shifted, &second.offsets) * self.config.weight_shift;
+                Ok((first, Some(term)))
+            }
+            _ => Ok((self.model.est.forward_t(&b.est_input, batch_stats)?, None)),
+        }
     }
 
     /// M_est as at inference (`TrainConfig::freeze_estimator`): no

@@ -6,7 +6,7 @@
 
 use super::batches::{batch_for_step, MaterialStream};
 use super::{StepLosses, TrainConfig, Trainer};
-use crate::data::samples::TrainingBatch;
+use crate::data::samples::{ShiftedPhotos, TrainingBatch};
 use anyhow::Result;
 use std::time::Instant;
 use tch::Device;
@@ -46,6 +46,7 @@ fn batch_to(b: &TrainingBatch, device: Device) -> TrainingBatch {
         out_wo: b.out_wo.to_device(device),
         targets: b.targets.to_device(device),
         configs: b.configs.clone(),
+        shifted: b.shifted.as_ref().map(|s| ShiftedPhotos { est_input: s.est_input.to_device(device), offsets: s.offsets.clone() }),
     }
 }
 

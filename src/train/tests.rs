@@ -717,3 +717,54 @@ fn shared_forward_step_matches_two_passes() {
     }
     assert!(compared > 100, "{compared}");
 }
+
+/// `--shift-weight`: each second photo is its material's window at the
+/// logged offset from the first photo's (the material's diffuse colour
+/// encodes its position, so the first window's maps tell where it was),
+/// rendered as `input_only` renders it; the term adds its weight times
+/// the codes' disagreement to M_est's loss (BatchNorm on running
+/// statistics, so the second photos do not change the first's codes);
+/// refused where it cannot apply.
+#[test]
+fn shift_weight_adds_the_consistency_of_two_photos() {
+    let cfg = TrainConfig { weight_lpips: 0.0, weight_adv: 0.0, weight_shift: 0.5, shift_pixels: 8, frozen_bn_from: Some(0), ..tiny_config() };
+    assert_eq!(cfg.material_crop(), 40);
+    let mut ramp = crate::svbrdf::Svbrdf::uniform(40, 40, [0.0, 0.0, 0.3], [0.04; 3], 0.4);
+    for y in 0..40 {
+        for x in 0..40 {
+            ramp.diffuse.set(0, y, x, x as f32 / 40.0);
+            ramp.diffuse.set(1, y, x, y as f32 / 40.0);
+        }
+    }
+    let batch = batches::batch_for_step(&cfg, &[ramp.clone(), ramp.clone()], 3, tch::Device::Cpu).unwrap();
+    let shifted = batch.shifted.as_ref().expect("second photos");
+    assert_eq!(shifted.est_input.size(), batch.est_input.size());
+    for (i, &(dy, dx)) in shifted.offsets.iter().enumerate() {
+        let at = |c: i64| (batch.maps.double_value(&[i as i64, c, 0, 0]) * 40.0).round() as i64;
+        let (top, left) = (at(1) + dy, at(0) + dx);
+        assert!((0..=8).contains(&top) && (0..=8).contains(&left), "window at ({top}, {left})");
+        let window = ramp.crop(top as usize, left as usize, 32, 32).unwrap();
+        let expected = crate::data::samples::input_only(&[window], &SampleConfig::default(), tch::Device::Cpu).unwrap();
+        let diff = (shifted.est_input.get(i as i64) - expected.get(0)).abs().max().double_value(&[]);
+        assert!(diff < 1e-6, "material {i}: second photo off by {diff}");
+    }
+    assert!(shifted.offsets.iter().any(|&o| o != (0, 0)));
+
+    let plain = Trainer::new(TrainConfig { weight_shift: 0.0, ..cfg.clone() }, tch::Device::Cpu).unwrap().train_step(&batch).unwrap();
+    let with = Trainer::new(cfg.clone(), tch::Device::Cpu).unwrap().train_step(&batch).unwrap();
+    assert_eq!(plain.shift, 0.0);
+    assert!(with.shift > 1e-3, "an untrained M_est's codes depend on the flash: {}", with.shift);
+    let added = with.loss_est - plain.loss_est;
+    assert!((added - 0.5 * with.shift).abs() < 1e-5 * (1.0 + with.shift), "added {added}, expected {}", 0.5 * with.shift);
+    assert!((with.l1 - plain.l1).abs() < 1e-6);
+
+    for (bad, why) in [
+        (TrainConfig { shift_pixels: 32, ..cfg.clone() }, "between 1 and"),
+        (TrainConfig { material_size: 36, ..cfg.clone() }, "larger than the materials"),
+        (TrainConfig { scheme: UpdateScheme::Combined, ..cfg.clone() }, "alternating only"),
+        (TrainConfig { weight_shift: -1.0, ..cfg.clone() }, "shift-consistency weight"),
+    ] {
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(err.contains(why), "{err}");
+    }
+}
