@@ -88,8 +88,10 @@ pub fn mean_param_norm(neural: &Tensor) -> f64 {
 /// The shift-consistency term: M_est's codes of two photos of the same
 /// materials, the second's window `offsets[i]` = (rows, columns) from the
 /// first's, compared where the windows overlap: mean |a - b| over the
-/// overlaps, over the mean |a| (held constant, so the term cannot shrink
-/// by shrinking the codes). first, second: `[N, C, H, W]` -> scalar.
+/// overlaps, over the mean |a| taken as a constant (a scale for the
+/// weight; no gradient flows through it, so shrinking every code does
+/// lower the term: the runs of `reports/shift-consistency.md` shrank them).
+/// first, second: `[N, C, H, W]` -> scalar.
 pub fn shift_consistency(first: &Tensor, second: &Tensor, offsets: &[(i64, i64)]) -> Tensor {
     let (h, w) = (first.size()[2], first.size()[3]);
     // The window of one photo that the other also shows: start in its own
