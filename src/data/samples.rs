@@ -7,7 +7,7 @@ use crate::spaces;
 use crate::svbrdf::render::{direction_maps_for, half_vector_z};
 use crate::svbrdf::shadow::ShadowOptions;
 use crate::svbrdf::{Svbrdf, MAP_CHANNELS};
-use anyhow::{bail, Result};
+use anyhow::{bail, ensure, Result};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
@@ -211,12 +211,9 @@ fn with_hemisphere_outputs<R: Rng>(configs: &mut [LightView], k: usize, hemisphe
 /// Builds one training batch: input renders plus K sampled output renders.
 pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R, device: Device) -> Result<TrainingBatch> {
     let maps = stack_maps(materials, device)?;
-    let size = maps.size();
-    let (n, h, w) = (size[0], size[2] as usize, size[3] as usize);
+    let n = maps.size()[0];
     let k = cfg.outputs_per_material as i64;
 
-    let (in_wi, in_wo) = input_directions(h, w, cfg.fov_deg, device);
-    let hz = half_vector_z(&in_wi, &in_wo).expand([n, 1, h as i64, w as i64], false);
     let mut configs = sample_configs(rng, cfg.output_sampling, (n * k) as usize, cfg.fov_deg);
     with_colocated_outputs(&mut configs, k as usize, cfg.colocated_outputs, cfg.fov_deg, rng)?;
     with_hemisphere_outputs(&mut configs, k as usize, cfg.hemisphere_outputs, cfg.colocated_outputs, rng)?;
@@ -225,26 +222,30 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
     let shadows = ShadowOptions { height_scale: cfg.height_scale, ..Default::default() };
     let shadows = cfg.shadows.then_some(&shadows);
     let (rendered_input, targets, out_wi, out_wo) = render_on_cpu(materials, &configs, cfg.fov_deg, k as usize, shadows, device)?;
-    let mut input_linear = rendered_input;
-    if cfg.ldr_input {
-        input_linear = spaces::ldr_clamp(&input_linear);
-    }
-    let est = est_input(&input_linear, &hz);
+    let (input_linear, est) = training_est_input(rendered_input, cfg, device);
+    Ok(TrainingBatch { maps, input_linear, est_input: est, out_wi, out_wo, targets, configs, shifted: None })
+}
 
-    Ok(TrainingBatch { maps, input_linear, est_input: est.to_kind(Kind::Float), out_wi, out_wo, targets, configs, shifted: None })
+/// A rendered co-located input photo as training feeds it to M_est:
+/// clamped to [0, 1] for LDR inputs, with h_z of the input view.
+/// rendered: `[N, 3, H, W]` -> (the photo as M_est sees it, M_est input `[N, 4, H, W]` f32).
+fn training_est_input(rendered: Tensor, cfg: &SampleConfig, device: Device) -> (Tensor, Tensor) {
+    let size = rendered.size();
+    let (n, h, w) = (size[0], size[2], size[3]);
+    let input_linear = if cfg.ldr_input { spaces::ldr_clamp(&rendered) } else { rendered };
+    let (in_wi, in_wo) = input_directions(h as usize, w as usize, cfg.fov_deg, device);
+    let hz = half_vector_z(&in_wi, &in_wo).expand([n, 1, h, w], false);
+    let est = est_input(&input_linear, &hz).to_kind(Kind::Float);
+    (input_linear, est)
 }
 
 /// M_est's input for the co-located photo of each material alone (no
 /// outputs), as `make_batch` renders it. -> `[N, 4, H, W]` on `device`.
 pub fn input_only(materials: &[Svbrdf], cfg: &SampleConfig, device: Device) -> Result<Tensor> {
-    let Some(first) = materials.first() else { bail!("empty material batch") };
-    let (n, h, w) = (materials.len() as i64, first.height(), first.width());
+    ensure!(!materials.is_empty(), "empty material batch");
     let shadows = ShadowOptions { height_scale: cfg.height_scale, ..Default::default() };
     let (input, ..) = render_on_cpu(materials, &[], cfg.fov_deg, 0, cfg.shadows.then_some(&shadows), device)?;
-    let input = if cfg.ldr_input { spaces::ldr_clamp(&input) } else { input };
-    let (in_wi, in_wo) = input_directions(h, w, cfg.fov_deg, device);
-    let hz = half_vector_z(&in_wi, &in_wo).expand([n, 1, h as i64, w as i64], false);
-    Ok(est_input(&input, &hz).to_kind(Kind::Float))
+    Ok(training_est_input(input, cfg, device).1)
 }
 
 #[cfg(test)]

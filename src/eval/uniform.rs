@@ -122,7 +122,7 @@ fn score(set: &'static str, material: &'static str, render: &'static str, pred: 
     let chroma_error = chromaticity_distance(mp, mt);
     let log_ratio = [0, 1, 2].map(|c| (mp[c].max(1e-6) / mt[c].max(1e-6)).ln());
     let checkerboard = super::metrics::checkerboard_amplitude(pred, truth)?;
-    let log_l1 = pred.data.iter().zip(&truth.data).map(|(&p, &t)| ((p.max(0.0) as f64).ln_1p() - (t.max(0.0) as f64).ln_1p()).abs()).sum::<f64>() / pred.data.len().max(1) as f64;
+    let log_l1 = super::metrics::log_l1(pred, truth)?;
     Ok(ColourRow { set, material, render, chroma_error, log_ratio, highlight_ratio: ratio_of_highlights(hp, ht), checkerboard, log_l1, code_spread: 0.0 })
 }
 

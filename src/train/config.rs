@@ -256,7 +256,6 @@ impl Default for TrainConfig {
 }
 
 impl TrainConfig {
-    /// Learning rate at a step: linear warm-up, then the paper's step decay.
     /// Side of the crops taken from the materials: the crop, plus the
     /// shift's margin when the shift-consistency term is on (both photos
     /// are cut from it, `batches::batch_for_step`).
@@ -268,6 +267,7 @@ impl TrainConfig {
         }
     }
 
+    /// Learning rate at a step: linear warm-up, then the paper's step decay.
     pub fn lr_at(&self, step: u64) -> f64 {
         let warmup = if step < self.warmup_steps { (step + 1) as f64 / self.warmup_steps as f64 } else { 1.0 };
         warmup * self.lr * self.lr_decay.powi((step / self.lr_decay_every.max(1)) as i32)
