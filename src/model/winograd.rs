@@ -7,10 +7,14 @@
 //! with small constants, written here over whole rows so they vectorise; the
 //! GEMMs stay libtorch's. Inference only: f32 on the CPU, no autograd.
 //!
-//! The image is walked in bands of tile rows sized to stay in the last-level
-//! cache (the transformed tiles are 2.25x the input): over a whole 64-channel
-//! 256x256 image at once the GEMMs fell to 42 GFLOP/s, in bands they ran at
-//! about 62 (`reports/inference-speed.md`).
+//! The image is walked in bands of tile rows (at most 32 MiB of transformed
+//! tiles and GEMM output), which bounds the working memory. Inside the
+//! paper-size forward, 4 MiB bands (sized for the 32 MiB L3) ran the GEMMs
+//! at about 62 GFLOP/s, 16-256 MiB bands at about 90, although a layer
+//! timed alone favours the small bands; likely the cost is each band's
+//! hand-over of the two cores from rayon (transforms) to OpenMP (GEMMs)
+//! and back, far above its arithmetic on this shared machine
+//! (`reports/inference-speed.md`).
 
 use rayon::prelude::*;
 use tch::{Device, Kind, Tensor};
@@ -27,8 +31,8 @@ const G: [[f64; 3]; 6] = [
 ];
 
 /// Bytes of transformed input and GEMM output held per band of tile rows:
-/// well inside this machine's 32 MiB L3, large enough for efficient GEMMs.
-const BAND_BYTES: i64 = 4 << 20;
+/// few hand-overs between thread pools, bounded memory (see the module doc).
+const BAND_BYTES: i64 = 32 << 20;
 
 /// A 3x3 stride-1 convolution (weights and optional bias) run by F(4x4, 3x3).
 #[derive(Debug)]
@@ -149,6 +153,55 @@ impl Winograd3x3 {
     }
 }
 
+/// A 4x4 transposed convolution with stride 2 and padding 1 (M_est's
+/// upsampling) by Winograd. Output pixel 2m + a (per axis) takes input
+/// m - 1 and m through kernel taps 3 and 1 when a = 0, inputs m and m + 1
+/// through taps 2 and 0 when a = 1; so the four output phases (a, b) are
+/// one stride-1 3x3 conv of the zero-padded input with 4P outputs, each
+/// phase's 3x3 kernel holding four of the 16 taps. By F(4x4, 3x3) that is
+/// 9 multiplications per input pixel and channel pair against the
+/// transposed conv's 16.
+#[derive(Debug)]
+pub struct WinogradUp4x4 {
+    phases: Winograd3x3,
+    cout: i64,
+}
+
+/// Per axis and output phase: (3x3 tap, 4x4 kernel tap) pairs.
+const UP_TAPS: [[(i64, i64); 2]; 2] = [[(0, 3), (1, 1)], [(1, 2), (2, 0)]];
+
+impl WinogradUp4x4 {
+    /// w: `[C, P, 4, 4]` (conv_transpose2d's layout), bias: `[P]`.
+    pub fn new(w: &Tensor, bias: Option<&Tensor>) -> Self {
+        let (cin, cout) = (w.size()[0], w.size()[1]);
+        assert_eq!(&w.size()[2..], &[4, 4], "the upsampling's kernel is 4x4");
+        let wt = w.detach().to_device(Device::Cpu).to_kind(Kind::Float).transpose(0, 1); // [P, C, 4, 4]
+        let mut phases = vec![];
+        for ya in UP_TAPS {
+            for xa in UP_TAPS {
+                let k = Tensor::zeros([cout, cin, 3, 3], (Kind::Float, Device::Cpu));
+                for (ty, ky) in ya {
+                    for (tx, kx) in xa {
+                        k.narrow(2, ty, 1).narrow(3, tx, 1).copy_(&wt.narrow(2, ky, 1).narrow(3, kx, 1));
+                    }
+                }
+                phases.push(k);
+            }
+        }
+        let bias = bias.map(|b| b.detach().to_device(Device::Cpu).to_kind(Kind::Float).repeat([4]));
+        Self { phases: Winograd3x3::new(&Tensor::cat(&phases, 0), bias.as_ref()), cout }
+    }
+
+    /// x: `[N, C, H, W]` f32 on the CPU -> `[N, P, 2H, 2W]`, equal to
+    /// `x.conv_transpose2d(w, bias, stride 2, padding 1)` up to float rounding.
+    pub fn forward(&self, x: &Tensor) -> Tensor {
+        let [n, _, h, w] = x.size()[..] else { panic!("upsampling input must be [N, C, H, W], got {:?}", x.size()) };
+        let y = self.phases.forward(&x.constant_pad_nd([1, 1, 1, 1])); // [N, (a, b, P), H, W]
+        // [N, a, b, P, H, W] -> [N, P, H, a, W, b]: pixel (2m + a, 2n + b).
+        y.view([n, 2, 2, self.cout, h, w]).permute([0, 3, 4, 1, 5, 2]).reshape([n, self.cout, 2 * h, 2 * w])
+    }
+}
+
 /// A band of tile rows: first row, row count, tiles per row, tiles in all.
 struct Band {
     ty0: usize,
@@ -160,6 +213,7 @@ struct Band {
 /// B^T applied along one axis, element-wise over rows of tiles:
 /// out[s][t] = sum_j BT[s][j] d[j][t] (the constants written out so the
 /// loop vectorises and skips the zeros).
+#[inline(always)]
 fn bt_rows(d: [&[f32]; 6], out: [&mut [f32]; 6]) {
     let n = out[0].len();
     // Equal lengths up front, so the loop runs without bounds checks.
@@ -177,6 +231,7 @@ fn bt_rows(d: [&[f32]; 6], out: [&mut [f32]; 6]) {
 }
 
 /// A^T along one axis: out[i][t] = sum_r AT[i][r] m[r][t] (+ bias).
+#[inline(always)]
 fn at_rows(m: [&[f32]; 6], out: [&mut [f32]; 4], bias: f32) {
     let n = out[0].len();
     let [m0, m1, m2, m3, m4, m5] = m.map(|row| &row[..n]);
@@ -214,6 +269,27 @@ fn rows6(buf: &mut [f32], len: usize) -> [&mut [f32]; 6] {
 /// `v` must hold 36 * c * band.tiles floats and no other thread may write
 /// channel ci's elements.
 unsafe fn input_tiles(plane: &[f32], hp: usize, wp: usize, band: &Band, v: SharedOut, ci: usize, c: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        return input_tiles_avx2(plane, hp, wp, band, v, ci, c);
+    }
+    input_tiles_body(plane, hp, wp, band, v, ci, c)
+}
+
+/// [`input_tiles`] compiled for AVX2 (8 floats a vector where the baseline
+/// x86-64 build has SSE2's 4).
+///
+/// # Safety
+/// As [`input_tiles`]; the CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn input_tiles_avx2(plane: &[f32], hp: usize, wp: usize, band: &Band, v: SharedOut, ci: usize, c: usize) {
+    input_tiles_body(plane, hp, wp, band, v, ci, c)
+}
+
+/// The body of [`input_tiles`], inlined into each build of it.
+#[inline(always)]
+unsafe fn input_tiles_body(plane: &[f32], hp: usize, wp: usize, band: &Band, v: SharedOut, ci: usize, c: usize) {
     let n = band.tiles_x;
     let len = n + 1; // phase q holds row[4 t + q] for t in 0..=n
     // phases[i][q]: input row i of the tile row, phase q.
@@ -264,6 +340,28 @@ unsafe fn input_tiles(plane: &[f32], hp: usize, wp: usize, band: &Band, v: Share
 /// `plane` must point at h * w floats that no other thread writes.
 #[allow(clippy::too_many_arguments)]
 unsafe fn output_tiles(m: &[f32], band: &Band, pi: usize, p: usize, bias: f32, plane: *mut f32, h: usize, w: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        return output_tiles_avx2(m, band, pi, p, bias, plane, h, w);
+    }
+    output_tiles_body(m, band, pi, p, bias, plane, h, w)
+}
+
+/// [`output_tiles`] compiled for AVX2.
+///
+/// # Safety
+/// As [`output_tiles`]; the CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn output_tiles_avx2(m: &[f32], band: &Band, pi: usize, p: usize, bias: f32, plane: *mut f32, h: usize, w: usize) {
+    output_tiles_body(m, band, pi, p, bias, plane, h, w)
+}
+
+/// The body of [`output_tiles`], inlined into each build of it.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn output_tiles_body(m: &[f32], band: &Band, pi: usize, p: usize, bias: f32, plane: *mut f32, h: usize, w: usize) {
     let n = band.tiles_x;
     // mixed[i][s]: after A^T along y; cols[j]: output phase j of one row.
     let mut mixed = vec![0.0f32; 4 * 6 * n];
@@ -377,6 +475,22 @@ mod tests {
                 let err = (y.to_kind(Kind::Double) - &r).abs().max().double_value(&[]);
                 assert!(err <= 2e-5 * scale, "{n}x{c}->{p} at {h}x{w}: error {err} of {scale}");
             }
+        }
+    }
+
+    #[test]
+    fn upsampling_phases_equal_the_transposed_convolution() {
+        tch::manual_seed(6);
+        for (n, c, p, h, w) in [(1, 3, 2, 5, 7), (2, 8, 5, 4, 4), (1, 1, 1, 1, 2)] {
+            let x = Tensor::randn([n, c, h, w], (Kind::Float, Device::Cpu));
+            let wt = Tensor::randn([c, p, 4, 4], (Kind::Float, Device::Cpu));
+            let b = Tensor::randn([p], (Kind::Float, Device::Cpu));
+            let y = WinogradUp4x4::new(&wt, Some(&b)).forward(&x);
+            let want = x.to_kind(Kind::Double).conv_transpose2d(&wt.to_kind(Kind::Double), Some(&b.to_kind(Kind::Double)), [2, 2], [1, 1], [0, 0], 1, [1, 1]);
+            assert_eq!(y.size(), want.size());
+            let scale = want.abs().max().double_value(&[]);
+            let err = (y.to_kind(Kind::Double) - &want).abs().max().double_value(&[]);
+            assert!(err <= 2e-5 * scale, "{n}x{c}->{p} at {h}x{w}: error {err} of {scale}");
         }
     }
 

@@ -15,7 +15,8 @@
 //! stride 1; gate and incep.c at stride 2) run as one wider convolution.
 
 use super::*;
-use crate::model::winograd::Winograd3x3;
+use super::kernels;
+use crate::model::winograd::{Winograd3x3, WinogradUp4x4};
 use tch::Device;
 
 impl MEst {
@@ -51,33 +52,54 @@ pub struct FoldedMEst {
 
 /// Which stride-1 3x3 convs of [`FoldedMEst`] run by Winograd F(4x4, 3x3)
 /// ([`Winograd3x3`]): those with at least `min_channels` input and output
-/// channels, on inputs of at least `min_pixels`. Below that the tile
-/// transforms cost more than the smaller GEMMs save (the default is where
-/// they broke even on the 2-core development CPU:
-/// `cargo run --release --example winograd`).
+/// channels, on inputs of at least `min_pixels`; and narrower ones with at
+/// least `narrow_min_in` input and `narrow_min_out` output channels, on
+/// inputs of at least `narrow_min_input_bytes`. Elsewhere the tile
+/// transforms (work in proportion to C + P) cost more than the smaller
+/// GEMMs (C P) save. The defaults are where the two broke even inside the
+/// forward on the 2-core development CPU (`reports/inference-speed.md`):
+/// at 768x768 the compact preset's 16 -> 40, 32 -> 80 and 48 -> 40 convs
+/// ran 1.1x, 1.3x and 1.4x faster by Winograd, its 16 -> 16, 32 -> 32 and
+/// 48 -> 16 ones 1.2-1.4x slower.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct WinogradPolicy {
     pub min_channels: i64,
     pub min_pixels: i64,
+    pub narrow_min_in: i64,
+    pub narrow_min_out: i64,
+    pub narrow_min_input_bytes: i64,
 }
 
 impl Default for WinogradPolicy {
     fn default() -> Self {
-        Self { min_channels: 64, min_pixels: 32 * 32 }
+        Self { min_channels: 64, min_pixels: 32 * 32, narrow_min_in: 16, narrow_min_out: 40, narrow_min_input_bytes: 24 << 20 }
     }
 }
 
 impl WinogradPolicy {
     /// Every stride-1 3x3 conv (for tests of the Winograd path).
-    pub const ALWAYS: Self = Self { min_channels: 1, min_pixels: 1 };
+    pub const ALWAYS: Self = Self { min_channels: 1, min_pixels: 1, narrow_min_in: 1, narrow_min_out: 1, narrow_min_input_bytes: 0 };
+
+    /// The smallest input (pixels) on which a conv of `cin` -> `cout`
+    /// channels runs by Winograd; None: never.
+    pub fn min_pixels_for(&self, cin: i64, cout: i64) -> Option<i64> {
+        if cin.min(cout) >= self.min_channels {
+            Some(self.min_pixels)
+        } else if cin >= self.narrow_min_in && cout >= self.narrow_min_out {
+            // The input's f32 planes fill `narrow_min_input_bytes`.
+            Some((self.narrow_min_input_bytes + 4 * cin - 1) / (4 * cin))
+        } else {
+            None
+        }
+    }
 
     /// The Winograd form of w `[P, C, 3, 3]` (+ bias `[P]`) if the policy
     /// takes convs of its width; none for weights off the CPU (the
     /// Winograd path is CPU-only).
     fn make(policy: Option<Self>, w: &Tensor, b: Option<&Tensor>) -> Option<WinoConv> {
         let policy = policy.filter(|_| w.device() == Device::Cpu)?;
-        let min_channels = w.size()[0].min(w.size()[1]);
-        (min_channels >= policy.min_channels).then(|| WinoConv { conv: Winograd3x3::new(w, b), min_pixels: policy.min_pixels })
+        let min_pixels = policy.min_pixels_for(w.size()[1], w.size()[0])?;
+        Some(WinoConv { conv: Winograd3x3::new(w, b), min_pixels })
     }
 }
 
@@ -187,25 +209,55 @@ impl FoldedHa {
         };
     }
 
-    /// x: `[N, C, H, W]` -> `[N, P, H/s, W/s]` = bn(ha(x)); the instance
-    /// norm takes its statistics as `norm` says.
-    fn forward(&self, x: &Tensor, norm: &mut NormStats) -> Tensor {
+    /// x: `[N, C, H, W]` -> `[N, P, H/s, W/s]` = act(bn(ha(x)) + residual),
+    /// act = ReLU when `relu`; the instance norm takes its statistics as
+    /// `norm` says. On f32 CPU inputs the padding, the instance norm and
+    /// everything after the convs run as single passes ([`kernels`]).
+    fn forward(&self, x: &Tensor, norm: &mut NormStats, residual: Option<&Tensor>, relu: bool) -> Tensor {
         let (p, half, s) = (self.out, self.out / 2, self.stride);
         let wg = &self.wino;
-        let xp = pad_rep(x, 1);
+        // Not for channels-last activations (their last dimension is strided).
+        let fused = x.kind() == Kind::Float && x.device() == Device::Cpu && x.stride()[3] == 1;
+        let x = if fused { x.contiguous() } else { x.shallow_clone() };
+        let pad = |t: &Tensor| if fused { kernels::pad1(&t.contiguous()) } else { pad_rep(t, 1) };
+        let xp = pad(&x);
         let m = conv3(&xp, &self.merged, Some(&self.merged_bias), s, wg.merged.as_ref());
-        let gate = m.narrow(1, 0, p).sigmoid();
-        let (a, c) = match &self.incep_a {
-            None => (m.narrow(1, p, p), m.narrow(1, 2 * p, half)),
-            Some(wa) => (conv3(&xp, wa, None, 1, wg.incep_a.as_ref()), m.narrow(1, p, half)),
+        let (a, c_offset) = match &self.incep_a {
+            None => (m.narrow(1, p, p), 2 * p),
+            Some(wa) => (conv3(&xp, wa, None, 1, wg.incep_a.as_ref()), p),
         };
-        let b = conv3(&pad_rep(&a, 1), &self.incep_b, Some(&self.incep_b_bias), s, wg.incep_b.as_ref());
-        let feat = conv3(&pad_rep(&norm.normalize(x), 1), &self.feat, None, s, wg.feat.as_ref());
+        let b = conv3(&pad(&a), &self.incep_b, Some(&self.incep_b_bias), s, wg.incep_b.as_ref());
+        let feat = conv3(&norm.normalize_padded(&x, fused), &self.feat, None, s, wg.feat.as_ref());
+        if fused && [&m, &b, &feat].iter().all(|t| kernels::eligible(t)) {
+            let residual = residual.map(Tensor::contiguous);
+            let scale = self.feat_scale.as_ref().map(|t| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 BN scale"));
+            let combine = kernels::HaCombine {
+                merged: &m,
+                c_offset,
+                b: &b,
+                feat: &feat,
+                slope: HA_FEAT_SLOPE as f32,
+                feat_scale: scale.as_deref(),
+                residual: residual.as_ref(),
+                relu,
+            };
+            return combine.run();
+        }
+        let gate = m.narrow(1, 0, p).sigmoid();
+        let c = m.narrow(1, c_offset, half);
         let mut feat = leaky(&feat, HA_FEAT_SLOPE);
         if let Some(sc) = &self.feat_scale {
             feat *= sc;
         }
-        gate * feat + Tensor::cat(&[b, c], 1)
+        let mut out = gate * feat + Tensor::cat(&[b, c], 1);
+        if let Some(r) = residual {
+            out += r;
+        }
+        if relu {
+            out.relu()
+        } else {
+            out
+        }
     }
 }
 
@@ -249,13 +301,12 @@ impl FoldedRes {
     }
 
     fn forward(&self, x: &Tensor, norm: &mut NormStats) -> Tensor {
-        let h1 = self.ha1.forward(x, norm).relu();
-        let out = self.ha2.forward(&h1, norm);
+        let h1 = self.ha1.forward(x, norm, None, true);
         let id = match &self.skip {
             Some(s) => conv(x, &s.w, Some(&s.b), self.stride),
             None => x.shallow_clone(),
         };
-        (out + id).relu()
+        self.ha2.forward(&h1, norm, Some(&id), true)
     }
 }
 
@@ -265,6 +316,9 @@ struct FoldedUp {
     conv: FoldedConv,
     skip: FoldedConv,
     conv_wino: Option<WinoConv>,
+    /// The 4x4 transposed conv by Winograd, and the smallest input (pixels)
+    /// it is used on.
+    tconv_wino: Option<(WinogradUp4x4, i64)>,
 }
 
 impl FoldedUp {
@@ -274,11 +328,17 @@ impl FoldedUp {
             conv: FoldedConv::conv(&u.conv, &u.bn2),
             skip: FoldedConv::tconv(&u.skip_tconv, &u.skip_bn),
             conv_wino: None,
+            tconv_wino: None,
         }
     }
 
     fn forward(&self, x: &Tensor) -> Tensor {
-        let out = conv_t(x, &self.tconv.w, Some(&self.tconv.b), 2, 1).relu();
+        let pixels = x.size()[2] * x.size()[3];
+        let out = match &self.tconv_wino {
+            Some((up, min_pixels)) if x.kind() == Kind::Float && x.device() == Device::Cpu && pixels >= *min_pixels => up.forward(x),
+            _ => conv_t(x, &self.tconv.w, Some(&self.tconv.b), 2, 1),
+        }
+        .relu();
         let out = conv3(&pad_rep(&out, 1), &self.conv.w, Some(&self.conv.b), 1, self.conv_wino.as_ref());
         let id = conv_t(x, &self.skip.w, Some(&self.skip.b), 2, 0);
         (out + id).relu()
@@ -336,10 +396,11 @@ impl FoldedMEst {
         h
     }
 
-    /// Runs the stride-1 3x3 convs that `policy` takes (of all but the
-    /// stride-2 ones, the 7x7 stem and head, the 1x1 skips and the
-    /// transposed convs) by Winograd F(4x4, 3x3) on f32 CPU inputs
-    /// ([`Winograd3x3`]); None: every conv direct. The default policy is
+    /// Runs the stride-1 3x3 convs and the 4x4 upsampling transposed convs
+    /// (as 3x3 convs of 4P outputs) that `policy` takes by Winograd F(4x4,
+    /// 3x3) on f32 CPU inputs ([`Winograd3x3`], [`WinogradUp4x4`]); the
+    /// stride-2 convs, 7x7 stem and head, 1x1 skips and 2x2 transposed
+    /// convs stay direct. None: every conv direct. The default policy is
     /// on; the transformed kernels are taken from the weights as they are
     /// now.
     pub fn set_winograd(&mut self, policy: Option<WinogradPolicy>) {
@@ -352,6 +413,12 @@ impl FoldedMEst {
             d.blocks.iter_mut().for_each(res);
             if let Some(u) = d.up.as_mut() {
                 u.conv_wino = WinogradPolicy::make(policy, &u.conv.w, Some(&u.conv.b));
+                // As a 3x3 conv of C inputs and 4P outputs (its four phases).
+                let (cin, cout) = (u.tconv.w.size()[0], u.tconv.w.size()[1]);
+                u.tconv_wino = policy
+                    .filter(|_| u.tconv.w.device() == Device::Cpu)
+                    .and_then(|p| p.min_pixels_for(cin, 4 * cout))
+                    .map(|min_pixels| (WinogradUp4x4::new(&u.tconv.w, Some(&u.tconv.b)), min_pixels));
             }
         }
     }
@@ -424,12 +491,28 @@ impl NormStats {
         Self { fixed: self.fixed.as_ref().map(|(m, v)| (m.shallow_clone(), v.shallow_clone())) }
     }
 
-    /// x: `[N, C, h, w]` (one HA layer's input) -> normalised per channel.
-    fn normalize(&mut self, x: &Tensor) -> Tensor {
-        match &self.fixed {
-            Some((m, v)) => (x - m) * (v + 1e-5).rsqrt(),
-            None => instance_norm(x),
+    /// x: `[N, C, h, w]` (one HA layer's input) -> normalised per channel
+    /// and replicate-padded by one pixel, `[N, C, h + 2, w + 2]`; in one
+    /// pass when `fused` (x f32 on the CPU).
+    fn normalize_padded(&mut self, x: &Tensor, fused: bool) -> Tensor {
+        if !fused {
+            let normalized = match &self.fixed {
+                Some((m, v)) => (x - m) * (v + 1e-5).rsqrt(),
+                None => instance_norm(x),
+            };
+            return pad_rep(&normalized, 1);
         }
+        let x = x.contiguous();
+        let stats = match &self.fixed {
+            Some((m, v)) => {
+                let mean = Vec::<f32>::try_from(m.flatten(0, -1).to_kind(Kind::Float)).expect("f32 mean");
+                let inv_std = Vec::<f32>::try_from((v + 1e-5).rsqrt().flatten(0, -1).to_kind(Kind::Float)).expect("f32 variance");
+                // The same statistics for every image of the batch.
+                (0..x.size()[0]).flat_map(|_| mean.iter().zip(&inv_std).map(|(&m, &s)| (m, s))).collect()
+            }
+            None => kernels::plane_stats(&x, 1e-5),
+        };
+        kernels::normalize_pad1(&x, &stats)
     }
 }
 
@@ -491,13 +574,13 @@ impl FoldedRes {
     /// normalised with its whole input's statistics. x: `[1, C, H, W]`.
     fn forward_layerwise(&self, x: &Tensor, core: i64) -> Tensor {
         let s1 = NormStats::of(x);
-        let h1 = map_tiles(&[x], core, (1, self.stride), |t| self.ha1.forward(&t[0], &mut s1.shared()).relu());
+        let h1 = map_tiles(&[x], core, (1, self.stride), |t| self.ha1.forward(&t[0], &mut s1.shared(), None, true));
         let s2 = NormStats::of(&h1);
         let id = match &self.skip {
             Some(s) => conv(x, &s.w, Some(&s.b), self.stride), // 1x1: cheap, whole
             None => x.shallow_clone(),
         };
-        map_tiles(&[&h1, &id], core, (1, 1), |t| (self.ha2.forward(&t[0], &mut s2.shared()) + &t[1]).relu())
+        map_tiles(&[&h1, &id], core, (1, 1), |t| self.ha2.forward(&t[0], &mut s2.shared(), Some(&t[1]), true))
     }
 }
 
@@ -535,6 +618,21 @@ mod tiled_tests {
     use tch::Device;
 
     #[test]
+    fn winograd_policy_takes_wide_convs_and_wide_outputs_on_large_inputs() {
+        let p = WinogradPolicy::default();
+        assert_eq!(p.min_pixels_for(64, 160), Some(1024));
+        assert_eq!(p.min_pixels_for(512, 64), Some(1024));
+        // 16 -> 40: 24 MiB of 16-channel f32 planes = 393,216 pixels, so
+        // 768x768 (589,824) qualifies and 512x512 (262,144) does not.
+        assert_eq!(p.min_pixels_for(16, 40), Some(393_216));
+        assert_eq!(p.min_pixels_for(48, 40), Some(131_072));
+        for (cin, cout) in [(16, 16), (32, 32), (48, 16), (8, 20), (63, 39)] {
+            assert_eq!(p.min_pixels_for(cin, cout), None, "{cin} -> {cout}");
+        }
+        assert_eq!(WinogradPolicy::ALWAYS.min_pixels_for(1, 1), Some(1));
+    }
+
+    #[test]
     fn spans_cover_the_image_once() {
         let s = tile_spans(40, 16, 8);
         assert_eq!(
@@ -569,6 +667,9 @@ mod tiled_tests {
         assert!(d < 1e-4 * (1.0 + scale), "{d}");
         // Statistics of the whole input reproduce the plain instance norm.
         let mut n = NormStats::of(&x);
-        assert!((n.normalize(&x) - instance_norm(&x)).abs().max().double_value(&[]) < 1e-5);
+        let want = pad_rep(&instance_norm(&x), 1);
+        for fused in [false, true] {
+            assert!((n.normalize_padded(&x, fused) - &want).abs().max().double_value(&[]) < 1e-5, "fused {fused}");
+        }
     }
 }

@@ -371,6 +371,7 @@ impl MEst {
 }
 
 mod folded;
+mod kernels;
 
 pub use folded::{WinogradPolicy, tile_spans, FoldedMEst, NormStats, TileSpan, LAYER_HALO};
 
