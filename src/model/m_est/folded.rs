@@ -97,9 +97,14 @@ impl WinogradPolicy {
     /// takes convs of its width; none for weights off the CPU (the
     /// Winograd path is CPU-only).
     fn make(policy: Option<Self>, w: &Tensor, b: Option<&Tensor>) -> Option<WinoConv> {
-        let policy = policy.filter(|_| w.device() == Device::Cpu)?;
-        let min_pixels = policy.min_pixels_for(w.size()[1], w.size()[0])?;
+        let min_pixels = Self::takes(policy, w, w.size()[1], w.size()[0])?;
         Some(WinoConv { conv: Winograd3x3::new(w, b), min_pixels })
+    }
+
+    /// [`Self::min_pixels_for`] a conv of `cin` -> `cout` channels whose
+    /// weights w are on the CPU; None without a policy or off the CPU.
+    fn takes(policy: Option<Self>, w: &Tensor, cin: i64, cout: i64) -> Option<i64> {
+        policy.filter(|_| w.device() == Device::Cpu)?.min_pixels_for(cin, cout)
     }
 }
 
@@ -123,14 +128,17 @@ struct HaWinograd {
 /// the stride is 1, the input f32 on the CPU and large enough.
 /// xp: `[N, C, H + 2, W + 2]` -> `[N, P, H', W']`.
 fn conv3(xp: &Tensor, w: &Tensor, b: Option<&Tensor>, stride: i64, wino: Option<&WinoConv>) -> Tensor {
-    let pays = |wg: &WinoConv| {
-        let pixels = (xp.size()[2] - 2) * (xp.size()[3] - 2);
-        stride == 1 && xp.kind() == Kind::Float && xp.device() == Device::Cpu && pixels >= wg.min_pixels
-    };
+    let pixels = (xp.size()[2] - 2) * (xp.size()[3] - 2);
     match wino {
-        Some(wg) if pays(wg) => wg.conv.forward(xp),
+        Some(wg) if stride == 1 && winograd_runs_on(xp, pixels, wg.min_pixels) => wg.conv.forward(xp),
         _ => conv(xp, w, b, stride),
     }
+}
+
+/// Whether a Winograd form runs on input x of `pixels` (unpadded): f32 on
+/// the CPU and at least `min_pixels`.
+fn winograd_runs_on(x: &Tensor, pixels: i64, min_pixels: i64) -> bool {
+    x.kind() == Kind::Float && x.device() == Device::Cpu && pixels >= min_pixels
 }
 
 #[derive(Debug)]
@@ -211,22 +219,21 @@ impl FoldedHa {
 
     /// x: `[N, C, H, W]` -> `[N, P, H/s, W/s]` = act(bn(ha(x)) + residual),
     /// act = ReLU when `relu`; the instance norm takes its statistics as
-    /// `norm` says. On f32 CPU inputs the padding, the instance norm and
-    /// everything after the convs run as single passes ([`kernels`]).
+    /// `norm` says. On f32 CPU inputs the instance norm with its padding,
+    /// and everything after the convs, run as single passes ([`kernels`]).
     fn forward(&self, x: &Tensor, norm: &mut NormStats, residual: Option<&Tensor>, relu: bool) -> Tensor {
         let (p, half, s) = (self.out, self.out / 2, self.stride);
         let wg = &self.wino;
         // Not for channels-last activations (their last dimension is strided).
         let fused = x.kind() == Kind::Float && x.device() == Device::Cpu && x.stride()[3] == 1;
         let x = if fused { x.contiguous() } else { x.shallow_clone() };
-        let pad = |t: &Tensor| if fused { kernels::pad1(&t.contiguous()) } else { pad_rep(t, 1) };
-        let xp = pad(&x);
+        let xp = pad_rep(&x, 1);
         let m = conv3(&xp, &self.merged, Some(&self.merged_bias), s, wg.merged.as_ref());
         let (a, c_offset) = match &self.incep_a {
             None => (m.narrow(1, p, p), 2 * p),
             Some(wa) => (conv3(&xp, wa, None, 1, wg.incep_a.as_ref()), p),
         };
-        let b = conv3(&pad(&a), &self.incep_b, Some(&self.incep_b_bias), s, wg.incep_b.as_ref());
+        let b = conv3(&pad_rep(&a, 1), &self.incep_b, Some(&self.incep_b_bias), s, wg.incep_b.as_ref());
         let feat = conv3(&norm.normalize_padded(&x, fused), &self.feat, None, s, wg.feat.as_ref());
         if fused && [&m, &b, &feat].iter().all(|t| kernels::eligible(t)) {
             let residual = residual.map(Tensor::contiguous);
@@ -335,7 +342,7 @@ impl FoldedUp {
     fn forward(&self, x: &Tensor) -> Tensor {
         let pixels = x.size()[2] * x.size()[3];
         let out = match &self.tconv_wino {
-            Some((up, min_pixels)) if x.kind() == Kind::Float && x.device() == Device::Cpu && pixels >= *min_pixels => up.forward(x),
+            Some((up, min_pixels)) if winograd_runs_on(x, pixels, *min_pixels) => up.forward(x),
             _ => conv_t(x, &self.tconv.w, Some(&self.tconv.b), 2, 1),
         }
         .relu();
@@ -415,9 +422,7 @@ impl FoldedMEst {
                 u.conv_wino = WinogradPolicy::make(policy, &u.conv.w, Some(&u.conv.b));
                 // As a 3x3 conv of C inputs and 4P outputs (its four phases).
                 let (cin, cout) = (u.tconv.w.size()[0], u.tconv.w.size()[1]);
-                u.tconv_wino = policy
-                    .filter(|_| u.tconv.w.device() == Device::Cpu)
-                    .and_then(|p| p.min_pixels_for(cin, 4 * cout))
+                u.tconv_wino = WinogradPolicy::takes(policy, &u.tconv.w, cin, 4 * cout)
                     .map(|min_pixels| (WinogradUp4x4::new(&u.tconv.w, Some(&u.tconv.b)), min_pixels));
             }
         }

@@ -2,7 +2,8 @@
 //! over memory where libtorch's operator-by-operator version made four to
 //! eight: the HA layer's combination of its branches (with the residual
 //! block's ReLU and identity add), and the instance norm written straight
-//! into the replicate-padded input of the next conv. They run on
+//! into the replicate-padded input of the next conv (plain padding stays
+//! libtorch's: a hand-written one measured no faster). They run on
 //! contiguous f32 CPU tensors; callers keep the tensor version for any
 //! other kind or device. On the 2-core development CPU these operations
 //! took 0.6 of the paper preset's 6 s at 256x256 and 1.4 of the compact
@@ -159,36 +160,6 @@ fn combine_plane_body(dst: &mut [f32], gate: &[f32], feat: &[f32], add: &[f32], 
     }
 }
 
-/// Replicate-pads every plane by one pixel, normalising it on the way when
-/// `norm` gives each plane's (mean, 1 / sqrt(var + eps)).
-/// x: `[N, C, H, W]` (must pass [`eligible`]) -> `[N, C, H + 2, W + 2]`.
-fn pad1_planes(x: &Tensor, norm: Option<&[(f32, f32)]>) -> Tensor {
-    let s = x.size();
-    let (h, w) = (s[2] as usize, s[3] as usize);
-    let (hp, wp) = (h + 2, w + 2);
-    let src = as_slice(x);
-    let mut out = Tensor::empty([s[0], s[1], s[2] + 2, s[3] + 2], (Kind::Float, Device::Cpu));
-    as_mut_slice(&mut out).par_chunks_mut(hp * wp).enumerate().for_each(|(plane_index, dst)| {
-        let plane = &src[plane_index * h * w..][..h * w];
-        let (mean, inv_std) = norm.map_or((0.0, 1.0), |n| n[plane_index]);
-        for y in 0..hp {
-            let row = &plane[y.saturating_sub(1).min(h - 1) * w..][..w];
-            let out_row = &mut dst[y * wp..][..wp];
-            for (o, &v) in out_row[1..=w].iter_mut().zip(row) {
-                *o = (v - mean) * inv_std;
-            }
-            out_row[0] = out_row[1];
-            out_row[w + 1] = out_row[w];
-        }
-    });
-    out
-}
-
-/// Replicate padding by one pixel. x: `[N, C, H, W]` f32 CPU contiguous.
-pub fn pad1(x: &Tensor) -> Tensor {
-    pad1_planes(x, None)
-}
-
 /// Each plane's mean and 1 / sqrt(biased variance + eps) (InstanceNorm's
 /// statistics), accumulated in f64. x: `[N, C, H, W]` f32 CPU contiguous.
 pub fn plane_stats(x: &Tensor, eps: f64) -> Vec<(f32, f32)> {
@@ -205,12 +176,29 @@ pub fn plane_stats(x: &Tensor, eps: f64) -> Vec<(f32, f32)> {
 }
 
 /// InstanceNorm with the given per-plane statistics, replicate-padded by
-/// one pixel. x: `[N, C, H, W]` f32 CPU contiguous, stats: N * C entries
-/// -> `[N, C, H + 2, W + 2]`.
+/// one pixel, in one pass. x: `[N, C, H, W]` f32 CPU contiguous, stats:
+/// N * C entries (mean, 1 / std) -> `[N, C, H + 2, W + 2]`.
 pub fn normalize_pad1(x: &Tensor, stats: &[(f32, f32)]) -> Tensor {
     let s = x.size();
     assert_eq!(stats.len() as i64, s[0] * s[1], "one (mean, 1/std) per plane");
-    pad1_planes(x, Some(stats))
+    let (h, w) = (s[2] as usize, s[3] as usize);
+    let (hp, wp) = (h + 2, w + 2);
+    let src = as_slice(x);
+    let mut out = Tensor::empty([s[0], s[1], s[2] + 2, s[3] + 2], (Kind::Float, Device::Cpu));
+    as_mut_slice(&mut out).par_chunks_mut(hp * wp).enumerate().for_each(|(plane_index, dst)| {
+        let plane = &src[plane_index * h * w..][..h * w];
+        let (mean, inv_std) = stats[plane_index];
+        for y in 0..hp {
+            let row = &plane[y.saturating_sub(1).min(h - 1) * w..][..w];
+            let out_row = &mut dst[y * wp..][..wp];
+            for (o, &v) in out_row[1..=w].iter_mut().zip(row) {
+                *o = (v - mean) * inv_std;
+            }
+            out_row[0] = out_row[1];
+            out_row[w + 1] = out_row[w];
+        }
+    });
+    out
 }
 
 #[cfg(test)]
@@ -297,11 +285,9 @@ mod tests {
     }
 
     #[test]
-    fn padding_and_normalisation_equal_libtorch() {
+    fn normalisation_and_padding_equal_libtorch() {
         tch::manual_seed(5);
         let x = randn(&[2, 3, 6, 9]) * 2.0 + 1.5;
-        let padded = pad1(&x);
-        assert!(padded.equal(&x.pad([1, 1, 1, 1], "replicate", None)));
         let stats = plane_stats(&x, 1e-5);
         let want = x.instance_norm(None::<&Tensor>, None, None, None, true, 0.1, 1e-5, true).pad([1, 1, 1, 1], "replicate", None);
         let err = (normalize_pad1(&x, &stats) - want).abs().max().double_value(&[]);
