@@ -10,11 +10,12 @@
 //! The image is walked in bands of tile rows (at most 32 MiB of transformed
 //! tiles and GEMM output), which bounds the working memory. Inside the
 //! paper-size forward, 4 MiB bands (sized for the 32 MiB L3) ran the GEMMs
-//! at about 62 GFLOP/s, 16-256 MiB bands at about 90, although a layer
-//! timed alone favours the small bands; likely the cost is each band's
-//! hand-over of the two cores from rayon (transforms) to OpenMP (GEMMs)
-//! and back, far above its arithmetic on this shared machine
-//! (`reports/inference-speed.md`).
+//! at about 62 GFLOP/s, 16-256 MiB bands at about 90-110, although a layer
+//! timed alone favours the small bands. Small bands give each GEMM fewer
+//! tiles, and each band hands the two cores from rayon (transforms) to
+//! OpenMP (GEMMs) and back; which of the two costs more was not separated.
+//! The price of large bands: the tile transforms run from memory, not the
+//! cache (about 7 GB/s; `reports/inference-speed.md`, sections 3 and 4).
 
 use rayon::prelude::*;
 use tch::{Device, Kind, Tensor};
@@ -31,7 +32,8 @@ const G: [[f64; 3]; 6] = [
 ];
 
 /// Bytes of transformed input and GEMM output held per band of tile rows:
-/// few hand-overs between thread pools, bounded memory (see the module doc).
+/// large GEMMs, few hand-overs between thread pools, bounded memory (see
+/// the module doc).
 const BAND_BYTES: i64 = 32 << 20;
 
 /// A 3x3 stride-1 convolution (weights and optional bias) run by F(4x4, 3x3).
