@@ -440,7 +440,9 @@ verdict() {
 }
 
 # The CPU step after a campaign: the renderer alone at the recipe that made
-# the 41,607-step model from the GPU's G5B (models/MODEL.md).
+# the 41,607-step model from the GPU's G5B (models/MODEL.md). Worth it when a
+# GPU renderer run pushed the near-black matte highlight past 2x; it cost
+# Reflect on a model that was within it (reports/gpu-campaign-2026-11-26-night/).
 settle() {
   local model="${1:-}" minutes="${2:-28}" out="${OUT:?set OUT to the folder for the settled model}"
   [ -f "$model" ] || die "settle: no model file '$model' (usage: OUT=DIR gpu-train.sh settle MODEL [MINUTES])"

@@ -3,7 +3,7 @@
 # models/MODEL.md: the paper's table with the baselines and the LDR vs HDR
 # ablation (reports/eval-*), and the shadows experiment (reports/shadows-*).
 # Deterministic: the same models give the same numbers. Only the bundled
-# model (models/flashmat.safetensors: 41,607 steps since 2026-11-26) is in
+# model (models/flashmat.safetensors: 45,660 steps since 2026-11-26, night) is in
 # the tree; the others (the 4,000-, 10,400-, 13,500- and 24,115-step
 # bundled models too, 16 and 8 frequencies,
 # taken from git history below) left it to keep the tree
@@ -169,14 +169,25 @@ cp target/uniform-mixG2B/uniform.md reports/gpu-campaign-2026-11-25/uniform-3618
 cargo run --release --quiet --example compare_models -- target/mixE3.safetensors target/mixG2B.safetensors target/photos-36181.jpg \
     | grep '^|' > reports/gpu-campaign-2026-11-25/photos.md
 
-# The bundled model since 2026-11-26 (morning; 41,607 steps: the frozen
-# halves chained on a GPU, the renderer settled on the CPU,
-# reports/gpu-campaign-2026-11-26/): its held-out CSV, the uniform check and
-# the photos against 36,181.
-cp $M/flashmat.safetensors target/bundled-41607.safetensors
+# The bundled model from 2026-11-26 (morning) until that night (41,607
+# steps: the frozen halves chained on a GPU, the renderer settled on the
+# CPU, reports/gpu-campaign-2026-11-26/): its held-out CSV, the uniform check
+# and the photos against 36,181.
+[ -f target/bundled-41607.safetensors ] || git show dae65ed:models/flashmat.safetensors > target/bundled-41607.safetensors
 $FLASHMAT eval --model target/bundled-41607.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input -o target/eval-bundled-41607
 cp target/eval-bundled-41607/bundled-41607.csv reports/gpu-campaign-2026-11-26/
 $FLASHMAT eval --uniform --model target/bundled-41607.safetensors -o target/uniform-bundled-41607
 cp target/uniform-bundled-41607/uniform.md reports/gpu-campaign-2026-11-26/uniform-41607.md
-cargo run --release --quiet --example compare_models -- target/mixG2B.safetensors $M/flashmat.safetensors target/photos-41607.jpg \
+cargo run --release --quiet --example compare_models -- target/mixG2B.safetensors target/bundled-41607.safetensors target/photos-41607.jpg \
     | grep '^|' > reports/gpu-campaign-2026-11-26/photos.md
+
+# The bundled model since 2026-11-26 (night; 45,660 steps: the fourth GPU
+# campaign's frozen halves from 41,607, reports/gpu-campaign-2026-11-26-night/):
+# its held-out CSV, the uniform check and the photos against 41,607.
+cp $M/flashmat.safetensors target/bundled-45660.safetensors
+$FLASHMAT eval --model target/bundled-45660.safetensors --dataset procedural-test --configs "$CONFIGS" --ldr-input -o target/eval-bundled-45660
+cp target/eval-bundled-45660/bundled-45660.csv reports/gpu-campaign-2026-11-26-night/
+$FLASHMAT eval --uniform --model target/bundled-45660.safetensors -o target/uniform-bundled-45660
+cp target/uniform-bundled-45660/uniform.md reports/gpu-campaign-2026-11-26-night/uniform-45660.md
+cargo run --release --quiet --example compare_models -- target/bundled-41607.safetensors $M/flashmat.safetensors target/photos-45660.jpg \
+    | grep '^|' > reports/gpu-campaign-2026-11-26-night/photos.md

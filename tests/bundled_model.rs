@@ -93,10 +93,10 @@ fn check(ldr: bool, identity_max: f64, relit_max: f64) {
 
 #[test]
 fn bundled_model_round_trips_exr_photos_of_held_out_materials() {
-    // Measured with the bundled (LDR-trained, 41,607 steps: the halves
-    // fine-tuned in turn on a GPU, the renderer settled on the CPU) model,
-    // which clamps the EXR photo: identity 0.0339, side light 0.0411 (flat
-    // image 0.0917, 0.0588); 36,181 steps: 0.0348, 0.0412; 33,000 steps: 0.0390, 0.0413; 26,500 steps:
+    // Measured with the bundled (LDR-trained, 45,660 steps: the halves
+    // fine-tuned in turn on a GPU, four times) model, which clamps the EXR
+    // photo: identity 0.0294, side light 0.0425 (flat image 0.0917, 0.0588);
+    // 41,607 steps (the renderer settled on the CPU): 0.0339, 0.0411; 36,181 steps: 0.0348, 0.0412; 33,000 steps: 0.0390, 0.0413; 26,500 steps:
     // 0.0445, 0.0435; 24,115 steps, 8 direction frequencies: 0.0439,
     // 0.0448; with 16 frequencies 0.0495,
     // 0.0453 (the HDR identity render had the co-located spike). The 13,500-step model: 0.0732, 0.0553; the 10,400-step
@@ -104,23 +104,24 @@ fn bundled_model_round_trips_exr_photos_of_held_out_materials() {
     // materials favoured it over the two CPU models after it: one is green
     // tiles, which they turned teal). The HDR-trained model of 4,000 steps,
     // bundled for EXR photos until 2026-11-23, measured 0.0743, 0.0616.
-    check(false, 0.041, 0.048);
+    check(false, 0.036, 0.048);
 }
 
 #[test]
 fn bundled_model_round_trips_8_bit_photos_of_held_out_materials() {
-    // Measured (41,607 steps): identity 0.0268, side light 0.0382 (flat
-    // image 0.0607, 0.0437); 36,181 steps: 0.0276, 0.0383; 33,000 steps: 0.0319, 0.0384; 26,500 steps: 0.0374, 0.0406; 24,115 steps,
+    // Measured (45,660 steps): identity 0.0220, side light 0.0397 (flat
+    // image 0.0607, 0.0437); 41,607 steps: 0.0268, 0.0382; 36,181 steps: 0.0276, 0.0383; 33,000 steps: 0.0319, 0.0384; 26,500 steps: 0.0374, 0.0406; 24,115 steps,
     // 8 frequencies: 0.0333, 0.0420;
     // 16 frequencies: 0.0332, 0.0423. At 13,500 steps: 0.0543, 0.0507; at
     // 10,400: 0.0645, 0.0586; at 4,000: 0.0626, 0.0500; at 1,785: 0.1065, 0.0841.
-    check(true, 0.033, 0.045);
+    check(true, 0.028, 0.045);
 }
 
 /// The co-located highlights of the uniform-colour check's near-black
 /// materials (`flashmat eval --uniform`): the brightest 1% of the identity
 /// render's pixels, unclamped, over the truth's. Measured at 256x256 with
-/// the 41,607-step model: glossy 0.84x, matte 1.86x; 36,181 steps: glossy
+/// the 45,660-step model: glossy 1.20x, matte 1.83x; 41,607 steps: glossy
+/// 0.84x, matte 1.86x; 36,181 steps: glossy
 /// 1.05x, matte 1.73x; 33,000 steps: glossy
 /// 0.60x, matte 1.77x; 26,500 steps
 /// (renderer trained on co-located outputs): glossy 1.39x, matte 2.41x;
@@ -150,7 +151,7 @@ fn bundled_model_records_its_method_and_steps() {
     use flashmat::model::file::{read_header_metadata, METHOD_KEY};
     let root = flashmat::infer::models_dir();
     for (file, method, steps, ldr) in [
-        ("flashmat.safetensors", "flashmat", "41607", true),
+        ("flashmat.safetensors", "flashmat", "45660", true),
     ] {
         let meta = read_header_metadata(&root.join(file)).unwrap();
         assert_eq!(meta.get(METHOD_KEY).map(String::as_str), Some(method), "{file}: {meta:?}");
@@ -171,9 +172,10 @@ fn bundled_model_records_its_method_and_steps() {
 /// the rectangle spans [-1, 1]^2). Both are prepared at --size 64 (64 x 96
 /// and 64 x 64) and estimated with the bundled model. Measured mean
 /// |ln(1 + R) - ln(1 + photo)| (the photo clamped at 1, as the LDR model
-/// sees it), bundled model of 41,607 steps (`models/MODEL.md`): rectangle
-/// 0.0198, square 0.0213, the rectangle's centre 64 x 64 0.0201 (the
-/// photos' centres agree to 1.8e-9; 36,181 steps: 0.0235, 0.0253, 0.0247;
+/// sees it), bundled model of 45,660 steps (`models/MODEL.md`): rectangle
+/// 0.0199, square 0.0230, the rectangle's centre 64 x 64 0.0215 (the
+/// photos' centres agree to 1.8e-9; 41,607 steps: 0.0198, 0.0213, 0.0201;
+/// 36,181 steps: 0.0235, 0.0253, 0.0247;
 /// 33,000 steps: 0.0253, 0.0278, 0.0284;
 /// 26,500 steps: 0.0309, 0.0326, 0.0351;
 /// 24,115 steps, 8 frequencies: 0.0255, 0.0266, 0.0278; with 16
@@ -212,7 +214,7 @@ fn a_three_by_two_photo_is_estimated_as_a_three_by_two_material() {
     eprintln!("3:2 photo: identity log error rectangle {r_err:.4}, square {s_err:.4}, rectangle centre {c_err:.4}; photos' centres differ by {photo_diff:.2e}");
     assert!(photo_diff < 1e-3, "{photo_diff}");
     let within = |got: f64, measured: f64| got < 1.1 * measured + 0.002;
-    assert!(within(r_err, 0.0198) && within(s_err, 0.0213) && within(c_err, 0.0201), "{r_err} {s_err} {c_err}");
+    assert!(within(r_err, 0.0199) && within(s_err, 0.0230) && within(c_err, 0.0215), "{r_err} {s_err} {c_err}");
     assert!(r_err < 1.3 * s_err, "rectangle {r_err:.4} vs square {s_err:.4}");
 }
 
@@ -221,9 +223,9 @@ fn a_three_by_two_photo_is_estimated_as_a_three_by_two_material() {
 /// sRGB 8-bit PNGs, and estimated at 128 pixels after the exact decode
 /// (`load_photo`) and after the former ^2.2 decode; both compared with the
 /// true identity and side-lit renders (clamped at 1) in mean |ln(1+R)|.
-/// Measured (materials 0, 7, 19; bundled model of 41,607 steps): exact
-/// decode identity 0.0248, side light 0.0376; ^2.2 decode 0.0249, 0.0384
-/// (36,181 steps: 0.0252, 0.0377; 0.0258, 0.0386; 33,000 steps: 0.0293, 0.0376; 0.0299, 0.0385; 26,500 steps: 0.0345, 0.0388; 0.0351, 0.0399; 24,115 steps, 8 frequencies: 0.0340, 0.0410; 0.0341, 0.0420; 16 frequencies: 0.0343, 0.0416; 0.0344, 0.0426;
+/// Measured (materials 0, 7, 19; bundled model of 45,660 steps): exact
+/// decode identity 0.0227, side light 0.0383; ^2.2 decode 0.0228, 0.0388
+/// (41,607 steps: 0.0248, 0.0376; 0.0249, 0.0384; 36,181 steps: 0.0252, 0.0377; 0.0258, 0.0386; 33,000 steps: 0.0293, 0.0376; 0.0299, 0.0385; 26,500 steps: 0.0345, 0.0388; 0.0351, 0.0399; 24,115 steps, 8 frequencies: 0.0340, 0.0410; 0.0341, 0.0420; 16 frequencies: 0.0343, 0.0416; 0.0344, 0.0426;
 /// 13,500 steps: 0.0540, 0.0522; 0.0535, 0.0522; 10,400 steps: 0.0666,
 /// 0.0591; 0.0657, 0.0592): the bundled
 /// model (trained on clamped linear renders, no 8-bit curve) barely
@@ -253,7 +255,7 @@ fn srgb_photos_are_decoded_with_the_exact_curve() {
         }
     }
     eprintln!("8-bit sRGB photos: exact decode identity {:.4} side {:.4}; ^2.2 decode identity {:.4} side {:.4}", exact[0], exact[1], gamma[0], gamma[1]);
-    assert!(exact[0] < 1.1 * 0.0248 + 0.002 && exact[1] < 1.1 * 0.0376 + 0.002, "{exact:?}");
+    assert!(exact[0] < 1.1 * 0.0227 + 0.002 && exact[1] < 1.1 * 0.0383 + 0.002, "{exact:?}");
     // The two decodes differ (dark codes most: 10/255 -> 0.00304 sRGB, 0.00081 ^2.2).
     assert!((exact[0] - gamma[0]).abs() + (exact[1] - gamma[1]).abs() > 1e-5, "{exact:?} {gamma:?}");
 }
