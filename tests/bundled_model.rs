@@ -93,8 +93,8 @@ fn check(ldr: bool, identity_max: f64, relit_max: f64) {
 
 #[test]
 fn bundled_model_round_trips_exr_photos_of_held_out_materials() {
-    // Measured with the bundled (LDR-trained, 45,660 steps: the halves
-    // fine-tuned in turn on a GPU, four times) model, which clamps the EXR
+    // Measured with the bundled (LDR-trained, 45,660 steps: four GPU jobs
+    // of the halves trained alone in turn) model, which clamps the EXR
     // photo: identity 0.0294, side light 0.0425 (flat image 0.0917, 0.0588);
     // 41,607 steps (the renderer settled on the CPU): 0.0339, 0.0411; 36,181 steps: 0.0348, 0.0412; 33,000 steps: 0.0390, 0.0413; 26,500 steps:
     // 0.0445, 0.0435; 24,115 steps, 8 direction frequencies: 0.0439,
