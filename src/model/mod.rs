@@ -7,6 +7,56 @@
 //! `disc.*` (the discriminator, see [`Discriminator::with_store`]).
 //! Checkpoints ([`Model::save`]) hold `est.*` and `renderer.*` only.
 
+/// Defines `NAME`, which runs `BODY` (an `#[inline(always)]` function of
+/// the same arguments) built for AVX2 where the CPU has it and for the
+/// baseline x86-64 otherwise, and `AVX2_NAME`, the AVX2 build alone (the
+/// tests compare the two builds):
+/// `avx2_dispatch!(/// docs
+/// [unsafe] fn NAME / AVX2_NAME(args) => BODY);`
+/// The `unsafe` form is for bodies with a safety contract, which `NAME`
+/// then carries; the AVX2 build is always `unsafe` (the CPU must have AVX2).
+macro_rules! avx2_dispatch {
+    ($(#[$meta:meta])* unsafe fn $name:ident / $avx2:ident ($($arg:ident: $ty:ty),* $(,)?) => $body:ident) => {
+        $(#[$meta])*
+        #[allow(clippy::too_many_arguments)]
+        unsafe fn $name($($arg: $ty),*) {
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                return $avx2($($arg),*);
+            }
+            $body($($arg),*)
+        }
+
+        #[doc = concat!("[`", stringify!($name), "`] built for AVX2.\n\n# Safety\nAs [`", stringify!($name), "`]; the CPU must have AVX2.")]
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2")]
+        #[allow(clippy::too_many_arguments)]
+        unsafe fn $avx2($($arg: $ty),*) {
+            $body($($arg),*)
+        }
+    };
+    ($(#[$meta:meta])* fn $name:ident / $avx2:ident ($($arg:ident: $ty:ty),* $(,)?) => $body:ident) => {
+        $(#[$meta])*
+        #[allow(clippy::too_many_arguments)]
+        fn $name($($arg: $ty),*) {
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU has AVX2.
+                return unsafe { $avx2($($arg),*) };
+            }
+            $body($($arg),*)
+        }
+
+        #[doc = concat!("[`", stringify!($name), "`] built for AVX2.\n\n# Safety\nThe CPU must have AVX2.")]
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2")]
+        #[allow(clippy::too_many_arguments)]
+        unsafe fn $avx2($($arg: $ty),*) {
+            $body($($arg),*)
+        }
+    };
+}
+
 pub mod config;
 pub mod discriminator;
 pub mod file;

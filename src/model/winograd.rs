@@ -261,6 +261,7 @@ fn rows6(buf: &mut [f32], len: usize) -> [&mut [f32]; 6] {
     std::array::from_fn(|_| it.next().expect("six rows"))
 }
 
+avx2_dispatch!(
 /// B^T d B for every 6x6 tile of one channel's padded plane in the band,
 /// written to V[k, ci, tile] (k = 6 r + s; V is `[36, c, band.tiles]`).
 /// Pixels outside the plane read as 0 (they only feed outputs past H, W).
@@ -270,24 +271,7 @@ fn rows6(buf: &mut [f32], len: usize) -> [&mut [f32]; 6] {
 /// # Safety
 /// `v` must hold 36 * c * band.tiles floats and no other thread may write
 /// channel ci's elements.
-unsafe fn input_tiles(plane: &[f32], hp: usize, wp: usize, band: &Band, v: SharedOut, ci: usize, c: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        return input_tiles_avx2(plane, hp, wp, band, v, ci, c);
-    }
-    input_tiles_body(plane, hp, wp, band, v, ci, c)
-}
-
-/// [`input_tiles`] compiled for AVX2 (8 floats a vector where the baseline
-/// x86-64 build has SSE2's 4).
-///
-/// # Safety
-/// As [`input_tiles`]; the CPU must have AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn input_tiles_avx2(plane: &[f32], hp: usize, wp: usize, band: &Band, v: SharedOut, ci: usize, c: usize) {
-    input_tiles_body(plane, hp, wp, band, v, ci, c)
-}
+unsafe fn input_tiles / input_tiles_avx2(plane: &[f32], hp: usize, wp: usize, band: &Band, v: SharedOut, ci: usize, c: usize) => input_tiles_body);
 
 /// The body of [`input_tiles`], inlined into each build of it.
 #[inline(always)]
@@ -335,30 +319,13 @@ unsafe fn input_tiles_body(plane: &[f32], hp: usize, wp: usize, band: &Band, v: 
     }
 }
 
+avx2_dispatch!(
 /// A^T m A (+ bias) for every tile of output channel pi in the band, from
 /// M: `[36, p, band.tiles]`, into that channel's `[h, w]` plane at `plane`.
 ///
 /// # Safety
 /// `plane` must point at h * w floats that no other thread writes.
-#[allow(clippy::too_many_arguments)]
-unsafe fn output_tiles(m: &[f32], band: &Band, pi: usize, p: usize, bias: f32, plane: *mut f32, h: usize, w: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        return output_tiles_avx2(m, band, pi, p, bias, plane, h, w);
-    }
-    output_tiles_body(m, band, pi, p, bias, plane, h, w)
-}
-
-/// [`output_tiles`] compiled for AVX2.
-///
-/// # Safety
-/// As [`output_tiles`]; the CPU must have AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn output_tiles_avx2(m: &[f32], band: &Band, pi: usize, p: usize, bias: f32, plane: *mut f32, h: usize, w: usize) {
-    output_tiles_body(m, band, pi, p, bias, plane, h, w)
-}
+unsafe fn output_tiles / output_tiles_avx2(m: &[f32], band: &Band, pi: usize, p: usize, bias: f32, plane: *mut f32, h: usize, w: usize) => output_tiles_body);
 
 /// The body of [`output_tiles`], inlined into each build of it.
 #[inline(always)]

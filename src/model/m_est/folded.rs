@@ -153,6 +153,9 @@ struct FoldedHa {
     feat: Tensor,
     /// `[1, P, 1, 1]` when the BN scale could not go into `feat`.
     feat_scale: Option<Tensor>,
+    /// The same scale as host floats for the fused pass (weights only
+    /// change layout after folding, never values).
+    feat_scale_host: Option<Vec<f32>>,
     stride: i64,
     out: i64,
     wino: HaWinograd,
@@ -195,6 +198,7 @@ impl FoldedHa {
             incep_b,
             incep_b_bias: t.narrow(0, 0, half).copy(),
             feat,
+            feat_scale_host: feat_scale.as_ref().map(|t| Vec::<f32>::try_from(t.to_kind(Kind::Float).flatten(0, -1)).expect("f32 BN scale")),
             feat_scale,
             stride: ha.stride,
             out: p,
@@ -237,14 +241,13 @@ impl FoldedHa {
         let feat = conv3(&norm.normalize_padded(&x, fused), &self.feat, None, s, wg.feat.as_ref());
         if fused && [&m, &b, &feat].iter().all(|t| kernels::eligible(t)) {
             let residual = residual.map(Tensor::contiguous);
-            let scale = self.feat_scale.as_ref().map(|t| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 BN scale"));
             let combine = kernels::HaCombine {
                 merged: &m,
                 c_offset,
                 b: &b,
                 feat: &feat,
                 slope: HA_FEAT_SLOPE as f32,
-                feat_scale: scale.as_deref(),
+                feat_scale: self.feat_scale_host.as_deref(),
                 residual: residual.as_ref(),
                 relu,
             };

@@ -110,27 +110,11 @@ impl HaCombine<'_> {
     }
 }
 
+avx2_dispatch!(
 /// One channel plane of [`HaCombine`], built for AVX2 where the CPU has it
 /// (the same operations as the baseline build, eight floats at a time: the
 /// same results).
-#[allow(clippy::too_many_arguments)]
-fn combine_plane(dst: &mut [f32], gate: &[f32], feat: &[f32], add: &[f32], residual: Option<&[f32]>, slope: f32, scale: f32, relu: bool) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU has AVX2.
-        return unsafe { combine_plane_avx2(dst, gate, feat, add, residual, slope, scale, relu) };
-    }
-    combine_plane_body(dst, gate, feat, add, residual, slope, scale, relu)
-}
-
-/// # Safety
-/// The CPU must have AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn combine_plane_avx2(dst: &mut [f32], gate: &[f32], feat: &[f32], add: &[f32], residual: Option<&[f32]>, slope: f32, scale: f32, relu: bool) {
-    combine_plane_body(dst, gate, feat, add, residual, slope, scale, relu)
-}
+fn combine_plane / combine_plane_avx2(dst: &mut [f32], gate: &[f32], feat: &[f32], add: &[f32], residual: Option<&[f32]>, slope: f32, scale: f32, relu: bool) => combine_plane_body);
 
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
