@@ -139,6 +139,7 @@ fn bundled_model_keeps_the_co_located_highlight_spike_down() {
     let (glossy, matte) = (identity("glossy"), identity("matte"));
     eprintln!("near-black identity highlight: glossy {:.2}x, matte {:.2}x the truth", glossy.highlight_ratio, matte.highlight_ratio);
     assert_eq!(summarize(&rows).near_black_highlight_ratio, glossy.highlight_ratio);
+    assert_eq!(summarize(&rows).near_black_matte_highlight_ratio, matte.highlight_ratio);
     assert!(glossy.highlight_ratio > 0.5 && glossy.highlight_ratio < 2.0, "{}", glossy.highlight_ratio);
     assert!(matte.highlight_ratio > 0.5 && matte.highlight_ratio < 2.0, "{}", matte.highlight_ratio);
     assert!(glossy.chroma_error < 0.05, "{}", glossy.chroma_error);

@@ -548,7 +548,7 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
             last_good = Some(done);
             if let Some(summary) = trainer.colour_summary() {
                 let s = summary?;
-                let mut line = serde_json::json!({ "step": done, "identity_chroma_error": s.identity_chroma_error, "relit_chroma_error": s.relit_chroma_error, "near_black_highlight_ratio": s.near_black_highlight_ratio, "relit_log_l1": s.relit_log_l1, "code_spread": s.code_spread });
+                let mut line = serde_json::json!({ "step": done, "identity_chroma_error": s.identity_chroma_error, "relit_chroma_error": s.relit_chroma_error, "near_black_highlight_ratio": s.near_black_highlight_ratio, "near_black_matte_highlight_ratio": s.near_black_matte_highlight_ratio, "relit_log_l1": s.relit_log_l1, "code_spread": s.code_spread });
                 if let Some(photos) = trainer.photo_summary() {
                     let p = photos?.mean;
                     line["photo_chroma_error"] = p.chroma_error.into();
