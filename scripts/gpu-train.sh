@@ -83,6 +83,9 @@ FROZEN_THREADS="${FLASHMAT_GPU_FROZEN_THREADS:-8}"
 # Co-located outputs of the frozen job's 8 (docs/GPU.md: more may hold the
 # near-black highlight that every fine-tune pushed past 2x).
 FROZEN_COLOCATED="${FLASHMAT_GPU_FROZEN_COLOCATED:-1}"
+# More `flashmat train` options for the frozen job's M_est run only, e.g.
+# "--shift-weight 0.25 --shift-scale-free" (reports/shift-consistency.md).
+read -r -a FROZEN_ESTIMATOR_EXTRA <<<"${FLASHMAT_GPU_FROZEN_ESTIMATOR_EXTRA:-}"
 # Scoring the frozen job's models on the GPU before they come back (0: off),
 # the configurations per held-out material and each evaluation's time limit.
 FROZEN_SCORE="${FLASHMAT_GPU_FROZEN_SCORE:-1}"
@@ -315,7 +318,7 @@ frozen() {
   start_util_sampler "$dir/gpu-util.csv"
   local t0; t0=$(date +%s)
   "$BIN" train --out "$dir/estimator" "${common[@]}" --freeze-renderer --frozen-bn-from 0 --colour-augment 0.6 \
-    --seed "$((SEED + 20))" --export-dir "$dir/estimator-exports" >"$dir/estimator.log" 2>&1 &
+    "${FROZEN_ESTIMATOR_EXTRA[@]}" --seed "$((SEED + 20))" --export-dir "$dir/estimator-exports" >"$dir/estimator.log" 2>&1 &
   local estimator_pid=$!
   "$BIN" train --out "$dir/renderer" "${common[@]}" --freeze-estimator \
     --seed "$((SEED + 21))" --export-dir "$dir/renderer-exports" >"$dir/renderer.log" 2>&1 &
@@ -350,7 +353,7 @@ EOF
   done
   {
     [ -s "$dir/gpu-util.csv" ] && awk -F, '$1 ~ /^ *[0-9]/ { s += $1; n++ } END { if (n) printf "- GPU busy: %.0f%% (mean of %d samples)\n", s / n, n }' "$dir/gpu-util.csv"
-    echo "- recipe: \`flashmat train ${common[*]}\` with \`--freeze-renderer --frozen-bn-from 0 --colour-augment 0.6 --seed $((SEED + 20))\` (estimator) or \`--freeze-estimator --seed $((SEED + 21))\` (renderer); the later half of each run's exports averaged (\`flashmat average\`)"
+    echo "- recipe: \`flashmat train ${common[*]}\` with \`--freeze-renderer --frozen-bn-from 0 --colour-augment 0.6${FROZEN_ESTIMATOR_EXTRA[*]:+ ${FROZEN_ESTIMATOR_EXTRA[*]}} --seed $((SEED + 20))\` (estimator) or \`--freeze-estimator --seed $((SEED + 21))\` (renderer); the later half of each run's exports averaged (\`flashmat average\`)"
   } >>"$out/frozen.md"
   [ "$FROZEN_SCORE" = 1 ] && frozen_scores "${FROZEN_SCORE_AGAINST:-$base}" "$dir" "$out"
   tar czf "$out/frozen.tgz" -C "$dir" --exclude='*.safetensors' --exclude=previews .
@@ -528,6 +531,7 @@ cpu_dry_run() {
   echo "== frozen halves side by side, two jobs chained (from the final chunk's export)"
   cp "$tmp/out3/model.safetensors" "$tmp/resume.safetensors"
   FLASHMAT_GPU_HEMISPHERE=1 FLASHMAT_GPU_FROZEN_EVERY=2 FLASHMAT_GPU_FROZEN_THREADS=1 FLASHMAT_GPU_FROZEN_CONFIGS=1 \
+    FLASHMAT_GPU_FROZEN_ESTIMATOR_EXTRA="--shift-weight 0.1 --shift-pixels 4 --shift-scale-free" \
     FLASHMAT_GPU_EVAL_EXTRA="--limit 2 --size 64" OUT="$tmp/out4" bash "$self" frozen-chain 0.1 0.1
   local job
   for job in a b; do
@@ -537,6 +541,8 @@ cpu_dry_run() {
     grep -q "estimator alone: steps" "$tmp/out4/$job/frozen.md" && grep -q "renderer alone: steps" "$tmp/out4/$job/frozen.md" \
       || die "dry run: job $job's frozen.md lacks a run's steps"
   done
+  grep -q '"shift_scale_free": true' "$tmp/machine/frozen/estimator/config.json" && grep -q -- "--shift-scale-free --seed" "$tmp/out4/b/frozen.md" \
+    || die "dry run: the frozen job's M_est run did not take FLASHMAT_GPU_FROZEN_ESTIMATOR_EXTRA"
   grep -q "warm start from estimator.safetensors" "$tmp/out4/b/frozen.md" || die "dry run: the chain's second job did not start from the first's estimator"
   grep -q '^| renderer-mean | ' "$tmp/out4/b/frozen.md" && grep -q '^## Uniform-colour check: start' "$tmp/out4/b/frozen.md" \
     || die "dry run: the chain's frozen.md lacks the held-out or the uniform scores"

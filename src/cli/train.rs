@@ -166,6 +166,10 @@ pub struct TrainArgs {
     /// Largest shift of the second photo, in pixels per axis (with --shift-weight).
     #[arg(long, default_value_t = 16, value_name = "PIXELS")]
     pub shift_pixels: usize,
+    /// Divide the shift term by the codes' mean magnitude with its gradient, so that shrinking every code does not
+    /// lower it (by default the magnitude is a constant; runs shrank the codes). Needs --shift-weight.
+    #[arg(long)]
+    pub shift_scale_free: bool,
     #[arg(long, default_value_t = 250)]
     pub checkpoint_every: u64,
     #[arg(long, default_value_t = 250)]
@@ -338,6 +342,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         weight_chroma: a.chroma_weight,
         weight_shift: a.shift_weight,
         shift_pixels: a.shift_pixels,
+        shift_scale_free: a.shift_scale_free,
         steps: a.steps.unwrap_or(TrainConfig::default().steps),
         checkpoint_every: a.checkpoint_every,
         preview_every: a.preview_every,

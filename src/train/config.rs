@@ -176,6 +176,11 @@ pub struct TrainConfig {
     /// Largest shift of the second photo in pixels (each axis).
     #[serde(default = "default_shift_pixels")]
     pub shift_pixels: usize,
+    /// The shift term over the codes' scale with its gradient
+    /// (`losses::shift_consistency`): shrinking every code no longer
+    /// lowers it.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub shift_scale_free: bool,
     pub pixel_fraction: f64,
     pub pixel_sampling: PixelSampling,
     pub scheme: UpdateScheme,
@@ -243,6 +248,7 @@ impl Default for TrainConfig {
             weight_chroma: 0.0,
             weight_shift: 0.0,
             shift_pixels: default_shift_pixels(),
+            shift_scale_free: false,
             pixel_fraction: 0.6,
             pixel_sampling: PixelSampling::InverseNorm,
             scheme: UpdateScheme::Alternating,
@@ -325,6 +331,7 @@ impl TrainConfig {
             anyhow::ensure!(w.is_finite() && w >= 0.0, "the {name} weight must be a finite number >= 0 (got {w})");
         }
         anyhow::ensure!(self.material_size >= self.crop, "material size {} is smaller than the crop {}", self.material_size, self.crop);
+        anyhow::ensure!(!self.shift_scale_free || self.weight_shift > 0.0, "--shift-scale-free changes the shift term: give --shift-weight too");
         if self.weight_shift > 0.0 {
             anyhow::ensure!(self.method.is_flashmat(), "--shift-weight applies to --method flashmat only");
             anyhow::ensure!(!self.freeze_estimator, "--shift-weight trains M_est: not with --freeze-estimator");

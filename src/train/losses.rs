@@ -88,11 +88,14 @@ pub fn mean_param_norm(neural: &Tensor) -> f64 {
 /// The shift-consistency term: M_est's codes of two photos of the same
 /// materials, the second's window `offsets[i]` = (rows, columns) from the
 /// first's, compared where the windows overlap: mean |a - b| over the
-/// overlaps, over the mean |a| taken as a constant (a scale for the
-/// weight; no gradient flows through it, so shrinking every code does
-/// lower the term: the runs of `reports/shift-consistency.md` shrank them).
+/// overlaps, over a scale. By default the scale is the mean |a| taken as a
+/// constant (no gradient flows through it, so shrinking every code does
+/// lower the term: the runs of `reports/shift-consistency.md` shrank
+/// them). `scale_free`: the scale is the mean of both maps' mean |code|
+/// with its gradient, so the term is the same for the maps times any k > 0
+/// and only disagreement between the photos lowers it.
 /// first, second: `[N, C, H, W]` -> scalar.
-pub fn shift_consistency(first: &Tensor, second: &Tensor, offsets: &[(i64, i64)]) -> Tensor {
+pub fn shift_consistency(first: &Tensor, second: &Tensor, offsets: &[(i64, i64)], scale_free: bool) -> Tensor {
     let (h, w) = (first.size()[2], first.size()[3]);
     // The window of one photo that the other also shows: start in its own
     // pixels for an offset `d` of the other's, and length.
@@ -109,7 +112,11 @@ pub fn shift_consistency(first: &Tensor, second: &Tensor, offsets: &[(i64, i64)]
         count += a.numel() as i64;
         total = total + (a - b).abs().sum(Kind::Float);
     }
-    let scale = first.detach().abs().mean(Kind::Float).clamp_min(1e-6);
+    let scale = if scale_free {
+        ((first.abs().mean(Kind::Float) + second.abs().mean(Kind::Float)) * 0.5).clamp_min(1e-6)
+    } else {
+        first.detach().abs().mean(Kind::Float).clamp_min(1e-6)
+    };
     total / (count.max(1) as f64) / scale
 }
 
@@ -184,23 +191,46 @@ mod tests {
         let window = |y: i64, x: i64| plane.narrow(1, y, h).narrow(2, x, w).unsqueeze(0);
         let first = Tensor::cat(&[window(1, 2), window(3, 0)], 0);
         let second = Tensor::cat(&[window(3, 1), window(0, 3)], 0); // offsets (2, -1) and (-3, 3)
-        let right = shift_consistency(&first, &second, &[(2, -1), (-3, 3)]).double_value(&[]);
+        let right = shift_consistency(&first, &second, &[(2, -1), (-3, 3)], false).double_value(&[]);
         assert!(right.abs() < 1e-7, "{right}");
-        assert!(shift_consistency(&first, &second, &[(-2, 1), (3, -3)]).double_value(&[]) > 0.1);
+        assert!(shift_consistency(&first, &second, &[(-2, 1), (3, -3)], false).double_value(&[]) > 0.1);
         let constant = |v: f64| Tensor::full([1, 2, h, w], v, (Kind::Float, Device::Cpu));
-        let value = shift_consistency(&constant(2.0), &constant(1.5), &[(1, 1)]).double_value(&[]);
+        let value = shift_consistency(&constant(2.0), &constant(1.5), &[(1, 1)], false).double_value(&[]);
         assert!((value - 0.25).abs() < 1e-6, "{value}");
         // The second material's windows do not overlap: only the first counts.
         let two = |v: f64| Tensor::cat(&[constant(2.0), constant(v)], 0);
-        let value = shift_consistency(&two(9.0), &two(-9.0), &[(1, 1), (h, 0)]).double_value(&[]);
+        let value = shift_consistency(&two(9.0), &two(-9.0), &[(1, 1), (h, 0)], false).double_value(&[]);
         assert!((value - 0.0).abs() < 1e-6, "{value}");
         let (a, b) = (constant(2.0).set_requires_grad(true), constant(1.5).set_requires_grad(true));
-        shift_consistency(&a, &b, &[(0, 2)]).backward();
+        shift_consistency(&a, &b, &[(0, 2)], false).backward();
         let (ga, gb) = (a.grad(), b.grad());
         // d/da of mean |a - b| / 2 over the overlap's 2 * 6 * 5 values: 1 / (60 * 2) each; none outside it.
         assert!((ga.narrow(3, 2, 5).mean(Kind::Float).double_value(&[]) - 1.0 / 120.0).abs() < 1e-7);
         assert_eq!(ga.narrow(3, 0, 2).abs().sum(Kind::Float).double_value(&[]), 0.0);
         assert!((gb.narrow(3, 0, 5).mean(Kind::Float).double_value(&[]) + 1.0 / 120.0).abs() < 1e-7);
+    }
+
+    /// Scale-free: constant maps 2 and 1.5 give 0.5 / mean(2, 1.5); any
+    /// two maps times k give the same value, and (Euler, degree 0) the
+    /// gradient has no component along the maps themselves, where the
+    /// default's (a constant scale: degree 1) has exactly the value.
+    #[test]
+    fn scale_free_shift_consistency_ignores_the_codes_scale() {
+        let constant = |v: f64| Tensor::full([1, 2, 6, 7], v, (Kind::Float, Device::Cpu));
+        let value = shift_consistency(&constant(2.0), &constant(1.5), &[(1, 1)], true).double_value(&[]);
+        assert!((value - 0.5 / 1.75).abs() < 1e-6, "{value}");
+        tch::manual_seed(3);
+        let (a, b) = (Tensor::randn([2, 3, 6, 7], (Kind::Float, Device::Cpu)), Tensor::randn([2, 3, 6, 7], (Kind::Float, Device::Cpu)));
+        let offsets = [(1, -2), (0, 3)];
+        let base = shift_consistency(&a, &b, &offsets, true).double_value(&[]);
+        let scaled = shift_consistency(&(&a * 7.5), &(&b * 7.5), &offsets, true).double_value(&[]);
+        assert!((base - scaled).abs() < 1e-6 * base, "{base} {scaled}");
+        for (scale_free, along) in [(true, 0.0), (false, shift_consistency(&a, &b, &offsets, false).double_value(&[]))] {
+            let (ga, gb) = (a.copy().set_requires_grad(true), b.copy().set_requires_grad(true));
+            shift_consistency(&ga, &gb, &offsets, scale_free).backward();
+            let radial = (ga.grad() * &a).sum(Kind::Float).double_value(&[]) + (gb.grad() * &b).sum(Kind::Float).double_value(&[]);
+            assert!((radial - along).abs() < 1e-5, "scale-free {scale_free}: {radial} against {along}");
+        }
     }
 
     #[test]

@@ -383,7 +383,7 @@ impl Trainer {
                 let n = b.est_input.size()[0];
                 let both = self.model.est.forward_t(&Tensor::cat(&[&b.est_input, &second.est_input], 0), batch_stats)?;
                 let (first, shifted) = (both.narrow(0, 0, n), both.narrow(0, n, n));
-                let term = losses::shift_consistency(&first, &shifted, &second.offsets) * self.config.weight_shift;
+                let term = losses::shift_consistency(&first, &shifted, &second.offsets, self.config.shift_scale_free) * self.config.weight_shift;
                 Ok((first, Some(term)))
             }
             _ => Ok((self.model.est.forward_t(&b.est_input, batch_stats)?, None)),

@@ -757,12 +757,17 @@ fn shift_weight_adds_the_consistency_of_two_photos() {
     let added = with.loss_est - plain.loss_est;
     assert!((added - 0.5 * with.shift).abs() < 1e-5 * (1.0 + with.shift), "added {added}, expected {}", 0.5 * with.shift);
     assert!((with.l1 - plain.l1).abs() < 1e-6);
+    // Scale-free: another scale (both maps', not the first's), added the same way.
+    let free = Trainer::new(TrainConfig { shift_scale_free: true, ..cfg.clone() }, tch::Device::Cpu).unwrap().train_step(&batch).unwrap();
+    assert!(free.shift > 1e-3 && (free.shift - with.shift).abs() > 1e-6, "{} {}", free.shift, with.shift);
+    assert!((free.loss_est - plain.loss_est - 0.5 * free.shift).abs() < 1e-5 * (1.0 + free.shift));
 
     for (bad, why) in [
         (TrainConfig { shift_pixels: 32, ..cfg.clone() }, "between 1 and"),
         (TrainConfig { material_size: 36, ..cfg.clone() }, "larger than the materials"),
         (TrainConfig { scheme: UpdateScheme::Combined, ..cfg.clone() }, "alternating only"),
         (TrainConfig { weight_shift: -1.0, ..cfg.clone() }, "shift-consistency weight"),
+        (TrainConfig { weight_shift: 0.0, shift_scale_free: true, ..cfg.clone() }, "give --shift-weight"),
     ] {
         let err = bad.validate().unwrap_err().to_string();
         assert!(err.contains(why), "{err}");
