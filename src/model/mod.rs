@@ -26,14 +26,7 @@ macro_rules! avx2_dispatch {
             }
             $body($($arg),*)
         }
-
-        #[doc = concat!("[`", stringify!($name), "`] built for AVX2.\n\n# Safety\nAs [`", stringify!($name), "`]; the CPU must have AVX2.")]
-        #[cfg(target_arch = "x86_64")]
-        #[target_feature(enable = "avx2")]
-        #[allow(clippy::too_many_arguments)]
-        unsafe fn $avx2($($arg: $ty),*) {
-            $body($($arg),*)
-        }
+        avx2_dispatch!(@avx2 $name / $avx2 ($($arg: $ty),*) => $body);
     };
     ($(#[$meta:meta])* fn $name:ident / $avx2:ident ($($arg:ident: $ty:ty),* $(,)?) => $body:ident) => {
         $(#[$meta])*
@@ -46,8 +39,10 @@ macro_rules! avx2_dispatch {
             }
             $body($($arg),*)
         }
-
-        #[doc = concat!("[`", stringify!($name), "`] built for AVX2.\n\n# Safety\nThe CPU must have AVX2.")]
+        avx2_dispatch!(@avx2 $name / $avx2 ($($arg: $ty),*) => $body);
+    };
+    (@avx2 $name:ident / $avx2:ident ($($arg:ident: $ty:ty),*) => $body:ident) => {
+        #[doc = concat!("[`", stringify!($name), "`] built for AVX2.\n\n# Safety\nAs [`", stringify!($name), "`], and the CPU must have AVX2.")]
         #[cfg(target_arch = "x86_64")]
         #[target_feature(enable = "avx2")]
         #[allow(clippy::too_many_arguments)]
