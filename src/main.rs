@@ -5,19 +5,40 @@ use clap::Parser;
 mod cli;
 
 /// libtorch's OpenMP threads busy-wait after each parallel region by
-/// default, which starves the rayon threads that generate and render
-/// training data (measured: 4.4 -> 23 materials/s in `bench data`). The
-/// policy is read when the library loads, before `main`, so set it and
-/// re-execute once.
+/// default (300,000 spins), which starves the rayon threads that generate
+/// and render training data (measured: 4.4 -> 23 materials/s in `bench
+/// data`); PASSIVE alone (no spinning) puts them to sleep after every
+/// region instead, and the training step's many small ops then paid a
+/// futex wake-up each (a fifth of its samples in the kernel's scheduler,
+/// step 1.6 s against 0.87 s with a short spin; `reports/training-speed.md`).
+/// So: passive, with 10,000 spins first (about 0.1 ms). Both are read when
+/// the library loads, before `main`, so set the missing ones and
+/// re-execute once; a variable the user set is kept.
 fn ensure_passive_openmp() {
     use std::os::unix::process::CommandExt;
-    if std::env::var_os("OMP_WAIT_POLICY").is_some() {
+    let missing = openmp_settings_to_add(std::env::var_os("OMP_WAIT_POLICY").as_deref(), std::env::var_os("GOMP_SPINCOUNT").as_deref());
+    if missing.is_empty() {
         return;
     }
     if let Ok(exe) = std::env::current_exe() {
-        let err = std::process::Command::new(exe).args(std::env::args_os().skip(1)).env("OMP_WAIT_POLICY", "PASSIVE").exec();
-        eprintln!("warning: could not re-execute with OMP_WAIT_POLICY=PASSIVE: {err}");
+        let err = std::process::Command::new(exe).args(std::env::args_os().skip(1)).envs(missing).exec();
+        eprintln!("warning: could not re-execute with OMP_WAIT_POLICY=PASSIVE and GOMP_SPINCOUNT=10000: {err}");
     }
+}
+
+/// The OpenMP variables `ensure_passive_openmp` adds, given the ones set:
+/// the policy when unset; the spin count when unset and the policy is (or
+/// becomes) passive, so an ACTIVE or spin count of the user's stays theirs.
+fn openmp_settings_to_add(policy: Option<&std::ffi::OsStr>, spincount: Option<&std::ffi::OsStr>) -> Vec<(&'static str, &'static str)> {
+    let mut add = Vec::new();
+    if policy.is_none() {
+        add.push(("OMP_WAIT_POLICY", "PASSIVE"));
+    }
+    let passive = policy.is_none_or(|p| p.eq_ignore_ascii_case("passive"));
+    if spincount.is_none() && passive {
+        add.push(("GOMP_SPINCOUNT", "10000"));
+    }
+    add
 }
 
 /// glibc serves every allocation above its mmap threshold (at most 32 MiB)
@@ -67,5 +88,22 @@ fn main() {
             std::process::exit(1);
         }
         Err(_) => std::process::exit(2),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::openmp_settings_to_add;
+    use std::ffi::OsStr;
+
+    #[test]
+    fn openmp_settings_add_only_what_is_missing() {
+        let set = |v: &'static str| Some(OsStr::new(v));
+        assert_eq!(openmp_settings_to_add(None, None), [("OMP_WAIT_POLICY", "PASSIVE"), ("GOMP_SPINCOUNT", "10000")]);
+        assert_eq!(openmp_settings_to_add(set("passive"), None), [("GOMP_SPINCOUNT", "10000")]);
+        assert_eq!(openmp_settings_to_add(set("PASSIVE"), set("0")), []);
+        assert_eq!(openmp_settings_to_add(None, set("0")), [("OMP_WAIT_POLICY", "PASSIVE")]);
+        // A user's ACTIVE keeps libgomp's own spin count for it.
+        assert_eq!(openmp_settings_to_add(set("ACTIVE"), None), []);
     }
 }
