@@ -11,7 +11,8 @@ mod cli;
 /// region instead, and the training step's many small ops then paid a
 /// futex wake-up each (a fifth of its samples in the kernel's scheduler,
 /// step 1.6 s against 0.87 s with a short spin; `reports/training-speed.md`).
-/// So: passive, with 10,000 spins first (about 0.1 ms). Both are read when
+/// So: passive, after 10,000 spins (a fraction of a millisecond; libgomp
+/// pauses between polls). Both are read when
 /// the library loads, before `main`, so set the missing ones and
 /// re-execute once; a variable the user set is kept.
 fn ensure_passive_openmp() {
