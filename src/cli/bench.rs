@@ -200,6 +200,10 @@ fn bench_train(args: &TrainBenchArgs) -> Result<()> {
     let device = flashmat::device::parse_device(&args.device)?;
     let model = flashmat::model::ModelConfig::preset(&args.preset)?;
     println!("flashmat bench train: {} preset, crop {}, 2 materials x (1 + {}) renders, {device:?}, {} torch threads", args.preset, args.crop, args.outputs, tch::get_num_threads());
+    // The OpenMP wait is fixed for the whole process and changes every
+    // variant's time (reports/training-speed.md): say which one ran.
+    let env_or = |name: &str| std::env::var(name).unwrap_or_else(|_| "unset".into());
+    println!("OpenMP wait: OMP_WAIT_POLICY={}, GOMP_SPINCOUNT={} (compare settings process against process)", env_or("OMP_WAIT_POLICY"), env_or("GOMP_SPINCOUNT"));
     // Three trainers on the same batches, one step each in turn (so load
     // changes hit all three alike); the median step of each.
     let variants = [
