@@ -11,10 +11,10 @@ mod cli;
 /// region instead, and the training step's many small ops then paid a
 /// futex wake-up each (a fifth of its samples in the kernel's scheduler,
 /// step 1.6 s against 0.87 s with a short spin; `reports/training-speed.md`).
-/// So: passive, after 10,000 spins (a fraction of a millisecond; libgomp
-/// pauses between polls). Both are read when
-/// the library loads, before `main`, so set the missing ones and
-/// re-execute once; a variable the user set is kept.
+/// So: passive, after `SPIN_COUNT` polls (a fraction of a millisecond;
+/// libgomp pauses between polls). Both are read when the library loads,
+/// before `main`, so set the missing ones and re-execute once; a variable
+/// the user set is kept.
 fn ensure_passive_openmp() {
     use std::os::unix::process::CommandExt;
     let missing = openmp_settings_to_add(std::env::var_os("OMP_WAIT_POLICY").as_deref(), std::env::var_os("GOMP_SPINCOUNT").as_deref());
@@ -22,10 +22,15 @@ fn ensure_passive_openmp() {
         return;
     }
     if let Ok(exe) = std::env::current_exe() {
+        let settings: Vec<String> = missing.iter().map(|(name, value)| format!("{name}={value}")).collect();
         let err = std::process::Command::new(exe).args(std::env::args_os().skip(1)).envs(missing).exec();
-        eprintln!("warning: could not re-execute with OMP_WAIT_POLICY=PASSIVE and GOMP_SPINCOUNT=10000: {err}");
+        eprintln!("warning: could not re-execute with {}: {err}", settings.join(" "));
     }
 }
+
+/// libgomp's polls before a passive worker sleeps (5,000 to 100,000
+/// measured alike; 2,000 too few).
+const SPIN_COUNT: &str = "10000";
 
 /// The OpenMP variables `ensure_passive_openmp` adds, given the ones set:
 /// the policy when unset; the spin count when unset and the policy is (or
@@ -37,7 +42,7 @@ fn openmp_settings_to_add(policy: Option<&std::ffi::OsStr>, spincount: Option<&s
     }
     let passive = policy.is_none_or(|p| p.eq_ignore_ascii_case("passive"));
     if spincount.is_none() && passive {
-        add.push(("GOMP_SPINCOUNT", "10000"));
+        add.push(("GOMP_SPINCOUNT", SPIN_COUNT));
     }
     add
 }

@@ -399,8 +399,8 @@ fn median_time(runs: usize, device: Device, mut f: impl FnMut() -> Result<()>) -
 /// Measured at 256x256 on the 2-core development machine (the `flashmat`
 /// binary: OMP_WAIT_POLICY=PASSIVE, then without GOMP_SPINCOUNT, freed
 /// memory kept in the heap; 2 threads): paper M_est 6.1 s with the default
-/// Winograd policy against 7.6 s with every conv direct, ND_enc + M_render 1.2 s/frame; compact
-/// 0.79 s and 0.23 s/frame (`reports/inference-speed.md`; the machine is
+/// Winograd policy against 7.6 s with every conv direct, ND_enc + M_render
+/// 1.2 s/frame; compact 0.79 s and 0.23 s/frame (`reports/inference-speed.md`; the machine is
 /// shared, expect +-15%). The authors' PyTorch M_est takes about 20 s there.
 pub fn bench_infer(cfg: &ModelConfig, size: usize, device: Device) -> Result<InferTimings> {
     bench_infer_runs(cfg, size, device, 3)
