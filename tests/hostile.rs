@@ -710,6 +710,7 @@ fn mutated_nmat_files_are_refused_or_identical() {
         ldr_input: true,
         model_info: ModelInfo { ldr_input: true, steps: 7 },
         refine: None,
+        gain: 0.5,
     };
     // Not square: swapped dimensions must not go unnoticed.
     let map = tch::Tensor::randn([cfg.neural_channels, 6, 10], (tch::Kind::Float, Device::Cpu));

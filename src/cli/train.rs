@@ -118,6 +118,11 @@ pub struct TrainArgs {
     /// With --resume: from the resumed step on.
     #[arg(long, value_name = "P", value_parser = super::fraction)]
     pub colour_augment: Option<f64>,
+    /// Make this fraction of the procedural training materials dark (diffuse albedo times 0.02-0.35,
+    /// log-uniform: dark wood, slate, black leather, asphalt, dark paint; default and paper: 0; 0.25 is
+    /// the share the next GPU campaign trains with, docs/GPU.md). New runs only.
+    #[arg(long, value_name = "P", value_parser = super::fraction, conflicts_with = "resume")]
+    pub dark_share: Option<f64>,
     /// Of each material's output renders, make N co-located: the input's own light and view, then
     /// light and camera together at random points above the material (default and paper: 0, "reflect" only). Trains
     /// the renderer where light and view meet near the normal. With --resume: from the resumed step on.
@@ -330,6 +335,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         adv_start: a.adv_start,
         frozen_bn_from: a.frozen_bn_from,
         colour_augment: a.colour_augment.unwrap_or(0.0),
+        dark_share: a.dark_share.unwrap_or(0.0),
         colocated_outputs: a.colocated_outputs.unwrap_or(0),
         hemisphere_outputs: a.hemisphere_outputs.unwrap_or(0),
         checkerboard_free: a.checkerboard_free,

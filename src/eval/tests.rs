@@ -19,6 +19,7 @@ fn small_eval(models: Vec<String>, out: &std::path::Path) -> EvalOptions {
         device: Device::Cpu,
         progress: false,
         refine: vec![],
+        exposure: crate::infer::ExposureConfig::default(),
     }
 }
 

@@ -512,6 +512,7 @@ pub fn build_page(m: &NeuralMaterial, opts: &ViewerOptions) -> Result<(String, V
         "encOut": m.config.enc_out,
         "width": w,
         "height": h,
+        "gain": m.meta.gain,
         "identity": NeuralMaterial::identity_config().view,
         "light": opts.initial.light,
         "view": opts.initial.view,
