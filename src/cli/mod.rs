@@ -270,6 +270,21 @@ pub fn prepare_output(path: &std::path::Path) -> Result<OutputDir> {
     Ok(guard)
 }
 
+/// What to lower when `command` runs out of memory: the end of its one
+/// error line (`main`; the line's start is `flashmat::limits::out_of_memory`).
+pub fn memory_hint(command: &Command) -> &'static str {
+    match command {
+        Command::Train(_) => "lower --batch, --crop or --outputs",
+        Command::TrainTeacher(_) => "lower --pixels",
+        Command::Estimate(_) | Command::Relight(_) | Command::Show(_) | Command::View(_) | Command::Fit(_) => {
+            "lower --max-memory (M_est then runs in tiles) or --size"
+        }
+        Command::Bench(_) => "lower --size, --crop or --batch",
+        Command::Render(_) | Command::Svbrdf(_) | Command::Eval(_) | Command::ShadowEval(_) => "lower --size",
+        Command::Export(_) | Command::Average(_) | Command::NmatRows(_) => "free memory or use a machine with more",
+    }
+}
+
 pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Render(a) => materials::render(&a),
