@@ -130,7 +130,7 @@ pub struct RelightArgs {
     /// Light and camera of the input photo (re-creates the photo).
     #[arg(long)]
     pub identity: bool,
-    /// Output: .png (display-encoded) or .exr (linear radiance); .gif with --orbit.
+    /// Output: .png (8-bit sRGB) or .exr (linear radiance); .gif with --orbit.
     #[arg(short, long)]
     pub output: PathBuf,
     #[command(flatten)]

@@ -25,7 +25,7 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
-    /// Render a GGX material for a point light and a camera (PNG: display-encoded; EXR: linear HDR).
+    /// Render a GGX material for a point light and a camera (PNG: 8-bit sRGB, as estimate reads photos; EXR: linear HDR).
     Render(RenderArgs),
     /// Procedural and on-disk SVBRDF datasets.
     #[command(subcommand)]
@@ -153,7 +153,7 @@ pub struct RenderArgs {
     /// Camera position X,Y,Z (z must be > 0). Default: straight overhead at the 28 degree model FOV distance.
     #[arg(long, value_name = "X,Y,Z")]
     pub view: Option<Vec3Arg>,
-    /// Output image: .png (display-encoded, 8-bit) or .exr (linear HDR radiance).
+    /// Output image: .png (8-bit sRGB, as estimate reads photos) or .exr (linear HDR radiance).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Cast shadows from the material's height field (maps loaded from disk get one integrated from their normals).

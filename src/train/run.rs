@@ -381,7 +381,7 @@ fn start_with<T: RunTrainer>(config: TrainConfig, opts: &RunOptions) -> Result<T
             let _ = std::fs::remove_dir_all(&opts.run_dir);
         }
     };
-    if let Err(e) = std::fs::create_dir_all(opts.run_dir.join("previews")) {
+    if let Err(e) = std::fs::create_dir_all(&opts.run_dir) {
         remove_created();
         return Err(e).with_context(|| format!("cannot create run folder {}", opts.run_dir.display()));
     }
@@ -391,10 +391,13 @@ fn start_with<T: RunTrainer>(config: TrainConfig, opts: &RunOptions) -> Result<T
     if ckpt.exists() {
         return Err(holds_a_run());
     }
-    let result = crate::io::atomic_write_bytes(&opts.run_dir.join("config.json"), config_json.as_bytes()).and_then(|_| {
-        let _ = std::fs::remove_file(log_path(&opts.run_dir));
-        train_loop(trainer, opts)
-    });
+    let result = std::fs::create_dir_all(opts.run_dir.join("previews"))
+        .with_context(|| format!("cannot create run folder {}", opts.run_dir.display()))
+        .and_then(|_| crate::io::atomic_write_bytes(&opts.run_dir.join("config.json"), config_json.as_bytes()))
+        .and_then(|_| {
+            let _ = std::fs::remove_file(log_path(&opts.run_dir));
+            train_loop(trainer, opts)
+        });
     // A start that failed before its first checkpoint (unreadable data, a
     // diverging first step) leaves no run folder behind.
     if result.is_err() {
