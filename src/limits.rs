@@ -117,6 +117,11 @@ pub fn out_of_memory(message: &str) -> Option<String> {
         let details = if details.is_empty() { String::new() } else { format!(" ({})", details.join("; ")) };
         return Some(format!("out of GPU memory{details}"));
     }
+    // oneDNN (libtorch's CPU convolutions) reports a failed allocation
+    // while setting up a layer only as this (seen under a memory cap).
+    if message.contains("could not create a primitive") {
+        return Some("oneDNN could not create a primitive (most likely out of memory)".into());
+    }
     if CPU.iter().any(|p| message.contains(p)) {
         let size = |b: f64| if b >= (1u64 << 30) as f64 { format!("{:.2} GiB", b / (1u64 << 30) as f64) } else { format!("{:.0} MiB", b / (1u64 << 20) as f64) };
         let want = after("tried to allocate ", 1).and_then(|b| b.parse::<f64>().ok()).map(|b| format!(" (tried to allocate {})", size(b)));
@@ -153,6 +158,9 @@ mod tests {
         let cpu = "[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to allocate 2199023255552 bytes. Error code 12 (Cannot allocate memory)";
         assert_eq!(out_of_memory(cpu).unwrap(), "out of memory (tried to allocate 2048.00 GiB)");
         assert_eq!(out_of_memory("DefaultCPUAllocator: not enough memory: you tried to allocate 83886080 bytes.").unwrap(), "out of memory (tried to allocate 80 MiB)");
+        // Captured from a training step under a memory cap.
+        let onednn = r#"called `Result::unwrap()` on an `Err` value: Torch("could not create a primitive")"#;
+        assert_eq!(out_of_memory(onednn).unwrap(), "oneDNN could not create a primitive (most likely out of memory)");
         for other in ["shape '[2, 3]' is invalid for input of size 5", "CUDA error: an illegal memory access was encountered", "", "tried to allocate 5 bytes"] {
             assert_eq!(out_of_memory(other), None, "{other}");
         }

@@ -1010,11 +1010,39 @@ fn a_run_folder_has_one_owner_and_a_killed_one_leaves_nothing_stuck() {
     assert!(left.is_empty(), "left in the run folder: {left:?}");
 }
 
+/// Runs flashmat in `cwd` under a 900 MB data cap (`ulimit -d`: the heap
+/// and anonymous mappings, not the 3 GB of mapped libraries), without the
+/// bundled photos (a checkpoint's photo check takes seconds).
+fn run_data_capped(args: &[&str], cwd: &Path) -> std::process::Output {
+    Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -d 900000 && exec \"$0\" \"$@\"")
+        .arg(BIN)
+        .args(args)
+        .current_dir(cwd)
+        .env("OMP_WAIT_POLICY", "PASSIVE")
+        .env("OMP_NUM_THREADS", "1")
+        .env(flashmat::ROOT_ENV, cwd)
+        .output()
+        .unwrap()
+}
+
+/// The one error line of an out-of-memory, ending with what to lower.
+fn assert_out_of_memory_line(out: &std::process::Output, hint: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(crash_text(&err), None, "{err}");
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert_eq!(lines.len(), 1, "{err}");
+    assert!(lines[0].starts_with("error: ") && lines[0].contains("out of memory") && lines[0].ends_with(hint), "{err}");
+}
+
 /// Running out of memory is one line that says what to lower, not a panic
-/// with libtorch's backtrace: a 1024x1024 estimate forced whole (`--max-memory
-/// 1T`) under a 900 MB data cap (`ulimit -d`: the heap and anonymous
-/// mappings, not the 3 GB of mapped libraries) fails in libtorch's CPU
-/// allocator within its first layers. Nothing is written.
+/// with libtorch's backtrace, under a memory cap: a 1024x1024 estimate
+/// forced whole (`--max-memory 1T`) fails in libtorch's CPU allocator
+/// within its first layers and writes nothing; a training step of crops
+/// too large for the cap stops the resumed run, whose checkpoint stays as
+/// it was.
 #[test]
 fn out_of_memory_is_one_line_naming_what_to_lower() {
     let dir = tempfile::tempdir().unwrap();
@@ -1023,21 +1051,21 @@ fn out_of_memory_is_one_line_naming_what_to_lower() {
     tch::manual_seed(1);
     Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(d.join("tiny.safetensors"), &ModelInfo { ldr_input: true, steps: 1 }, false).unwrap();
     std::fs::create_dir(d.join("out")).unwrap();
-    let out = Command::new("sh")
-        .arg("-c")
-        .arg("ulimit -d 900000 && exec \"$0\" \"$@\"")
-        .arg(BIN)
-        .args(["estimate", "p.png", "--model", "tiny.safetensors", "--size", "1024", "--max-memory", "1T", "-o", "out/m.nmat"])
-        .current_dir(d)
-        .env("OMP_WAIT_POLICY", "PASSIVE")
-        .env("OMP_NUM_THREADS", "1")
+    let out = run_data_capped(&["estimate", "p.png", "--model", "tiny.safetensors", "--size", "1024", "--max-memory", "1T", "-o", "out/m.nmat"], d);
+    assert_out_of_memory_line(&out, ": lower --max-memory (M_est then runs in tiles) or --size");
+    assert!(listing(&d.join("out")).is_empty());
+
+    // One step without the cap (about 1 GB at its peak), the next under it.
+    let out = flashmat_cmd(&["train", "--preset", "tiny", "--crop", "96", "--batch", "2", "--outputs", "6", "--lpips-weight", "0", "--adv-weight", "0", "--threads", "1", "--steps", "1", "--preview-every", "0", "--out", "r"], d)
+        .env(flashmat::ROOT_ENV, d)
         .output()
         .unwrap();
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(crash_text(&err), None, "{err}");
-    assert_eq!(out.status.code(), Some(1), "{err}");
-    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
-    assert_eq!(lines.len(), 1, "{err}");
-    assert!(lines[0].starts_with("error: out of memory (tried to allocate ") && lines[0].ends_with("): lower --max-memory (M_est then runs in tiles) or --size"), "{err}");
-    assert!(listing(&d.join("out")).is_empty());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let before = listing(&d.join("r"));
+    let checkpoint = std::fs::read(run::checkpoint_path(&d.join("r"))).unwrap();
+    let out = run_data_capped(&["train", "--resume", "r", "--steps", "2"], d);
+    assert_out_of_memory_line(&out, ": lower --batch, --crop or --outputs");
+    assert_eq!(std::fs::read(run::checkpoint_path(&d.join("r"))).unwrap(), checkpoint);
+    let after: Vec<_> = listing(&d.join("r")).into_iter().filter(|(n, _)| n != "log.jsonl").collect();
+    assert_eq!(after, before.into_iter().filter(|(n, _)| n != "log.jsonl").collect::<Vec<_>>(), "the run folder changed");
 }
