@@ -158,7 +158,7 @@ pub struct RelightArgs {
     /// Light and camera of the input photo (re-creates the photo).
     #[arg(long)]
     pub identity: bool,
-    /// Output: .png (display-encoded) or .exr (linear radiance); .gif with --orbit.
+    /// Output: .png (8-bit sRGB) or .exr (linear radiance); .gif with --orbit.
     #[arg(short, long)]
     pub output: PathBuf,
     #[command(flatten)]
@@ -197,6 +197,9 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
     let t0 = Instant::now();
     let prepared = infer::load_photo_with(photo, &infer::PhotoOptions { fov_deg: opts.fov, size: opts.size, exposure_ev: opts.exposure, square: opts.square })?;
     let t_photo = t0.elapsed().as_secs_f64();
+    for w in &prepared.warnings {
+        eprintln!("warning: {w}");
+    }
     let loaded = infer::load_model(opts.model.as_deref(), device)?;
     // The bundled model serves both photo types by design: warn only for a chosen one.
     if let Some(w) = opts.model.as_ref().and_then(|_| infer::input_mismatch_warning(&loaded.info, &loaded.path, prepared.ldr)) {

@@ -365,19 +365,23 @@ pub fn train(a: &TrainArgs) -> Result<()> {
 pub fn export(a: &ExportArgs) -> Result<()> {
     use flashmat::train::run::RunTrainer;
     let ckpt = run::checkpoint_path(&a.run);
+    // Exporting a run that is still training is how its snapshots are kept
+    // (docs/TRAINING.md): checkpoints are replaced by rename, so the file
+    // read is always a whole one. Say so, as the next one will differ.
+    let training = flashmat::io::folder_owner(&a.run).map(|owner| format!("; the run is still training ({owner})")).unwrap_or_default();
     if ckpt.exists() && !flashmat::train::Trainer::checkpoint_config(&ckpt)?.method.is_flashmat() {
         let trainer = BaselineTrainer::resume(&ckpt, Device::Cpu)?;
         let out_dir = super::prepare_output(&a.output)?;
         trainer.export_model(&a.output, !a.f32)?;
         out_dir.keep();
-        eprintln!("wrote {} ({} baseline {}, step {})", a.output.display(), trainer.config.method, trainer.net.model_id(), trainer.step);
+        eprintln!("wrote {} ({} baseline {}, step {}{training})", a.output.display(), trainer.config.method, trainer.net.model_id(), trainer.step);
         return Ok(());
     }
     let trainer = flashmat::train::Trainer::resume(&ckpt, Device::Cpu, None)?;
     let out_dir = super::prepare_output(&a.output)?;
     trainer.export_model(&a.output, !a.f32)?;
     out_dir.keep();
-    eprintln!("wrote {} (model {}, step {})", a.output.display(), trainer.model.model_id(), trainer.step);
+    eprintln!("wrote {} (model {}, step {}{training})", a.output.display(), trainer.model.model_id(), trainer.step);
     Ok(())
 }
 

@@ -194,6 +194,7 @@ impl NeuralMaterial {
         let unknown: Vec<&String> =
             a.tensors.keys().filter(|k| !k.starts_with("renderer.") && *k != "neural_map" && *k != "input_photo").collect();
         ensure!(unknown.is_empty(), "unexpected tensors {unknown:?}");
+        check_meta(&meta, s[1], s[2])?;
         Self::from_parts(neural_map, input_photo, &config, &weights, meta)
     }
 
@@ -268,6 +269,43 @@ impl NeuralMaterial {
     pub fn input_image(&self) -> Result<Image> {
         Image::from_tensor(&self.input_photo)
     }
+}
+
+/// Refuses metadata that contradicts itself or the `h x w` neural map
+/// (checksums only prove the file is as written, not that its writer was
+/// right): a field of view outside what a photo can have, a crop outside
+/// its source photo, or a crop whose aspect is not the map's (a map stored
+/// transposed under a consistent header would render scrambled).
+fn check_meta(meta: &NmatMeta, h: i64, w: i64) -> Result<()> {
+    let fov = meta.fov_deg;
+    ensure!(
+        fov.is_finite() && (MODEL_FOV_DEG - 1e-9..=super::photo::MAX_FOV_DEG).contains(&fov),
+        "metadata field 'fov_deg' is {fov}, not a field of view from {MODEL_FOV_DEG} to {} degrees",
+        super::photo::MAX_FOV_DEG
+    );
+    let c = &meta.crop;
+    let inside = |start: usize, len: usize, source: usize| len >= 1 && start.checked_add(len).is_some_and(|end| end <= source);
+    ensure!(
+        inside(c.x0, c.width, c.source_width) && inside(c.y0, c.height, c.source_height),
+        "metadata field 'crop' ({}x{} at ({}, {})) lies outside its {}x{} source photo",
+        c.width,
+        c.height,
+        c.x0,
+        c.y0,
+        c.source_width,
+        c.source_height
+    );
+    // The estimate trims the crop to the map's aspect within one source
+    // pixel of its longer side (`photo::prepare_image_with`).
+    let (cw, ch) = (c.width as f64, c.height as f64);
+    let (h, w) = (h as f64, w as f64);
+    ensure!(
+        (cw * h - ch * w).abs() <= h.max(w) + 1e-9,
+        "metadata field 'crop' ({}x{}) does not have the aspect of the {w}x{h} neural map",
+        c.width,
+        c.height
+    );
+    Ok(())
 }
 
 #[cfg(test)]
@@ -414,6 +452,37 @@ pub(crate) mod tests {
         let expect = Tensor::from_slice(&[0.0f64, 0.5f64.exp_m1() * 0.0625, 3f64.exp_m1() * 0.0625, MAX_LOG_RADIANCE.exp_m1() * 0.0625]).log1p();
         assert!((back.with_gain_log(&log).to_kind(tch::Kind::Double) - expect).abs().max().double_value(&[]) < 1e-5);
         assert!(NeuralMaterial::from_parts(m.neural_map.copy(), m.input_photo.copy(), &m.config, &m.renderer_vs.variables(), NmatMeta { gain: f64::NAN, ..m.meta.clone() }).is_err());
+    }
+
+    /// Metadata whose checksums are intact but which contradicts itself is
+    /// refused at load with one line naming the field.
+    #[test]
+    fn contradictory_metadata_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.nmat");
+        random_material(2, 8).save(&p).unwrap();
+        let good = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+        for (field, value, needle) in [
+            ("fov_deg", "NaN", "'fov_deg' is NaN"),
+            ("fov_deg", "12", "'fov_deg' is 12"),
+            ("fov_deg", "179", "'fov_deg' is 179"),
+            ("crop", r#"{"x0":10,"y0":0,"width":20,"height":20,"source_width":26,"source_height":20}"#, "outside its 26x20 source photo"),
+            ("crop", r#"{"x0":0,"y0":0,"width":0,"height":0,"source_width":26,"source_height":20}"#, "outside"),
+            ("crop", r#"{"x0":0,"y0":0,"width":26,"height":13,"source_width":26,"source_height":20}"#, "aspect of the 8x8 neural map"),
+            ("resolution", "[8,9]", "resolution [8, 9]"),
+        ] {
+            let mut a = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+            a.set_meta(field, value.to_string());
+            let bad = dir.path().join("bad.nmat");
+            a.save(&bad, NMAT_FORMAT, NMAT_VERSION).unwrap();
+            let e = format!("{:#}", NeuralMaterial::load(&bad, Device::Cpu).unwrap_err());
+            assert!(e.contains("bad.nmat") && e.contains(needle) && !e.contains('\n'), "{field} = {value}: {e}");
+        }
+        // Within a source pixel of the map's aspect, as estimates trim crops.
+        let mut a = good;
+        a.set_meta("crop", r#"{"x0":0,"y0":0,"width":21,"height":20,"source_width":26,"source_height":20}"#.to_string());
+        a.save(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+        NeuralMaterial::load(&p, Device::Cpu).unwrap();
     }
 
     /// Rendering in bands of rows is the whole render (M_render is per
