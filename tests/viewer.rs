@@ -215,7 +215,7 @@ fn browser_render_matches_relight_for_compact_and_tiny() {
     let (w, h, px) = page_pixels(&browser, &page, "show=photo&test=1", profile.path());
     let m = flashmat::infer::NeuralMaterial::load(&compact, Device::Cpu).unwrap();
     let photo_png = d.join("photo-display.png");
-    flashmat::io::write_png(&photo_png, &m.input_image().unwrap().map(flashmat::spaces::gamma_encode), flashmat::io::BitDepth::Eight).unwrap();
+    flashmat::io::write_png(&photo_png, &m.input_image().unwrap().to_display(), flashmat::io::BitDepth::Eight).unwrap();
     let (mean, max) = compare(&px, w, h, &photo_png);
     eprintln!("input photo toggle: mean {mean:.4} max {max}");
     assert!(mean < 0.5 && max <= 2, "photo toggle: mean {mean}, max {max}");
