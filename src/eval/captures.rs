@@ -54,7 +54,7 @@ pub struct CaptureResults {
     pub name: String,
     pub rows: Vec<CaptureRow>,
     /// The moved-highlight ratios per scored photo (as `rows`): S_in the
-    /// input photo's highlight, S_gt the scored photo's own, the method's
+    /// input photo's highlight (8-bit: all there is), S_gt the scored photo's own, the method's
     /// render over the photo ([`super::highlights`]; no crop LPIPS).
     pub highlights: Vec<super::highlights::LightRatios>,
 }

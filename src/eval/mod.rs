@@ -234,7 +234,7 @@ pub fn evaluate(
             }
             let method_name = res.name.clone();
             let fail = |e: anyhow::Error| anyhow!("{method_name} on {name}: {e:#}");
-            let (h, moved_pred) = highlights::measure(method.as_ref(), name, glossiness, &photo, &moved_truth, &moved, Some(lpips)).map_err(fail)?;
+            let (h, moved_pred) = highlights::measure(method.as_ref(), name, glossiness, &linear, &moved_truth, &moved, Some(lpips)).map_err(fail)?;
             res.highlights.push(h);
             let curve = exposure::measure(method.as_mut(), name, &linear, &exposures, opts.ldr_input, &moved.configs(), Some(&moved_pred)).map_err(fail)?;
             res.exposure.extend(curve);
