@@ -433,15 +433,15 @@ pub fn markdown(methods: &[(String, Vec<MaterialHighlights>)], cfg: &HighlightCo
     s
 }
 
-/// Materials in the picture ([`write_picture`]).
+/// Materials in the picture ([`picture`]).
 pub const PICTURE_MATERIALS: usize = 4;
 
-/// Writes `moved.jpg` (and `moved.txt`, what it shows) into `dir`: for
-/// the [`PICTURE_MATERIALS`] glossiest materials a row photo | truth |
-/// each method under the first moved light, then truth | each method under
-/// the second. Each method is prepared again on the photo (clamped when
-/// `ldr`).
-pub fn write_picture(dir: &std::path::Path, methods: &mut [Box<dyn Method>], materials: &[(String, Svbrdf)], ldr: bool, cfg: &HighlightConfig) -> Result<()> {
+/// The picture of the test: for the [`PICTURE_MATERIALS`] glossiest
+/// materials a row photo | truth | each method under the first moved
+/// light, then truth | each method under the second (display images), and
+/// a note of what it shows. Each method is prepared again on the photo
+/// (clamped when `ldr`). `None` for no materials.
+pub fn picture(methods: &mut [Box<dyn Method>], materials: &[(String, Svbrdf)], ldr: bool, cfg: &HighlightConfig) -> Result<Option<(Image, String)>> {
     let gloss: Vec<f64> = materials.iter().map(|(_, m)| glossiness(m)).collect();
     let picks = glossiest(&gloss, PICTURE_MATERIALS);
     let configs: Vec<LightView> = cfg.configs().into_iter().take(2).collect();
@@ -464,10 +464,8 @@ pub fn write_picture(dir: &std::path::Path, methods: &mut [Box<dyn Method>], mat
         rows.push(row);
     }
     if rows.is_empty() {
-        return Ok(());
+        return Ok(None);
     }
-    std::fs::create_dir_all(dir).map_err(|e| anyhow::anyhow!("cannot create {}: {e}", dir.display()))?;
-    crate::io::write_jpeg(&dir.join("moved.jpg"), &crate::viz::grid(&rows, 4)?, super::report::REPORT_JPEG_QUALITY)?;
     let names: Vec<String> = methods.iter().map(|m| m.name()).collect();
     let light = |l: &LightView| format!("light ({}, {}, {})", l.light[0], l.light[1], l.light[2]);
     let mut note = format!(
@@ -480,7 +478,7 @@ pub fn write_picture(dir: &std::path::Path, methods: &mut [Box<dyn Method>], mat
     for &i in &picks {
         let _ = writeln!(note, "{} (glossiness {:.2})", materials[i].0, gloss[i]);
     }
-    crate::io::atomic_write_bytes(&dir.join("moved.txt"), note.as_bytes())
+    Ok(Some((crate::viz::grid(&rows, 4)?, note)))
 }
 
 /// Materials of the training log's highlight check: the glossiest of the

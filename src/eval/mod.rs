@@ -268,7 +268,7 @@ pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     let results = evaluate(&mut methods, &materials, &opts, &lpips)?;
     report::write_reports(&opts, &results)?;
     report::write_grids(&opts, &mut methods, &materials, &results)?;
-    highlights::write_picture(&opts.out.join(report::HIGHLIGHTS_DIR), &mut methods, &materials, opts.ldr_input, &highlights::HighlightConfig::default())?;
+    report::write_highlight_picture(&opts, &mut methods, &materials)?;
     Ok(results)
 }
 

@@ -188,6 +188,17 @@ pub fn write_reports(opts: &EvalOptions, results: &[MethodResults]) -> Result<()
     Ok(())
 }
 
+/// Writes `highlights/moved.jpg` and `moved.txt`: the moved-highlight
+/// test's picture of the glossiest materials ([`super::highlights::picture`]).
+pub fn write_highlight_picture(opts: &EvalOptions, methods: &mut [Box<dyn Method>], materials: &[(String, Svbrdf)]) -> Result<()> {
+    let cfg = super::highlights::HighlightConfig::default();
+    let Some((grid, note)) = super::highlights::picture(methods, materials, opts.ldr_input, &cfg)? else { return Ok(()) };
+    let dir = opts.out.join(HIGHLIGHTS_DIR);
+    std::fs::create_dir_all(&dir).map_err(|e| anyhow::anyhow!("cannot create {}: {e}", dir.display()))?;
+    crate::io::write_jpeg(&dir.join("moved.jpg"), &grid, REPORT_JPEG_QUALITY)?;
+    crate::io::atomic_write_bytes(&dir.join("moved.txt"), note.as_bytes())
+}
+
 /// Refinement steps of a method name: 0 for a flashmat model `NAME` when
 /// `NAME+refineN` methods exist, N for those.
 fn refine_steps(name: &str, results: &[MethodResults]) -> Option<(String, usize)> {
