@@ -6,8 +6,11 @@
 //!
 //! - the identity (the photo's own light and camera): the **identity
 //!   ratio** is the render's mean over the photo's, per channel and over
-//!   all three, the render clamped to [0, 1] like the photo when 8-bit (a
-//!   method is judged on what its photo shows);
+//!   all three, both unclamped: the photo's is the linear render x 2^EV
+//!   before the clamp, which is the photo wherever it is not clipped.
+//!   (Clamping the render too would hide a highlight drawn five times too
+//!   bright under 1; on a clipped photo the ratio says how much of what the
+//!   clip hid the method brings back.);
 //! - the moved lights of the highlight test: the **relit scale** is the
 //!   mean of those renders at EV over their mean at 0 stops, over 2^EV
 //!   (1: the material scales with the photo's exposure).
@@ -73,11 +76,11 @@ pub struct ExposureRow {
     pub reference_clipped: f64,
 }
 
-/// The identity ratio of a prepared method. photo: `[3, H, W]` as it saw it.
-pub fn identity_ratio(method: &dyn Method, photo: &Tensor, ldr: bool) -> Result<([f64; 3], f64)> {
+/// The identity ratio of a prepared method. exposed_truth: `[3, H, W]`,
+/// the linear co-located render x 2^EV, unclamped.
+pub fn identity_ratio(method: &dyn Method, exposed_truth: &Tensor) -> Result<([f64; 3], f64)> {
     let render = method.render(&[LightView::colocated(MODEL_FOV_DEG)])?.get(0).clamp_min(0.0);
-    let render = if ldr { render.clamp_max(1.0) } else { render };
-    let (r, p) = (channel_means(&render), channel_means(&photo.to_device(tch::Device::Cpu).to_kind(Kind::Float)));
+    let (r, p) = (channel_means(&render), channel_means(&exposed_truth.to_device(tch::Device::Cpu).to_kind(Kind::Float)));
     let rgb = [0, 1, 2].map(|c| r[c] / p[c].max(1e-12));
     let all = r.iter().sum::<f64>() / p.iter().sum::<f64>().max(1e-12);
     Ok((rgb, all))
@@ -109,7 +112,7 @@ pub fn measure(method: &mut dyn Method, material: &str, photo_linear: &Tensor, e
             }
         };
         let means = channel_means(&relit.clamp_min(0.0));
-        let (ratio_rgb, ratio) = identity_ratio(method, &photo, ldr)?;
+        let (ratio_rgb, ratio) = identity_ratio(method, &exposed(photo_linear, ev, false))?;
         let relit_scale = match reference {
             None => {
                 reference = Some(means);
@@ -176,12 +179,12 @@ pub fn markdown(methods: &[(String, Vec<ExposureRow>)], ldr: bool) -> String {
     let mut s = String::from("## Exposure (issue 53)\n\n");
     let _ = writeln!(
         s,
-        "The photo is the linear co-located render x 2^EV{}. Identity ratio: mean of the identity render{} over the photo's (RGB means; per channel in exposure/curve.csv). \
+        "The photo is the linear co-located render x 2^EV{}. Identity ratio: mean of the identity render over the photo's before the clamp{} (RGB means; per channel in exposure/curve.csv). \
          Relit scale: mean of the renders under the moved-highlight lights at EV over at 0 stops, over 2^EV (1 = scales with the exposure). \
          Cells: geometric mean [min, max] over materials; a photo with any pixel at 1 is clipped and counted apart (for the relit scale: either photo). \
          Target: identity ratio within {}-{}.\n",
         if ldr { ", then clamped to [0, 1] (8-bit)" } else { " (HDR: nothing clips)" },
-        if ldr { " clamped to [0, 1]" } else { "" },
+        if ldr { " (on a clipped photo: how much of what the clip hid comes back)" } else { "" },
         RATIO_TARGET.0,
         RATIO_TARGET.1
     );
@@ -249,13 +252,14 @@ mod tests {
         for r in &rows {
             assert!((r.ratio - 1.0).abs() < 1e-5 && r.ratio_rgb.iter().all(|v| (v - 1.0).abs() < 1e-5), "{r:?}");
             assert_eq!(r.relit_scale.is_none(), r.ev == 0.0);
-            assert!(r.relit_scale.map_or(true, |s| (s - 1.0).abs() < 1e-5), "{r:?}");
+            assert!(r.relit_scale.is_none_or(|s| (s - 1.0).abs() < 1e-5), "{r:?}");
         }
-        // 8-bit photos: still 1 against the photo at every exposure; dark enough, nothing clips.
+        // 8-bit photos: 1 wherever nothing clips; a clipped photo's print-out
+        // keeps the clip (below 1 against the light the clip hid).
         let rows = measure(&mut p, "test03", &linear, &[-6.0, 0.0, 2.0], true, &moved, None).unwrap();
-        assert!(rows.iter().all(|r| (r.ratio - 1.0).abs() < 1e-5), "{rows:?}");
-        assert_eq!(rows[0].clipped, 0.0);
-        assert!(rows[2].clipped > 0.0, "{:?}", rows[2]);
+        assert_eq!((rows[0].clipped, rows[1].clipped), (0.0, 0.0), "{rows:?}");
+        assert!((rows[0].ratio - 1.0).abs() < 1e-5 && (rows[1].ratio - 1.0).abs() < 1e-5, "{rows:?}");
+        assert!(rows[2].clipped > 0.0 && rows[2].ratio < 1.0, "{:?}", rows[2]);
         let md = markdown(&[("printout".into(), rows.clone())], true);
         assert!(md.contains("| printout | -6 | 1 | 1.00 [1.00, 1.00] | 1/1 |"), "{md}");
         assert!(csv_text(&[("printout".into(), rows)]).lines().count() == 4);

@@ -577,7 +577,7 @@ mod tests {
         r[100 * 256 + 150] = true;
         r[100 * 256 + 152] = true;
         assert_eq!(region_window(&r, 256, 256), Some((68, 119, 64)));
-        assert_eq!(region_window(&vec![false; 64], 8, 8), None);
+        assert_eq!(region_window(&[false; 64], 8, 8), None);
         assert_eq!((lpips_window_side(64, 64), lpips_window_side(16, 16), lpips_window_side(512, 256)), (32, 16, 64));
         assert_eq!(terciles(&[0.3, 0.1, 0.2, 5.0, 0.05, 0.4]), [1, 0, 1, 2, 0, 2]);
         assert_eq!(glossiest(&[0.3, 0.1, 5.0], 2), [2, 0]);
