@@ -609,4 +609,3 @@ mod tests {
         assert!(s.rest.geo_mean > 0.0 && s.ghost.n + s.lobe.n > 0, "{s:?}");
     }
 }
-
