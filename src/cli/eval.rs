@@ -58,7 +58,7 @@ pub struct EvalArgs {
     /// Exposures in stops for the exposure curve, comma-separated (e.g. -6,-4,-2,0,1): the photo is the linear render
     /// x 2^EV, clamped after the scaling with --ldr-input; each method estimates from it and renders the identity and the
     /// moved-highlight lights (exposure/curve.csv, summary.md). 0 is always scored (identity brightness ratio).
-    #[arg(long, value_name = "EV", value_delimiter = ',', allow_negative_numbers = true, default_value = "0")]
+    #[arg(long, value_name = "EV", value_delimiter = ',', allow_hyphen_values = true, default_value = "0")]
     pub exposures: Vec<f64>,
     /// cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
