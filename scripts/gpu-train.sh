@@ -101,6 +101,10 @@ CHECKERBOARD_FREE="${FLASHMAT_GPU_CHECKERBOARD_FREE:-1}"
 # Co-located outputs per material (docs/TRAINING.md, reports/frequencies.md;
 # 0: "reflect" only, as the first campaign trained).
 COLOCATED="${FLASHMAT_GPU_COLOCATED:-0}"
+# Share of dark procedural materials (--dark-share, issue 53: most real
+# materials are darker than the families' colours; 0: the paper's data, as
+# the campaigns before 2026-11-27 trained).
+DARK_SHARE="${FLASHMAT_GPU_DARK_SHARE:-0.25}"
 # Curriculum (docs/TRAINING.md): the committed teacher (trained on the CPU,
 # models/MODEL.md; FLASHMAT_GPU_TEACHER= turns the curriculum off), or
 # teacher steps on the device before a fresh start; then the teacher-code
@@ -143,6 +147,7 @@ recipe() {
   [ -n "${1:-}" ] && teacher=(--teacher "$1" --code-weight "$CODE_WEIGHT" --code-until "$CODE_UNTIL")
   [ "$CHECKERBOARD_FREE" = 1 ] && constraint=(--checkerboard-free)
   [ "$COLOCATED" != 0 ] && constraint+=(--colocated-outputs "$COLOCATED")
+  [ "$DARK_SHARE" != 0 ] && constraint+=(--dark-share "$DARK_SHARE")
   echo --preset "$PRESET" --ldr --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --lr "$LR" \
     --warmup-steps "$WARMUP" --straight-through-output --bank "$BANK" --seed "$SEED" \
     --steps 100000000 --checkpoint-every 500 --preview-every 1000 "${teacher[@]}" "${constraint[@]}"
@@ -522,6 +527,7 @@ cpu_dry_run() {
   python3 -c 'import json,sys; lr=json.loads(open(sys.argv[1]).readlines()[-1])["lr"]; sys.exit(0 if abs(lr-float(sys.argv[2]))<=1e-6*float(sys.argv[2]) else 1)' \
     "$tmp/out3/log.jsonl" "$FINAL_LR" || die "dry run: the final chunk did not train at FLASHMAT_GPU_FINAL_LR ($FINAL_LR)"
   grep -q '"checkerboard_free": true' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --checkerboard-free"
+  grep -q '"dark_share": 0.25' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --dark-share 0.25"
   grep -q "^VERDICT: " "$tmp/out3/verdict/verdict.md" || die "dry run: no verdict"
   for f in model.safetensors log.jsonl losses.png chunk.md; do
     [ -f "$tmp/out2/$f" ] || die "dry run: chunk 2 brought back no $f"

@@ -171,7 +171,11 @@ impl Archive {
         let found: u32 = meta.get(KEY_VERSION).and_then(|v| v.parse().ok()).context("missing format version")?;
         if !versions.contains(&found) {
             let list: Vec<String> = versions.iter().map(u32::to_string).collect();
-            bail!("{format} version {found} is not supported (this flashmat reads version {})", list.join(" and "));
+            let list = match list.split_last() {
+                Some((last, rest)) if !rest.is_empty() => format!("versions {} and {last}", rest.join(", ")),
+                _ => format!("version {}", list.join("")),
+            };
+            bail!("{format} version {found} is not supported (this flashmat reads {list})");
         }
         // A damaged key name must not switch a check off: an unknown
         // `flashmat.` key, or any key one byte away from an integrity key

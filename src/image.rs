@@ -111,15 +111,16 @@ impl Image {
         })
     }
 
-    /// The display transform of a linear image ([`crate::spaces::gamma_encode`]).
+    /// A linear image as the 8-bit picture values flashmat writes
+    /// ([`crate::spaces::photo_encode`], the sRGB curve `estimate` decodes).
     pub fn to_display(&self) -> Self {
-        self.map(crate::spaces::gamma_encode)
+        self.map(crate::spaces::photo_encode)
     }
 
-    /// Display image of a linear render: [`crate::spaces::linear_to_display`].
-    /// linear: `[3, H, W]`.
+    /// Picture of a linear render, as [`Image::to_display`]
+    /// ([`crate::spaces::linear_to_photo`]). linear: `[3, H, W]`.
     pub fn display_of(linear: &tch::Tensor) -> anyhow::Result<Self> {
-        Self::from_tensor(&crate::spaces::linear_to_display(linear))
+        Self::from_tensor(&crate::spaces::linear_to_photo(linear))
     }
 
     /// Rectangular crop: rows `top..top+h`, columns `left..left+w`.

@@ -555,6 +555,7 @@ pub fn atomic_write<F: FnOnce(&Path) -> Result<()>>(path: &Path, write: F) -> Re
             return Err(write_error(path, "it exists and is not a regular file"));
         }
     }
+    remove_stale_temporaries_once(dir);
     let n = TEMP_COUNTER.fetch_add(1, Ordering::Relaxed);
     let tmp = dir.join(format!(".{name}.tmp-{}-{n}", std::process::id()));
     let mut guard = TempGuard(Some(tmp.clone()));
@@ -565,6 +566,148 @@ pub fn atomic_write<F: FnOnce(&Path) -> Result<()>>(path: &Path, write: F) -> Re
     std::fs::rename(&tmp, path).map_err(|e| write_error(path, e))?;
     guard.0 = None;
     Ok(())
+}
+
+/// The writer's process id of one of [`atomic_write`]'s temporaries
+/// (`.NAME.tmp-PID-N`); None for any other file name.
+fn temporary_writer(name: &str) -> Option<i32> {
+    let (_, tail) = name.strip_prefix('.')?.rsplit_once(".tmp-")?;
+    let (pid, n) = tail.split_once('-')?;
+    n.parse::<u64>().ok()?;
+    pid.parse::<i32>().ok().filter(|&p| p > 0)
+}
+
+/// Whether process `pid` runs (on this machine): kill(pid, 0) fails with
+/// ESRCH only when there is no such process.
+fn process_runs(pid: i32) -> bool {
+    // SAFETY: signal 0 only checks that the process exists; nothing is sent.
+    let exists = unsafe { libc::kill(pid, 0) } == 0;
+    exists || std::io::Error::last_os_error().raw_os_error() != Some(libc::ESRCH)
+}
+
+/// Removes the temporaries of [`atomic_write`] in `dir` whose writer no
+/// longer runs: what a process killed during a write (SIGKILL, the
+/// out-of-memory killer) left. A running writer's temporary is kept.
+/// Returns how many were removed; an unreadable folder removes none.
+pub fn remove_stale_temporaries(dir: &Path) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
+    let mut removed = 0;
+    for entry in entries.flatten() {
+        let stale = entry.file_name().to_str().and_then(temporary_writer).is_some_and(|pid| !process_runs(pid));
+        if stale && entry.file_type().is_ok_and(|t| t.is_file()) && std::fs::remove_file(entry.path()).is_ok() {
+            removed += 1;
+        }
+    }
+    removed
+}
+
+/// [`remove_stale_temporaries`] the first time this process writes into
+/// `dir` (once per folder: a dataset writer puts thousands of files in one).
+fn remove_stale_temporaries_once(dir: &Path) {
+    static SEEN: std::sync::Mutex<Option<std::collections::HashSet<PathBuf>>> = std::sync::Mutex::new(None);
+    let key = dir.canonicalize().unwrap_or_else(|_| dir.to_path_buf());
+    let first = SEEN.lock().map(|mut seen| seen.get_or_insert_with(Default::default).insert(key)).unwrap_or(false);
+    if first {
+        remove_stale_temporaries(dir);
+    }
+}
+
+/// Name of the lock file of a folder owned with [`lock_folder`].
+pub const LOCK_FILE: &str = ".lock";
+
+/// Ownership of a folder (a training run's): an exclusive `flock` on
+/// `DIR/.lock`, which holds the owner's process id and host. The kernel
+/// releases the lock when the process ends however it ends (SIGKILL
+/// included), so a killed owner leaves no stuck lock; dropped, the lock
+/// file is removed.
+#[derive(Debug)]
+pub struct FolderLock {
+    /// Holds the lock until dropped (after `drop` removed the file).
+    _file: std::fs::File,
+    path: PathBuf,
+}
+
+impl Drop for FolderLock {
+    fn drop(&mut self) {
+        // Removed while still locked: a process that opened the file in
+        // between finds it gone after its flock and tries again.
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+fn flock(file: &std::fs::File, operation: i32) -> std::io::Result<()> {
+    use std::os::unix::io::AsRawFd;
+    // SAFETY: flock on a descriptor this File owns.
+    if unsafe { libc::flock(file.as_raw_fd(), operation) } == 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::last_os_error())
+    }
+}
+
+/// "pid P on HOST", the owner's record in a lock file.
+fn owner_record() -> String {
+    let mut host = [0u8; 256];
+    // SAFETY: gethostname writes at most `host.len()` bytes into the buffer.
+    let ok = unsafe { libc::gethostname(host.as_mut_ptr().cast(), host.len()) } == 0;
+    let end = host.iter().position(|&b| b == 0).unwrap_or(host.len());
+    let host = if ok { String::from_utf8_lossy(&host[..end]).into_owned() } else { "this machine".into() };
+    format!("pid {} on {host}", std::process::id())
+}
+
+/// Takes ownership of the existing folder `dir` for this process (see
+/// [`FolderLock`]). When another process owns it, the error is one line
+/// naming the owner. Where the file system has no locks, the folder is
+/// used unlocked, with a warning.
+pub fn lock_folder(dir: &Path) -> Result<FolderLock> {
+    use std::os::unix::fs::MetadataExt;
+    let path = dir.join(LOCK_FILE);
+    for _ in 0..100 {
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(|e| anyhow!("cannot lock {}: {e}", dir.display()))?;
+        match flock(&file, libc::LOCK_EX | libc::LOCK_NB) {
+            Ok(()) => {}
+            Err(e) if e.raw_os_error() == Some(libc::EWOULDBLOCK) => {
+                let owner = std::fs::read_to_string(&path).unwrap_or_default();
+                let owner = owner.trim();
+                let owner = if owner.is_empty() { "another process".to_string() } else { format!("flashmat {owner}") };
+                return Err(anyhow!("{} is in use by {owner}: one process at a time trains in a folder; wait for it to finish or stop it", dir.display()));
+            }
+            Err(e) => {
+                eprintln!("warning: cannot lock {} ({e}); make sure no other flashmat uses it", dir.display());
+                return Ok(FolderLock { _file: file, path });
+            }
+        }
+        // Its previous owner may have removed the file between our open
+        // and flock: only the file at the path counts.
+        let same = matches!((file.metadata(), std::fs::metadata(&path)), (Ok(a), Ok(b)) if (a.dev(), a.ino()) == (b.dev(), b.ino()));
+        if !same {
+            continue;
+        }
+        let mut f = &file;
+        f.set_len(0).and_then(|_| writeln!(f, "{}", owner_record())).map_err(|e| anyhow!("cannot lock {}: {e}", dir.display()))?;
+        return Ok(FolderLock { _file: file, path });
+    }
+    Err(anyhow!("cannot lock {}: its lock file keeps changing", dir.display()))
+}
+
+/// Who owns `dir` ([`lock_folder`]) right now: "flashmat pid P on HOST",
+/// or None when no process does.
+pub fn folder_owner(dir: &Path) -> Option<String> {
+    let path = dir.join(LOCK_FILE);
+    let file = std::fs::File::open(&path).ok()?;
+    match flock(&file, libc::LOCK_SH | libc::LOCK_NB) {
+        Err(e) if e.raw_os_error() == Some(libc::EWOULDBLOCK) => {
+            let owner = std::fs::read_to_string(&path).unwrap_or_default();
+            Some(format!("flashmat {}", owner.trim()))
+        }
+        _ => None,
+    }
 }
 
 /// Writes bytes atomically (see [`atomic_write`]).
@@ -1001,5 +1144,65 @@ mod tests {
         bad.data[5] = f32::NAN;
         assert!(write_png(&p, &bad, BitDepth::Eight).is_err());
         assert_eq!(std::fs::read(&p).unwrap(), before);
+    }
+
+    /// A process id that ran and has ended (a finished child's).
+    pub(crate) fn ended_pid() -> i32 {
+        let mut child = std::process::Command::new("true").spawn().unwrap();
+        let pid = child.id() as i32;
+        child.wait().unwrap();
+        pid
+    }
+
+    #[test]
+    fn stale_temporaries_of_ended_writers_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let dead = ended_pid();
+        let own = std::process::id();
+        for name in [
+            format!(".checkpoint.safetensors.tmp-{dead}-0"),
+            format!(".m.nmat.tmp-{own}-3"),
+            format!("visible.tmp-{dead}-0"),
+            ".notes.tmp-x-1".to_string(),
+            "kept.png".to_string(),
+        ] {
+            std::fs::write(d.join(name), b"x").unwrap();
+        }
+        assert_eq!(temporary_writer(&format!(".a.b.tmp-{dead}-7")), Some(dead));
+        assert_eq!(temporary_writer(".a.tmp-0-1"), None);
+        assert_eq!(remove_stale_temporaries(d), 1);
+        let left: Vec<String> = std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+        assert_eq!(left.len(), 4, "{left:?}");
+        assert!(!d.join(format!(".checkpoint.safetensors.tmp-{dead}-0")).exists());
+        // Any write into a folder removes them there (once per folder).
+        let sub = d.join("sub");
+        std::fs::create_dir(&sub).unwrap();
+        std::fs::write(sub.join(format!(".out.png.tmp-{dead}-2")), b"x").unwrap();
+        atomic_write_bytes(&sub.join("out.txt"), b"ok").unwrap();
+        assert_eq!(std::fs::read_dir(&sub).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn a_folder_has_one_owner_at_a_time() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        assert_eq!(folder_owner(d), None);
+        let lock = lock_folder(d).unwrap();
+        let record = std::fs::read_to_string(d.join(LOCK_FILE)).unwrap();
+        assert!(record.starts_with(&format!("pid {} on ", std::process::id())), "{record}");
+        // flock locks belong to the open file: a second owner in this
+        // process is refused as another process would be.
+        let e = lock_folder(d).unwrap_err().to_string();
+        assert!(e.contains(&format!("is in use by flashmat pid {}", std::process::id())) && !e.contains('\n'), "{e}");
+        assert!(folder_owner(d).unwrap().contains(&format!("pid {}", std::process::id())));
+        drop(lock);
+        assert!(!d.join(LOCK_FILE).exists());
+        assert_eq!(folder_owner(d), None);
+        // A lock file left by a killed owner is not a lock.
+        std::fs::write(d.join(LOCK_FILE), "pid 1 on elsewhere\n").unwrap();
+        let again = lock_folder(d).unwrap();
+        drop(again);
+        assert!(lock_folder(&d.join("missing")).unwrap_err().to_string().contains("cannot lock"));
     }
 }

@@ -89,6 +89,47 @@ pub const LAYER_WIDTH: Limit = Limit { env: "FLASHMAT_MAX_LAYER_WIDTH", default:
 /// libtorch threads (`--threads`).
 pub const MAX_THREADS: i64 = 1024;
 
+/// Recognises an out-of-memory failure in a libtorch error message (a
+/// `Torch(...)` error's text, or the panic of a tch method that unwrapped
+/// one, with its newlines escaped) and returns it as one line: which memory
+/// ran out and, where the message says, how much was asked for and free.
+/// None for any other message. Callers add what to lower: that depends on
+/// the command.
+pub fn out_of_memory(message: &str) -> Option<String> {
+    // The words after `key`, up to `words` of them, without trailing punctuation.
+    let after = |key: &str, words: usize| -> Option<String> {
+        let rest = &message[message.find(key)? + key.len()..];
+        let w: Vec<&str> = rest.split_whitespace().take(words).map(|w| w.trim_end_matches(['.', ',', ';', ')', '"'])).collect();
+        (w.len() == words && w[0].starts_with(|c: char| c.is_ascii_digit())).then(|| w.join(" "))
+    };
+    const GPU: [&str; 4] = ["CUDA out of memory", "CUDA error: out of memory", "CUBLAS_STATUS_ALLOC_FAILED", "CUDNN_STATUS_ALLOC_FAILED"];
+    const CPU: [&str; 4] = ["DefaultCPUAllocator: not enough memory", "DefaultCPUAllocator: can't allocate memory", "std::bad_alloc", "Cannot allocate memory"];
+    if GPU.iter().any(|p| message.contains(p)) {
+        let mut details = Vec::new();
+        if let Some(want) = after("Tried to allocate ", 2) {
+            details.push(format!("tried to allocate {want}"));
+        }
+        match (after(" of which ", 2), after("total capacity of ", 2)) {
+            (Some(free), Some(total)) => details.push(format!("{free} of the card's {total} free")),
+            (Some(free), None) => details.push(format!("{free} free")),
+            _ => {}
+        }
+        let details = if details.is_empty() { String::new() } else { format!(" ({})", details.join("; ")) };
+        return Some(format!("out of GPU memory{details}"));
+    }
+    // oneDNN (libtorch's CPU convolutions) reports a failed allocation
+    // while setting up a layer only as this (seen under a memory cap).
+    if message.contains("could not create a primitive") {
+        return Some("oneDNN could not create a primitive (most likely out of memory)".into());
+    }
+    if CPU.iter().any(|p| message.contains(p)) {
+        let size = |b: f64| if b >= (1u64 << 30) as f64 { format!("{:.2} GiB", b / (1u64 << 30) as f64) } else { format!("{:.0} MiB", b / (1u64 << 20) as f64) };
+        let want = after("tried to allocate ", 1).and_then(|b| b.parse::<f64>().ok()).map(|b| format!(" (tried to allocate {})", size(b)));
+        return Some(format!("out of memory{}", want.unwrap_or_default()));
+    }
+    None
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -100,5 +141,28 @@ mod tests {
         let e = l.check("--size", 11).unwrap_err().to_string();
         assert_eq!(e, "--size is 11 pixels, above the limit of 10 (set FLASHMAT_TEST_LIMIT_UNSET=N to raise it)");
         assert!(l.check_product("the step", &[u64::MAX, 3]).is_err());
+    }
+
+    /// libtorch's messages: a CUDA out-of-memory inside the panic of a tch
+    /// method, where the newlines of its C++ backtrace are escaped (the
+    /// message as libtorch 2.11's caching allocator assembles it: its
+    /// pieces are the strings of `libc10_cuda.so`; no GPU here to capture
+    /// one), and the CPU allocator's, captured from libtorch 2.11 under a
+    /// memory cap.
+    #[test]
+    fn out_of_memory_messages_become_one_line() {
+        let cuda = r#"called `Result::unwrap()` on an `Err` value: Torch("CUDA out of memory. Tried to allocate 64.00 GiB. GPU 0 has a total capacity of 79.19 GiB of which 62.94 GiB is free. Including non-PyTorch memory, this process has 16.24 GiB memory in use. Of the allocated memory 15.50 GiB is allocated by PyTorch, and 12.00 MiB is reserved by PyTorch but unallocated. If reserved but unallocated memory is large try setting PYTORCH_CUDA_ALLOC_CONF=expandable_segments:True to avoid fragmentation.  See documentation for Memory Management  (https://docs.pytorch.org/docs/stable/notes/cuda.html#optimizing-memory-usage-with-pytorch-cuda-alloc-conf)\nException raised from malloc at /pytorch/c10/cuda/CUDACachingAllocator.cpp:1463 (most recent call first):\nframe #0: c10::Error::Error(c10::SourceLocation, std::string) + 0x98\n")"#;
+        assert_eq!(out_of_memory(cuda).unwrap(), "out of GPU memory (tried to allocate 64.00 GiB; 62.94 GiB of the card's 79.19 GiB free)");
+        // The CUDA runtime's own error, without the allocator's details.
+        assert_eq!(out_of_memory("CUDA error: out of memory\nCUDA kernel errors might be asynchronously reported").unwrap(), "out of GPU memory");
+        let cpu = "[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to allocate 2199023255552 bytes. Error code 12 (Cannot allocate memory)";
+        assert_eq!(out_of_memory(cpu).unwrap(), "out of memory (tried to allocate 2048.00 GiB)");
+        assert_eq!(out_of_memory("DefaultCPUAllocator: not enough memory: you tried to allocate 83886080 bytes.").unwrap(), "out of memory (tried to allocate 80 MiB)");
+        // Captured from a training step under a memory cap.
+        let onednn = r#"called `Result::unwrap()` on an `Err` value: Torch("could not create a primitive")"#;
+        assert_eq!(out_of_memory(onednn).unwrap(), "oneDNN could not create a primitive (most likely out of memory)");
+        for other in ["shape '[2, 3]' is invalid for input of size 5", "CUDA error: an illegal memory access was encountered", "", "tried to allocate 5 bytes"] {
+            assert_eq!(out_of_memory(other), None, "{other}");
+        }
     }
 }

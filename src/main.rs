@@ -72,10 +72,43 @@ fn keep_freed_memory() {
     }
 }
 
+/// The command's [`cli::memory_hint`], for the panic hook (set once the
+/// options are parsed).
+static MEMORY_HINT: std::sync::OnceLock<&'static str> = std::sync::OnceLock::new();
+
+/// Set by the panic hook when the panic was libtorch running out of memory:
+/// an ordinary error (exit 1), not a bug.
+static OUT_OF_MEMORY: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// The one line of an out-of-memory error, if `message` is one.
+fn out_of_memory_line(message: &str) -> Option<String> {
+    let hint = MEMORY_HINT.get().copied().unwrap_or("lower --size");
+    flashmat::limits::out_of_memory(message).map(|oom| format!("{oom}: {hint}"))
+}
+
+/// An error as one line: its chain of contexts, where a libtorch
+/// out-of-memory (whose message carries a C++ backtrace) ends the line
+/// with what to lower instead.
+fn error_line(e: &anyhow::Error) -> String {
+    let mut parts = Vec::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if let Some(line) = out_of_memory_line(&text) {
+            parts.push(line);
+            return parts.join(": ");
+        }
+        parts.push(text);
+    }
+    format!("{e:#}")
+}
+
 fn main() {
     ensure_passive_openmp();
     keep_freed_memory();
-    // A bug must still end in one line, not a backtrace.
+    // A bug must still end in one line, not a backtrace; libtorch running
+    // out of memory (tch's methods panic on its errors) is no bug: one line
+    // saying what to lower. Outputs are written atomically and checkpoints
+    // replaced by rename, so what was written before stays whole.
     std::panic::set_hook(Box::new(|info| {
         let msg = info
             .payload()
@@ -83,24 +116,48 @@ fn main() {
             .cloned()
             .or_else(|| info.payload().downcast_ref::<&str>().map(|s| s.to_string()))
             .unwrap_or_default();
+        if let Some(line) = out_of_memory_line(&msg) {
+            // Only the first of several threads' panics is reported.
+            if !OUT_OF_MEMORY.swap(true, std::sync::atomic::Ordering::SeqCst) {
+                eprintln!("error: {line}");
+            }
+            return;
+        }
         let first = msg.lines().next().unwrap_or("").to_string();
         eprintln!("error: internal error: {first}");
     }));
     let cli = cli::Cli::parse();
+    let _ = MEMORY_HINT.set(cli::memory_hint(&cli.command));
     match std::panic::catch_unwind(|| cli::run(cli)) {
         Ok(Ok(())) => {}
         Ok(Err(e)) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_line(&e));
             std::process::exit(1);
         }
+        Err(_) if OUT_OF_MEMORY.load(std::sync::atomic::Ordering::SeqCst) => std::process::exit(1),
         Err(_) => std::process::exit(2),
     }
 }
 
 #[cfg(test)]
 mod tests {
-    use super::openmp_settings_to_add;
+    use super::{error_line, openmp_settings_to_add};
     use std::ffi::OsStr;
+
+    /// An out-of-memory deep in an error's chain (libtorch's message, C++
+    /// backtrace and all) ends the one line with what to lower; other
+    /// errors keep their chain.
+    #[test]
+    fn out_of_memory_errors_are_one_line() {
+        let torch = "CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of 79.19 GiB of which 1.50 GiB is free.\nException raised from malloc at CUDACachingAllocator.cpp:1463 (most recent call first):\nframe #0: c10::Error::Error";
+        let e = anyhow::anyhow!(torch).context("estimating p.png with model m.safetensors");
+        assert_eq!(
+            error_line(&e),
+            "estimating p.png with model m.safetensors: out of GPU memory (tried to allocate 2.00 GiB; 1.50 GiB of the card's 79.19 GiB free): lower --size"
+        );
+        let e = anyhow::anyhow!("no such file").context("cannot read p.png");
+        assert_eq!(error_line(&e), "cannot read p.png: no such file");
+    }
 
     #[test]
     fn openmp_settings_add_only_what_is_missing() {

@@ -2,7 +2,11 @@
 //!
 //! - linear: HDR radiance as rendered, unbounded;
 //! - log: ln(1 + R), what the networks read and predict;
-//! - display: (exp(log) - 1)^(1/2.2) = R^(1/2.2), clamped to [0,1] for 8 bit.
+//! - display: (exp(log) - 1)^(1/2.2) = R^(1/2.2), clamped to [0,1]: the
+//!   paper's display transform, where LPIPS compares pictures;
+//! - photo: the exact sRGB curve of every 8-bit picture flashmat writes or
+//!   reads as a photo ([`photo_encode`] / [`photo_decode`]), so that
+//!   `render -o p.png` and then `estimate p.png` see the same radiance.
 
 use tch::Tensor;
 
@@ -77,6 +81,23 @@ pub fn srgb_encode(v: f32) -> f32 {
     }
 }
 
+/// Linear radiance to the 8-bit picture value flashmat writes (renders,
+/// relights, grids, previews): the exact sRGB curve, clamped to [0, 1], the
+/// inverse of [`photo_decode`], so flashmat's own pictures read back as the
+/// radiance they show. (Image viewers assume sRGB for a PNG without colour
+/// chunks, too.)
+pub fn photo_encode(v: f32) -> f32 {
+    srgb_encode(v)
+}
+
+/// [`photo_encode`] of a tensor of linear radiance.
+pub fn linear_to_photo(linear: &Tensor) -> Tensor {
+    let v = linear.clamp(0.0, 1.0);
+    let toe = &v * 12.92;
+    let curve = v.pow_tensor_scalar(1.0 / 2.4) * 1.055 - 0.055;
+    toe.where_self(&v.le(0.003_130_8), &curve)
+}
+
 /// Quantizes a [0,1] value to 8 bits (round to nearest).
 pub fn quantize_u8(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0).round() as u8
@@ -132,5 +153,27 @@ mod tests {
         assert!((gamma_decode(128.0 / 255.0) - 0.219_520).abs() < 1e-5);
         assert_eq!(quantize_u8(0.5), 128);
         assert_eq!(quantize_u8(2.0), 255);
+        // The tensor form of the picture curve is the scalar one.
+        let x: Vec<f32> = vec![-1.0, 0.0, 0.001, 0.003_130_8, 0.01, 0.2, 0.9, 1.0, 3.0];
+        let t: Vec<f32> = Vec::try_from(linear_to_photo(&Tensor::from_slice(&x))).unwrap();
+        for (v, got) in x.iter().zip(&t) {
+            assert!((got - photo_encode(*v)).abs() < 1e-6, "{v}: {got}");
+        }
+    }
+
+    /// What flashmat writes as an 8-bit picture, its photo decoder reads
+    /// back as the same radiance (to within half a code), dark values
+    /// included. The former ^(1/2.2) encode wrote radiance 0.0008 as code
+    /// 10, which the sRGB decode reads as 0.0030, 3.8x too bright.
+    #[test]
+    fn written_pictures_decode_to_their_radiance() {
+        assert_eq!(quantize_u8(gamma_encode(0.000_8)), 10);
+        assert!((photo_decode(10.0 / 255.0) - 0.003_035).abs() < 1e-6);
+        assert_eq!(quantize_u8(photo_encode(0.000_8)), 3);
+        for v in [0.000_8f32, 0.002, 0.01, 0.05, 0.2, 0.5, 0.9] {
+            let code = quantize_u8(photo_encode(v)) as f32;
+            let (lo, hi) = (photo_decode((code - 0.5) / 255.0), photo_decode((code + 0.5) / 255.0));
+            assert!(lo <= v && v <= hi, "{v} -> code {code}: [{lo}, {hi}]");
+        }
     }
 }

@@ -221,3 +221,26 @@ fn baselines_train_resume_export_and_eval() {
     // --method with --resume is a usage error (the checkpoint knows its method).
     assert_eq!(flashmat(&["train", "--resume", &s(&dir.path().join("run-analytic")), "--method", "analytic"]).status.code(), Some(2));
 }
+
+/// Material folders whose float maps no material has are refused by
+/// render, eval and train with one line naming the file; roughness 0 (below
+/// the data's floor) is raised to it with a warning.
+#[test]
+fn absurd_material_maps_are_refused_or_raised_with_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let m = dir.path().join("m");
+    flashmat::data::loaders::write_material_dir(&m, &flashmat::svbrdf::Svbrdf::uniform(16, 16, [0.3; 3], [0.04; 3], 0.5)).unwrap();
+    let replace = |map: &str, v: f32| {
+        let _ = std::fs::remove_file(m.join(format!("{map}.png")));
+        flashmat::io::write_exr(&m.join(format!("{map}.exr")), &flashmat::image::Image::filled(if map == "roughness" { 1 } else { 3 }, 16, 16, v)).unwrap();
+    };
+    let o = dir.path().join("o.png");
+    replace("roughness", 0.0);
+    let err = assert_ok(&flashmat(&["render", "--svbrdf", s(&m), "-o", s(&o)]));
+    assert!(err.contains("warning: roughness map") && err.contains("256 of its 256 values are below the minimum roughness 0.02 and were raised to it"), "{err}");
+    replace("specular", 1e30);
+    assert_error(&flashmat(&["render", "--svbrdf", s(&m), "-o", s(&o)]), &["specular.exr has the value", "specular values lie in [0, 1]"]);
+    let out = flashmat(&["eval", "--model", "printout", "--dataset", s(&m), "--size", "32", "-o", s(&dir.path().join("eval"))]);
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    assert!(stderr(&out).contains("specular.exr has the value"), "{}", stderr(&out));
+}

@@ -450,6 +450,59 @@ fn build_corpus(root: &Path) -> Vec<Case> {
     push(&mut cases, "model with 1e30 weights: estimate".into(), est("in/photo.png", &[]).into_iter().map(|a| a.replace("tiny.safetensors", "huge-weights.safetensors")).collect(), error(&["huge-weights.safetensors", "NaN/Inf"]));
     drop(huge);
 
+    // Inputs that parse but contradict themselves or describe nothing.
+    let nmat_meta = split(&nmat).0["__metadata__"].as_object().unwrap().clone();
+    let with_meta = |key: &str, value: &str| -> Vec<u8> {
+        let mut meta = nmat_meta.clone();
+        meta.insert(key.into(), Value::String(value.into()));
+        reseal(&nmat, |h, _| {
+            h.insert("__metadata__".into(), Value::Object(meta));
+        })
+    };
+    let relight = |p: String| -> Vec<String> { vec!["relight".into(), p, "--identity".into(), "-o".into(), "{out}/r.png".into()] };
+    let p = write(d, "fov-nan.nmat", &with_meta("fov_deg", "NaN"));
+    push(&mut cases, "nmat with fov_deg NaN, checksums recomputed".into(), relight(p), error(&["fov-nan.nmat", "'fov_deg' is NaN"]));
+    let p = write(d, "crop-outside.nmat", &with_meta("crop", r#"{"x0":100,"y0":0,"width":150,"height":120,"source_width":160,"source_height":120}"#));
+    push(&mut cases, "nmat with a crop outside its photo, checksums recomputed".into(), relight(p), error(&["crop-outside.nmat", "outside its 160x120 source photo"]));
+    // Both tensors and the resolution transposed: consistent, but not with the crop.
+    let transposed = reseal(&nmat, |h, _| {
+        for name in ["neural_map", "input_photo"] {
+            h[name]["shape"].as_array_mut().unwrap().swap(1, 2);
+        }
+        let mut meta = h["__metadata__"].as_object().unwrap().clone();
+        let r: Vec<i64> = serde_json::from_str(meta["resolution"].as_str().unwrap()).unwrap();
+        meta.insert("resolution".into(), Value::String(format!("[{},{}]", r[1], r[0])));
+        h.insert("__metadata__".into(), Value::Object(meta));
+    });
+    let p = write(d, "transposed.nmat", &transposed);
+    push(&mut cases, "nmat stored transposed with a matching resolution".into(), relight(p), error(&["transposed.nmat", "aspect"]));
+    flashmat::io::write_exr(&d.join("allneg.exr"), &flashmat::image::Image::filled(3, 64, 64, -0.25)).unwrap();
+    push(&mut cases, "exr photo with every value negative".into(), est("in/allneg.exr", &[]), error(&["allneg.exr", "the photo is black"]));
+    // Material folders with float maps no material has.
+    for (name, map, channels, v, needle) in [
+        ("neg-diffuse", "diffuse", 3, -1.0f32, "diffuse.exr has the value -1"),
+        ("huge-specular", "specular", 3, 1e30, "specular.exr has the value 1000000000000000000000000000000"),
+        ("zero-normals", "normals", 3, 0.5, "zero-length normal"),
+    ] {
+        let m = d.join(name);
+        flashmat::data::loaders::write_material_dir(&m, &flashmat::svbrdf::Svbrdf::uniform(32, 32, [0.3; 3], [0.04; 3], 0.5)).unwrap();
+        std::fs::remove_file(m.join(format!("{map}.png"))).unwrap();
+        flashmat::io::write_exr(&m.join(format!("{map}.exr")), &flashmat::image::Image::filled(channels, 32, 32, v)).unwrap();
+        let dir = format!("in/{name}");
+        push(&mut cases, format!("material {name}: render"), vec!["render".into(), "--svbrdf".into(), dir.clone(), "-o".into(), "{out}/r.png".into()], error(&[needle]));
+        push(&mut cases, format!("material {name}: train"), ["train", "--preset", "tiny", "--crop", "32", "--outputs", "2", "--lpips-weight", "0", "--threads", "1", "--steps", "1", "--data", &dir, "--out", "{out}/run"].map(String::from).to_vec(), error(&[needle]));
+    }
+    // A run already at step 1 asked for a total of 1 (or fewer) steps.
+    push(&mut cases, "train --resume to a total it already reached".into(), ["train", "--resume", "in/run", "--steps", "1"].map(String::from).to_vec(), error(&["run in/run is already at step 1", "--steps 1"]));
+    // Run folders owned by another process (the test holds their locks).
+    std::fs::create_dir_all(d.join("owned-run")).unwrap();
+    for f in ["checkpoint.safetensors", "config.json"] {
+        std::fs::copy(d.join("run").join(f), d.join("owned-run").join(f)).unwrap();
+    }
+    std::fs::create_dir_all(d.join("owned-new")).unwrap();
+    push(&mut cases, "train --resume of a folder another process trains".into(), ["train", "--resume", "in/owned-run"].map(String::from).to_vec(), error(&["in/owned-run is in use by flashmat pid", "wait for it to finish"]));
+    push(&mut cases, "train --out a folder another process owns".into(), ["train", "--preset", "tiny", "--crop", "32", "--steps", "1", "--out", "in/owned-new"].map(String::from).to_vec(), error(&["in/owned-new is in use by flashmat pid"]));
+
     // Misleading names: a damaged picture is not a damaged material.
     let garbage: Vec<u8> = (0..3000u32).map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8).collect();
     let p = write(d, "garbage.png", &garbage);
@@ -558,6 +611,8 @@ fn build_corpus(root: &Path) -> Vec<Case> {
 fn bad_input_corpus() {
     let root = tempfile::tempdir().unwrap();
     let cases = build_corpus(root.path());
+    // The owner of two run folders of the corpus, for as long as it runs.
+    let _owners = ["owned-run", "owned-new"].map(|f| flashmat::io::lock_folder(&root.path().join("in").join(f)).unwrap());
     let inputs_before = listing(&root.path().join("in"));
     let next = std::sync::atomic::AtomicUsize::new(0);
     let results = std::sync::Mutex::new(Vec::new());
@@ -705,11 +760,13 @@ fn mutated_nmat_files_are_refused_or_identical() {
     let meta = flashmat::infer::NmatMeta {
         model_id: cfg.model_id(),
         fov_deg: 45.0,
-        crop: flashmat::infer::Crop { x0: 3, y0: 0, width: 20, height: 20, source_width: 26, source_height: 20 },
+        // The 6x10 map's aspect (a crop of another aspect is refused).
+        crop: flashmat::infer::Crop { x0: 3, y0: 4, width: 20, height: 12, source_width: 26, source_height: 20 },
         source: "photo.png".into(),
         ldr_input: true,
         model_info: ModelInfo { ldr_input: true, steps: 7 },
         refine: None,
+        gain: 0.5,
     };
     // Not square: swapped dimensions must not go unnoticed.
     let map = tch::Tensor::randn([cfg.neural_channels, 6, 10], (tch::Kind::Float, Device::Cpu));
@@ -878,4 +935,138 @@ fn diverging_run_stops_and_keeps_its_last_good_checkpoint() {
     assert_eq!(checkpoint_step(&run_dir), 3);
     let logged: Vec<u64> = run::read_log(&run_dir).iter().map(|l| l.step).collect();
     assert_eq!(logged, vec![1, 2, 3]);
+}
+
+/// A process id that ran and has ended (a finished child's).
+fn ended_pid() -> u32 {
+    let mut child = Command::new("true").spawn().unwrap();
+    let pid = child.id();
+    child.wait().unwrap();
+    pid
+}
+
+/// One run folder, one owner: of two `train --out` started together, one
+/// ends at once with one line naming the other; `--resume` of the running
+/// run meets the same line; `export --run` exports its last checkpoint and
+/// says the run is still training. SIGKILLed, the owner leaves no stuck
+/// lock, and the run that resumes removes the temporary a killed
+/// checkpoint write left.
+#[test]
+fn a_run_folder_has_one_owner_and_a_killed_one_leaves_nothing_stuck() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let r = d.join("r");
+    let args = ["train", "--preset", "tiny", "--crop", "32", "--outputs", "2", "--lpips-weight", "0", "--threads", "1", "--steps", "1000000", "--checkpoint-every", "2", "--preview-every", "0", "--out", "r"];
+    // No bundled photos under this root: checkpoints skip the photo check (seconds each).
+    let cmd = |args: &[&str]| {
+        let mut c = flashmat_cmd(args, d);
+        c.env(flashmat::ROOT_ENV, d);
+        c
+    };
+    let spawn = |name: &str| cmd(&args).stdout(Stdio::null()).stderr(std::fs::File::create(d.join(name)).unwrap()).spawn().unwrap();
+    let (mut a, mut b) = (spawn("a.err"), spawn("b.err"));
+    let start = Instant::now();
+    let (mut winner, loser, loser_err) = loop {
+        if let Some(status) = a.try_wait().unwrap() {
+            break (b, status, "a.err");
+        }
+        if let Some(status) = b.try_wait().unwrap() {
+            break (a, status, "b.err");
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "neither run of the same folder stopped");
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    let one_error_line = |code: Option<i32>, err: &str, needles: &[&str]| {
+        let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+        assert!(code == Some(1) && lines.len() == 1 && lines[0].starts_with("error: "), "exit {code:?}: {err}");
+        for n in needles {
+            assert!(lines[0].contains(n), "'{n}' not in: {err}");
+        }
+    };
+    let owner = format!("r is in use by flashmat pid {}", winner.id());
+    one_error_line(loser.code(), &std::fs::read_to_string(d.join(loser_err)).unwrap(), &[&owner, "wait for it to finish"]);
+    while !run::checkpoint_path(&r).exists() {
+        assert!(start.elapsed() < Duration::from_secs(120), "the run wrote no checkpoint");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let out = cmd(&["train", "--resume", "r"]).output().unwrap();
+    one_error_line(out.status.code(), &String::from_utf8_lossy(&out.stderr), &[&owner]);
+    let out = cmd(&["export", "--run", "r", "-o", "m.safetensors"]).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains(&format!("the run is still training (flashmat pid {}", winner.id())), "{err}");
+    Model::load(d.join("m.safetensors"), Device::Cpu).unwrap();
+
+    // What a checkpoint write killed by SIGKILL leaves behind.
+    let stale = r.join(format!(".checkpoint.safetensors.tmp-{}-0", ended_pid()));
+    std::fs::write(&stale, b"half a checkpoint").unwrap();
+    winner.kill().unwrap();
+    winner.wait().unwrap();
+    assert!(r.join(flashmat::io::LOCK_FILE).exists(), "a killed owner cannot remove its lock file");
+    let k = checkpoint_step(&r);
+    let total = (k + 1).to_string();
+    let out = cmd(&["train", "--resume", "r", "--steps", &total]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(checkpoint_step(&r), k + 1);
+    let left: Vec<String> = listing(&r).into_iter().map(|(n, _)| n).filter(|n| n.contains(".tmp-") || n.contains(flashmat::io::LOCK_FILE)).collect();
+    assert!(left.is_empty(), "left in the run folder: {left:?}");
+}
+
+/// Runs flashmat in `cwd` under a 900 MB data cap (`ulimit -d`: the heap
+/// and anonymous mappings, not the 3 GB of mapped libraries), without the
+/// bundled photos (a checkpoint's photo check takes seconds).
+fn run_data_capped(args: &[&str], cwd: &Path) -> std::process::Output {
+    Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -d 900000 && exec \"$0\" \"$@\"")
+        .arg(BIN)
+        .args(args)
+        .current_dir(cwd)
+        .env("OMP_WAIT_POLICY", "PASSIVE")
+        .env("OMP_NUM_THREADS", "1")
+        .env(flashmat::ROOT_ENV, cwd)
+        .output()
+        .unwrap()
+}
+
+/// The one error line of an out-of-memory, ending with what to lower.
+fn assert_out_of_memory_line(out: &std::process::Output, hint: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(crash_text(&err), None, "{err}");
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert_eq!(lines.len(), 1, "{err}");
+    assert!(lines[0].starts_with("error: ") && lines[0].contains("out of memory") && lines[0].ends_with(hint), "{err}");
+}
+
+/// Running out of memory is one line that says what to lower, not a panic
+/// with libtorch's backtrace, under a memory cap: a 1024x1024 estimate
+/// forced whole (`--max-memory 1T`) fails in libtorch's CPU allocator
+/// within its first layers and writes nothing; a training step of crops
+/// too large for the cap stops the resumed run, whose checkpoint stays as
+/// it was.
+#[test]
+fn out_of_memory_is_one_line_naming_what_to_lower() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    flashmat::io::write_png(&d.join("p.png"), &flashmat::image::Image::filled(3, 1024, 1024, 0.5), flashmat::io::BitDepth::Eight).unwrap();
+    tch::manual_seed(1);
+    Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(d.join("tiny.safetensors"), &ModelInfo { ldr_input: true, steps: 1 }, false).unwrap();
+    std::fs::create_dir(d.join("out")).unwrap();
+    let out = run_data_capped(&["estimate", "p.png", "--model", "tiny.safetensors", "--size", "1024", "--max-memory", "1T", "-o", "out/m.nmat"], d);
+    assert_out_of_memory_line(&out, ": lower --max-memory (M_est then runs in tiles) or --size");
+    assert!(listing(&d.join("out")).is_empty());
+
+    // One step without the cap (about 1 GB at its peak), the next under it.
+    let out = flashmat_cmd(&["train", "--preset", "tiny", "--crop", "96", "--batch", "2", "--outputs", "6", "--lpips-weight", "0", "--adv-weight", "0", "--threads", "1", "--steps", "1", "--preview-every", "0", "--out", "r"], d)
+        .env(flashmat::ROOT_ENV, d)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let before = listing(&d.join("r"));
+    let checkpoint = std::fs::read(run::checkpoint_path(&d.join("r"))).unwrap();
+    let out = run_data_capped(&["train", "--resume", "r", "--steps", "2"], d);
+    assert_out_of_memory_line(&out, ": lower --batch, --crop or --outputs");
+    assert_eq!(std::fs::read(run::checkpoint_path(&d.join("r"))).unwrap(), checkpoint);
+    let after: Vec<_> = listing(&d.join("r")).into_iter().filter(|(n, _)| n != "log.jsonl").collect();
+    assert_eq!(after, before.into_iter().filter(|(n, _)| n != "log.jsonl").collect::<Vec<_>>(), "the run folder changed");
 }

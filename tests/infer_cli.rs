@@ -280,3 +280,43 @@ fn refine_on_estimate_and_on_a_nmat_is_recorded_and_checked() {
     assert!(!out.exists());
     no_temp_files(d);
 }
+
+/// flashmat's pictures carry the curve its photo reader assumes: `render
+/// -o p.png` of a dark material read back by `estimate`'s decoder is the
+/// radiance `render -o p.exr` writes, to within an 8-bit code, shadows
+/// included (with the former ^(1/2.2) encode, code 10 came back 3.8x too
+/// bright). Photos that are usable but not quite right are estimated with
+/// a one-line warning each.
+#[test]
+fn rendered_pngs_round_trip_and_questionable_photos_warn() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let render = |out: &Path| assert_ok(&flashmat(&["render", "--svbrdf", "procedural:3", "--size", "32", "--light", "2,1,0.6", "-o", s(out)]));
+    render(&d.join("r.png"));
+    render(&d.join("r.exr"));
+    let (png, exr) = (flashmat::io::read_image(&d.join("r.png")).unwrap(), flashmat::io::read_image(&d.join("r.exr")).unwrap());
+    let mut dark = 0;
+    for (p, e) in png.data.iter().zip(&exr.data) {
+        let e = e.clamp(0.0, 1.0);
+        let code = (p * 255.0).round();
+        // Half a code either side of the stored one brackets the radiance.
+        let (lo, hi) = (flashmat::spaces::photo_decode((code - 0.5).max(0.0) / 255.0), flashmat::spaces::photo_decode((code + 0.5).min(255.0) / 255.0));
+        assert!(e >= lo - 1e-6 && e <= hi + 1e-6, "radiance {e} written as code {code}");
+        dark += (code <= 12.0) as usize;
+    }
+    assert!(dark > 10, "the test render has no shadows ({dark} dark values)");
+
+    let model = tiny_model(&d.join("tiny.safetensors"), true, 2);
+    let mut rgba = flash_render(64, 64).map(flashmat::spaces::srgb_encode);
+    rgba = Image::from_fn(4, 64, 64, |c, y, x| if c < 3 { rgba.get(c, y, x) } else if y < 8 { 0.0 } else { 1.0 });
+    flashmat::io::write_png(&d.join("alpha.png"), &rgba, flashmat::io::BitDepth::Eight).unwrap();
+    let err = assert_ok(&flashmat(&["estimate", s(&d.join("alpha.png")), "--model", s(&model), "--size", "64", "-o", s(&d.join("a.nmat"))]));
+    let warnings: Vec<&str> = err.lines().filter(|l| l.starts_with("warning: ")).collect();
+    assert_eq!(warnings.len(), 1, "{err}");
+    assert!(warnings[0].contains("alpha.png: 512 of its 4096 pixels (12.50%) are transparent"), "{err}");
+    let mut noisy = flash_render(64, 64);
+    noisy.data[..100].iter_mut().for_each(|v| *v = -0.001);
+    flashmat::io::write_exr(&d.join("noisy.exr"), &noisy).unwrap();
+    let err = assert_ok(&flashmat(&["relight", s(&d.join("noisy.exr")), "--identity", "--model", s(&model), "--size", "64", "-o", s(&d.join("n.png"))]));
+    assert!(err.contains("warning: ") && err.contains("noisy.exr: 100 of its 12288 colour values (0.81%) are negative"), "{err}");
+}

@@ -13,15 +13,16 @@ from dataclasses import dataclass
 import numpy as np
 
 NMAT_FORMAT = "flashmat-nmat"
-NMAT_VERSION = "2"
+NMAT_VERSION = "3"
 # Version 2 allows rectangular maps (a renderer-side geometry change only:
-# per-pixel parameters and the network are read the same way), so both are read.
-NMAT_READABLE_VERSIONS = ("1", "2")
+# per-pixel parameters and the network are read the same way); version 3
+# adds the exposure `gain` (1 when absent), so all three are read.
+NMAT_READABLE_VERSIONS = ("1", "2", "3")
 CONFIG_INT_KEYS = ("neural_channels", "enc_frequencies", "enc_hidden", "enc_out", "render_hidden", "render_narrow")
 
 
 class NmatError(ValueError):
-    """A file that is not a readable flashmat .nmat (version 1 or 2)."""
+    """A file that is not a readable flashmat .nmat (version 1, 2 or 3)."""
 
 
 @dataclass
@@ -32,6 +33,7 @@ class Nmat:
     m_render: list  # 7 weight matrices [out, in] float32
     config: dict  # the sizes (ints) and "name"
     meta: dict  # all metadata strings
+    gain: float = 1.0  # exposure: renders are the network's radiance times this
 
     @property
     def channels(self):
@@ -108,7 +110,7 @@ def read_nmat(path):
     if fmt != NMAT_FORMAT:
         fail(f"not a flashmat .nmat file (format tag {fmt!r}, expected {NMAT_FORMAT!r})")
     if meta.get("flashmat.version") not in NMAT_READABLE_VERSIONS:
-        fail(f"unsupported .nmat version {meta.get('flashmat.version')!r} (this reader knows versions 1 and 2)")
+        fail(f"unsupported .nmat version {meta.get('flashmat.version')!r} (this reader knows versions 1, 2 and 3)")
     body = data[8 + n :]
     crc = 0
     tensors = {}
@@ -155,6 +157,12 @@ def read_nmat(path):
     nmap = tensors.get("neural_map")
     if nmap is None or nmap.ndim != 3 or nmap.shape[0] != c:
         fail(f"missing or malformed `neural_map` (expected [{c}, H, W])")
+    try:
+        gain = float(meta.get("gain", "1"))
+    except ValueError:
+        gain = float("nan")
+    if not (np.isfinite(gain) and gain > 0):
+        fail(f"metadata field 'gain' must be a positive number, got {meta.get('gain')!r}")
     return Nmat(
         path=path,
         neural_map=nmap,
@@ -162,6 +170,7 @@ def read_nmat(path):
         m_render=[tensors[f"renderer.m_render.{i}.weight"] for i in range(7)],
         config=config,
         meta=meta,
+        gain=gain,
     )
 
 

@@ -227,3 +227,21 @@ def test_llvm_render_matches_identity_reference():
     log_diff = np.abs(np.log1p(img) - np.log1p(expected))
     assert np.median(log_diff) < 1e-3, np.median(log_diff)
     assert np.corrcoef(np.log1p(img).ravel(), np.log1p(expected).ravel())[0, 1] > 0.999
+
+
+def test_scalar_gain_scales_eval(synthetic_nmat, tmp_path):
+    """A material's exposure gain multiplies eval (and only eval: the network's log radiance is the same)."""
+    from conftest import write_nmat, synthetic_tensors
+
+    mi = set_variant("scalar_rgb")
+    t, meta = synthetic_tensors()
+    values = {}
+    for gain in ("1", "0.25"):
+        p = tmp_path / f"gain{gain}.nmat"
+        write_nmat(p, t, {**meta, "flashmat.version": "3", "gain": gain})
+        bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(p), "pixel_x": 3, "pixel_y": 2})
+        si = mi.SurfaceInteraction3f()
+        si.wi = mi.Vector3f(0.3, -0.2, 0.93)
+        values[gain] = np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(-0.1, 0.4, 0.91)))
+    assert values["1"].max() > 0
+    np.testing.assert_allclose(values["0.25"], 0.25 * values["1"], rtol=1e-6)

@@ -65,9 +65,9 @@ def test_foreign_files(tmp_path):
 
 def test_other_version_and_shapes(tmp_path):
     t, meta = synthetic_tensors()
-    p = tmp_path / "v3.nmat"
-    write_nmat(p, t, {**meta, "flashmat.version": "3"})
-    expect_error(p, "unsupported .nmat version '3'")
+    p = tmp_path / "v4.nmat"
+    write_nmat(p, t, {**meta, "flashmat.version": "4"})
+    expect_error(p, "unsupported .nmat version '4'")
     t2 = dict(t)
     t2["renderer.m_render.6.weight"] = np.zeros((4, 8), np.float32)
     p = tmp_path / "shape.nmat"
@@ -111,3 +111,16 @@ def test_header_checksum(tmp_path):
         renamed = tmp_path / "renamed.nmat"
         write_nmat(renamed, t, {**meta, key: f"{header_crc(header, meta_all):08x}"})
         expect_error(renamed, "unknown integrity field")
+
+
+def test_gain_of_version_3(tmp_path):
+    """Version 3's exposure gain is read (1 when absent, as in versions 1 and 2); a gain that is not a positive number is refused."""
+    t, meta = synthetic_tensors()
+    p = tmp_path / "v1.nmat"
+    write_nmat(p, t, meta)
+    assert read_nmat(p).gain == 1.0
+    write_nmat(p, t, {**meta, "flashmat.version": "3", "gain": "0.0625"})
+    assert read_nmat(p).gain == 0.0625
+    for bad in ("0", "-1", "nan", "inf", "bright"):
+        write_nmat(p, t, {**meta, "flashmat.version": "3", "gain": bad})
+        expect_error(p, "metadata field 'gain' must be a positive number")

@@ -20,7 +20,8 @@ pub struct EvalArgs {
     /// configurations, e.g. the unrefined and refined rows of two runs) and rewrite summary.md (and refine.png).
     #[arg(long, conflicts_with_all = ["models", "captures", "uniform"])]
     pub summarize: bool,
-    /// `procedural-test` (the 50 held-out procedural materials), `procedural-test:I` (one of them) or a dataset folder/strip file
+    /// `procedural-test` (the 50 held-out procedural materials), `procedural-test:I` (one of them), `procedural-dark-test`
+    /// (30 held-out dark materials: diffuse albedo x0.02-0.35) or a dataset folder/strip file
     /// (materials centre-cropped to a square and resized to --size).
     #[arg(long, default_value = PROCEDURAL_TEST)]
     pub dataset: String,
@@ -69,6 +70,9 @@ pub struct EvalArgs {
     pub refine: Option<Vec<usize>>,
     #[command(flatten)]
     pub refine_weights: super::infer::RefineWeights,
+    /// How flashmat models handle the photo's exposure (see `flashmat estimate --help`).
+    #[arg(long, value_enum, default_value_t = super::infer::ExposureMode::Calibrated)]
+    pub exposure_mode: super::infer::ExposureMode,
 }
 
 impl EvalArgs {
@@ -101,6 +105,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             device: flashmat::device::parse_device(&args.device)?,
             progress: true,
             refine: args.refine_configs()?,
+            exposure: args.exposure_mode.config(),
         };
         eval::captures::run(&opts)?;
         return print_summary(&args.output);
@@ -125,6 +130,7 @@ fn eval_options(args: &EvalArgs) -> Result<EvalOptions> {
         progress: true,
         refine: args.refine_configs()?,
         exposures: args.exposures.clone(),
+        exposure: args.exposure_mode.config(),
     })
 }
 

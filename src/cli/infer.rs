@@ -28,6 +28,12 @@ pub struct EstimateOptions {
     /// Exposure change in stops applied to the linearised photo (+1 doubles it).
     #[arg(long, value_name = "EV", allow_negative_numbers = true)]
     pub exposure: Option<f64>,
+    /// How the photo's exposure reaches the material: `calibrated` (a photo darker than M_est's training photos
+    /// is brought up to their brightness, the material keeps the exposure as a gain calibrated on the photo),
+    /// `normalized` (the same without the calibration) or `off` (M_est sees the photo as it is, as before
+    /// version 3 of .nmat).
+    #[arg(long, value_enum, default_value_t = ExposureMode::Calibrated)]
+    pub exposure_mode: ExposureMode,
     /// Model resolution in pixels of the shorter side (a multiple of 8); the cropped photo is shrunk to it and
     /// the longer side follows the photo's aspect (rounded down to a multiple of 8).
     #[arg(long, default_value_t = 256)]
@@ -83,7 +89,29 @@ impl RefineWeights {
     }
 }
 
+/// `--exposure-mode`: which of [`infer::ExposureConfig`]'s steps run.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ExposureMode {
+    Calibrated,
+    Normalized,
+    Off,
+}
+
+impl ExposureMode {
+    pub fn config(self) -> infer::ExposureConfig {
+        match self {
+            ExposureMode::Calibrated => infer::ExposureConfig::default(),
+            ExposureMode::Normalized => infer::ExposureConfig { calibrate: false, ..Default::default() },
+            ExposureMode::Off => infer::ExposureConfig::off(),
+        }
+    }
+}
+
 impl EstimateOptions {
+    fn exposure_config(&self) -> infer::ExposureConfig {
+        self.exposure_mode.config()
+    }
+
     /// The requested refinement, checked; None without `--refine` or with `--refine 0`.
     fn refine_config(&self) -> Result<Option<RefineConfig>> {
         let Some(steps) = self.refine.filter(|&s| s > 0) else { return Ok(None) };
@@ -130,7 +158,7 @@ pub struct RelightArgs {
     /// Light and camera of the input photo (re-creates the photo).
     #[arg(long)]
     pub identity: bool,
-    /// Output: .png (display-encoded) or .exr (linear radiance); .gif with --orbit.
+    /// Output: .png (8-bit sRGB) or .exr (linear radiance); .gif with --orbit.
     #[arg(short, long)]
     pub output: PathBuf,
     #[command(flatten)]
@@ -169,6 +197,9 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
     let t0 = Instant::now();
     let prepared = infer::load_photo_with(photo, &infer::PhotoOptions { fov_deg: opts.fov, size: opts.size, exposure_ev: opts.exposure, square: opts.square })?;
     let t_photo = t0.elapsed().as_secs_f64();
+    for w in &prepared.warnings {
+        eprintln!("warning: {w}");
+    }
     let loaded = infer::load_model(opts.model.as_deref(), device)?;
     // The bundled model serves both photo types by design: warn only for a chosen one.
     if let Some(w) = opts.model.as_ref().and_then(|_| infer::input_mismatch_warning(&loaded.info, &loaded.path, prepared.ldr)) {
@@ -177,7 +208,7 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
     let (h, w) = (prepared.linear.height, prepared.linear.width);
     let plan = infer::plan_estimate(&loaded.model.config, h, w, max_memory).with_context(|| format!("{}", photo.display()))?;
     let t1 = Instant::now();
-    let mut material = infer::estimate_planned(&loaded.model, &loaded.info, &prepared, &plan, || ())
+    let mut material = infer::estimate_planned(&loaded.model, &loaded.info, &prepared, &plan, &opts.exposure_config(), || ())
         .with_context(|| format!("estimating {} with model {}", photo.display(), loaded.path.display()))?;
     if let Device::Cuda(i) = device {
         tch::Cuda::synchronize(i as i64);

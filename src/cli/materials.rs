@@ -46,7 +46,7 @@ fn check_material_size(option: &str, size: usize) -> Result<()> {
     flashmat::limits::MATERIAL_SIZE.check(option, size as u64)
 }
 
-/// Writes a linear render: EXR keeps radiance, PNG gets the display transform.
+/// Writes a linear render: EXR keeps radiance, PNG gets the sRGB curve (`Image::to_display`).
 pub fn write_render(path: &std::path::Path, linear: &Image) -> Result<()> {
     let out_dir = prepare_output(path)?;
     match path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {

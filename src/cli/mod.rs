@@ -25,7 +25,7 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
-    /// Render a GGX material for a point light and a camera (PNG: display-encoded; EXR: linear HDR).
+    /// Render a GGX material for a point light and a camera (PNG: 8-bit sRGB, as estimate reads photos; EXR: linear HDR).
     Render(RenderArgs),
     /// Procedural and on-disk SVBRDF datasets.
     #[command(subcommand)]
@@ -153,7 +153,7 @@ pub struct RenderArgs {
     /// Camera position X,Y,Z (z must be > 0). Default: straight overhead at the 28 degree model FOV distance.
     #[arg(long, value_name = "X,Y,Z")]
     pub view: Option<Vec3Arg>,
-    /// Output image: .png (display-encoded, 8-bit) or .exr (linear HDR radiance).
+    /// Output image: .png (8-bit sRGB, as estimate reads photos) or .exr (linear HDR radiance).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Cast shadows from the material's height field (maps loaded from disk get one integrated from their normals).
@@ -268,6 +268,21 @@ pub fn prepare_output(path: &std::path::Path) -> Result<OutputDir> {
         }
     }
     Ok(guard)
+}
+
+/// What to lower when `command` runs out of memory: the end of its one
+/// error line (`main`; the line's start is `flashmat::limits::out_of_memory`).
+pub fn memory_hint(command: &Command) -> &'static str {
+    match command {
+        Command::Train(_) => "lower --batch, --crop or --outputs",
+        Command::TrainTeacher(_) => "lower --pixels",
+        Command::Estimate(_) | Command::Relight(_) | Command::Show(_) | Command::View(_) | Command::Fit(_) => {
+            "lower --max-memory (M_est then runs in tiles) or --size"
+        }
+        Command::Bench(_) => "lower --size, --crop or --batch",
+        Command::Render(_) | Command::Svbrdf(_) | Command::Eval(_) | Command::ShadowEval(_) => "lower --size",
+        Command::Export(_) | Command::Average(_) | Command::NmatRows(_) => "free memory or use a machine with more",
+    }
 }
 
 pub fn run(cli: Cli) -> Result<()> {

@@ -118,6 +118,11 @@ pub struct TrainArgs {
     /// With --resume: from the resumed step on.
     #[arg(long, value_name = "P", value_parser = super::fraction)]
     pub colour_augment: Option<f64>,
+    /// Make this fraction of the procedural training materials dark (diffuse albedo times 0.02-0.35,
+    /// log-uniform: dark wood, slate, black leather, asphalt, dark paint; default and paper: 0; 0.25 is
+    /// the share the next GPU campaign trains with, docs/GPU.md). New runs only.
+    #[arg(long, value_name = "P", value_parser = super::fraction, conflicts_with = "resume")]
+    pub dark_share: Option<f64>,
     /// Of each material's output renders, make N co-located: the input's own light and view, then
     /// light and camera together at random points above the material (default and paper: 0, "reflect" only). Trains
     /// the renderer where light and view meet near the normal. With --resume: from the resumed step on.
@@ -330,6 +335,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         adv_start: a.adv_start,
         frozen_bn_from: a.frozen_bn_from,
         colour_augment: a.colour_augment.unwrap_or(0.0),
+        dark_share: a.dark_share.unwrap_or(0.0),
         colocated_outputs: a.colocated_outputs.unwrap_or(0),
         hemisphere_outputs: a.hemisphere_outputs.unwrap_or(0),
         checkerboard_free: a.checkerboard_free,
@@ -359,19 +365,23 @@ pub fn train(a: &TrainArgs) -> Result<()> {
 pub fn export(a: &ExportArgs) -> Result<()> {
     use flashmat::train::run::RunTrainer;
     let ckpt = run::checkpoint_path(&a.run);
+    // Exporting a run that is still training is how its snapshots are kept
+    // (docs/TRAINING.md): checkpoints are replaced by rename, so the file
+    // read is always a whole one. Say so, as the next one will differ.
+    let training = flashmat::io::folder_owner(&a.run).map(|owner| format!("; the run is still training ({owner})")).unwrap_or_default();
     if ckpt.exists() && !flashmat::train::Trainer::checkpoint_config(&ckpt)?.method.is_flashmat() {
         let trainer = BaselineTrainer::resume(&ckpt, Device::Cpu)?;
         let out_dir = super::prepare_output(&a.output)?;
         trainer.export_model(&a.output, !a.f32)?;
         out_dir.keep();
-        eprintln!("wrote {} ({} baseline {}, step {})", a.output.display(), trainer.config.method, trainer.net.model_id(), trainer.step);
+        eprintln!("wrote {} ({} baseline {}, step {}{training})", a.output.display(), trainer.config.method, trainer.net.model_id(), trainer.step);
         return Ok(());
     }
     let trainer = flashmat::train::Trainer::resume(&ckpt, Device::Cpu, None)?;
     let out_dir = super::prepare_output(&a.output)?;
     trainer.export_model(&a.output, !a.f32)?;
     out_dir.keep();
-    eprintln!("wrote {} (model {}, step {})", a.output.display(), trainer.model.model_id(), trainer.step);
+    eprintln!("wrote {} (model {}, step {}{training})", a.output.display(), trainer.model.model_id(), trainer.step);
     Ok(())
 }
 

@@ -212,7 +212,9 @@ pub fn write_synthetic(dir: &Path, material: &Svbrdf, configs: &[LightView], sam
     let renders = crate::svbrdf::cpu::render_tensor(material, configs);
     for (i, c) in configs.iter().enumerate() {
         let linear = renders.get(i as i64) * falloff(c.light, r0, h, w);
-        let display = Image::display_of(&linear)?;
+        // Capture folders are ^2.2-encoded (read with `gamma_decode`), unlike
+        // flashmat's other pictures.
+        let display = Image::from_tensor(&crate::spaces::linear_to_display(&linear))?;
         crate::io::write_png(&dir.join(format!("{i:02}.png")), &display, crate::io::BitDepth::Eight)?;
     }
     let unit = sample_width / 2.0;

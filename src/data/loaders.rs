@@ -74,18 +74,66 @@ fn extension_rank(path: &Path) -> Option<usize> {
     MAP_EXTENSIONS.iter().position(|e| *e == ext)
 }
 
-/// Converts one stored map to its linear `Svbrdf` form (see the module docs).
+/// How far outside [0, 1] a float map's albedo or roughness may stray
+/// (rounding in whatever wrote it) before the map is refused; values
+/// within it are clamped.
+pub const MAP_RANGE_SLACK: f32 = 0.01;
+
+/// The first value of `image` outside `[lo, hi]` widened by
+/// [`MAP_RANGE_SLACK`], as an error naming the map, the file and the place.
+fn check_range(image: &Image, lo: f32, hi: f32, what: &str, path: &Path) -> Result<()> {
+    let n = image.height * image.width;
+    if let Some(i) = image.data.iter().position(|&v| v < lo - MAP_RANGE_SLACK || v > hi + MAP_RANGE_SLACK) {
+        let (c, y, x) = (i / n, (i % n) / image.width, i % image.width);
+        bail!("{what} map {} has the value {} at row {y}, column {x}, channel {c}: {what} values lie in [{lo}, {hi}]", path.display(), image.data[i]);
+    }
+    Ok(())
+}
+
+/// Roughness below the data's floor ([`crate::data::procedural::MIN_ROUGHNESS`]) by more than half
+/// an 8-bit code: GGX's highlight degenerates at 0 (NaN where the half
+/// vector meets the normal) and the networks never saw it. Raised to the
+/// floor, with one warning per process (a dataset has many such maps).
+fn raise_roughness(rough: &mut Image, path: &Path) {
+    let floor = crate::data::procedural::MIN_ROUGHNESS;
+    let below = rough.data.iter().filter(|&&v| v < floor - 0.5 / 255.0).count();
+    if below == 0 {
+        return;
+    }
+    rough.data.iter_mut().for_each(|v| *v = v.max(floor));
+    static WARNED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+    if !WARNED.swap(true, std::sync::atomic::Ordering::Relaxed) {
+        eprintln!(
+            "warning: roughness map {}: {below} of its {} values are below the minimum roughness {floor} and were raised to it (other maps like it: in silence)",
+            path.display(),
+            rough.data.len()
+        );
+    }
+}
+
+/// Converts one stored map to its linear `Svbrdf` form (see the module
+/// docs). Values no material has are refused with one line naming the
+/// file: albedos and roughness outside [0, 1] (float files can hold any
+/// value: -1, 1e30), normals of no direction; roughness below the floor is
+/// raised to it ([`raise_roughness`]).
 fn decode_map(map: Map, image: Image, format: FileFormat, path: &Path) -> Result<Image> {
     Ok(match map {
         Map::Diffuse | Map::Specular => {
             let rgb = io::to_rgb(&image);
             if format.is_float() {
-                rgb
+                check_range(&rgb, 0.0, 1.0, map.name(), path)?;
+                rgb.map(|v| v.clamp(0.0, 1.0))
             } else {
                 rgb.map(gamma_decode)
             }
         }
-        Map::Roughness => io::first_channel(&image),
+        Map::Roughness => {
+            let mut rough = io::first_channel(&image);
+            check_range(&rough, 0.0, 1.0, "roughness", path)?;
+            rough.data.iter_mut().for_each(|v| *v = v.min(1.0));
+            raise_roughness(&mut rough, path);
+            rough
+        }
         Map::Normals => {
             if image.channels < 3 {
                 bail!("normal map {} has {} channel(s), expected RGB", path.display(), image.channels);
@@ -102,10 +150,29 @@ fn decode_map(map: Map, image: Image, format: FileFormat, path: &Path) -> Result
                     );
                 }
             }
+            // (0.5, 0.5, 0.5) encodes the zero vector: no direction to
+            // normalise (an 8-bit grey pixel is within a code of it).
+            let n = encoded.height * encoded.width;
+            let short = (0..n).find(|&i| {
+                let v = [0, 1, 2].map(|c| 2.0 * encoded.data[c * n + i] - 1.0);
+                (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt() < MIN_ENCODED_NORMAL
+            });
+            if let Some(i) = short {
+                let (y, x) = (i / encoded.width, i % encoded.width);
+                let rgb = [0, 1, 2].map(|c| encoded.data[c * n + i]);
+                bail!(
+                    "normal map {} holds a zero-length normal at row {y}, column {x} (encoded {rgb:?}; a normal map stores (n + 1) / 2 of unit normals)",
+                    path.display()
+                );
+            }
             decode_normal_map(&encoded)
         }
     })
 }
+
+/// Shortest decoded normal (2 x code - 1) accepted before normalising:
+/// shorter ones point nowhere in particular.
+const MIN_ENCODED_NORMAL: f32 = 0.1;
 
 /// Loads a material from its four map files (diffuse, specular, roughness,
 /// normals); `None` is a missing file, reported with `expected` paths.
@@ -314,7 +381,9 @@ pub fn read_strip(path: &Path) -> Result<(Svbrdf, Option<Image>)> {
     let h = image.height;
     let panel = |k: usize| image.columns(k * h, h);
     let first = panels - 4;
-    let render = if panels == 5 { Some(decode_map(Map::Diffuse, panel(0)?, format, path)?) } else { None };
+    // The render is radiance, not an albedo: no range to check.
+    let linearise = |im: Image| if format.is_float() { io::to_rgb(&im) } else { io::to_rgb(&im).map(gamma_decode) };
+    let render = if panels == 5 { Some(linearise(panel(0)?)) } else { None };
     let s = Svbrdf {
         normal: decode_map(Map::Normals, panel(first)?, format, path)?,
         diffuse: decode_map(Map::Diffuse, panel(first + 1)?, format, path)?,
@@ -634,10 +703,51 @@ mod tests {
         // An EXR diffuse map is linear already: preferred after PNG, so
         // replace material 2's PNG with it.
         std::fs::remove_file(root.join("diffuse/0000002_diffuse.png")).unwrap();
-        let linear = Image::from_fn(3, 16, 16, |c, _, _| [0.25, 1.5, 0.0][c]);
+        let linear = Image::from_fn(3, 16, 16, |c, _, _| [0.25, 0.95, 0.0][c]);
         io::write_exr(&root.join("diffuse/0000002_diffuse.exr"), &linear).unwrap();
         let s = MatfusionDataset::open(&root).unwrap().load(1).unwrap();
         assert_eq!(s.diffuse, linear);
+        // An albedo above 1 is no albedo (float files can hold anything).
+        io::write_exr(&root.join("diffuse/0000002_diffuse.exr"), &Image::from_fn(3, 16, 16, |c, _, _| [0.25, 1.5, 0.0][c])).unwrap();
+        let m = message(MatfusionDataset::open(&root).unwrap().load(1).unwrap_err());
+        assert!(m.contains("0000002_diffuse.exr has the value 1.5 at row 0, column 0, channel 1"), "{m}");
+    }
+
+    /// Maps that decode but describe no material: refused with one line
+    /// naming the file (albedos outside [0, 1], zero-length normals);
+    /// roughness under the floor is raised to it; rounding slack clamps.
+    #[test]
+    fn absurd_map_values_are_refused_or_clamped() {
+        let dir = tempfile::tempdir().unwrap();
+        let m = dir.path().join("m");
+        write_material_dir(&m, &Svbrdf::uniform(8, 8, [0.3; 3], [0.04; 3], 0.5)).unwrap();
+        let load = || open_dataset(&m).unwrap().load(0);
+        let exr = |name: &str, c: usize, v: f32| {
+            for ext in ["png", "exr"] {
+                let _ = std::fs::remove_file(m.join(format!("{name}.{ext}")));
+            }
+            io::write_exr(&m.join(format!("{name}.exr")), &Image::filled(c, 8, 8, v)).unwrap();
+        };
+        exr("diffuse", 3, -1.0);
+        let e = message(load().unwrap_err());
+        assert!(e.contains("diffuse map") && e.contains("diffuse.exr has the value -1") && e.contains("[0, 1]"), "{e}");
+        exr("diffuse", 3, 1.005); // rounding: clamped
+        assert_eq!(load().unwrap().diffuse, Image::filled(3, 8, 8, 1.0));
+        exr("specular", 3, 1e30);
+        assert!(message(load().unwrap_err()).contains("specular.exr has the value 1000000000000000000000000000000"));
+        exr("specular", 3, 0.04);
+        exr("roughness", 1, 0.0);
+        assert_eq!(load().unwrap().roughness, Image::filled(1, 8, 8, crate::data::procedural::MIN_ROUGHNESS));
+        exr("roughness", 1, 7.0);
+        assert!(message(load().unwrap_err()).contains("roughness.exr has the value 7"));
+        exr("roughness", 1, 0.5);
+        exr("normals", 3, 0.5);
+        let e = message(load().unwrap_err());
+        assert!(e.contains("normals.exr holds a zero-length normal at row 0, column 0"), "{e}");
+        // An 8-bit grey pixel is within a code of the zero vector.
+        std::fs::remove_file(m.join("normals.exr")).unwrap();
+        save_rgb(&m.join("normals.png"), 8, 8, |x, y| if (x, y) == (3, 2) { [128, 128, 128] } else { [128, 128, 255] });
+        assert!(message(load().unwrap_err()).contains("normals.png holds a zero-length normal at row 2, column 3"));
     }
 
     #[test]

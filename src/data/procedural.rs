@@ -159,28 +159,52 @@ pub struct ProceduralConfig {
     pub mix_probability: f32,
     /// Families to draw from, uniformly; empty means all.
     pub families: Vec<Family>,
+    /// Probability that a material is a dark one (dark wood, slate, black
+    /// leather, asphalt, dark paint...): its diffuse albedo times a factor
+    /// log-uniform in [[`DARK_FACTOR_MIN`], [`DARK_FACTOR_MAX`]] (issue 53:
+    /// most real materials are darker than the families' own colours).
+    /// Drawn from its own stream: every other decision of a seed is the
+    /// same. 0 (the default, with which the held-out set was fixed): none.
+    pub dark_probability: f32,
 }
 
 impl Default for ProceduralConfig {
     fn default() -> Self {
-        Self { size: 256, mix_probability: 0.3, families: Family::ALL.to_vec() }
+        Self { size: 256, mix_probability: 0.3, families: Family::ALL.to_vec(), dark_probability: 0.0 }
     }
 }
+
+/// Range of the dark materials' diffuse factor: the held-out dark set's
+/// identity photos then span mean radiance of about 0.002-0.1, the range of
+/// the real SVBRDFs of issue 53 (29 of 38 below 0.039, 10 below 0.005).
+pub const DARK_FACTOR_MIN: f32 = 0.02;
+pub const DARK_FACTOR_MAX: f32 = 0.35;
+
+/// Salt of the darkening stream (independent of [`plan`]'s draws).
+const DARK_SALT: u64 = 0xDA4C_0000_5EED_0001;
 
 impl ProceduralConfig {
     /// The default configuration at another map size.
     pub fn with_size(size: usize) -> Self {
         Self { size, ..Self::default() }
     }
+
+    /// The default configuration at another size with a share of dark
+    /// materials (the training stream's `--dark-share`).
+    pub fn with_dark_share(size: usize, dark_probability: f32) -> Self {
+        Self { size, dark_probability, ..Self::default() }
+    }
 }
 
 /// What a seed produces, without generating the maps.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MaterialInfo {
     /// The base family.
     pub family: Family,
     /// The second family blended over the base through a mask, if any.
     pub mixed_with: Option<Family>,
+    /// The factor the diffuse albedo was darkened by, if it was.
+    pub dark_factor: Option<f32>,
 }
 
 /// The random decisions taken for one seed before any pixel is computed.
@@ -205,7 +229,15 @@ fn plan(seed: u64, cfg: &ProceduralConfig) -> Plan {
 /// Which families a seed uses under `cfg` (cheap: no maps are generated).
 pub fn describe(seed: u64, cfg: &ProceduralConfig) -> MaterialInfo {
     let p = plan(seed, cfg);
-    MaterialInfo { family: p.family, mixed_with: p.mix.map(|m| m.0) }
+    MaterialInfo { family: p.family, mixed_with: p.mix.map(|m| m.0), dark_factor: dark_factor(seed, cfg) }
+}
+
+/// The diffuse factor of a dark material, or None (its own random stream:
+/// the family decisions of [`plan`] do not depend on it).
+fn dark_factor(seed: u64, cfg: &ProceduralConfig) -> Option<f32> {
+    let mut rng = Pcg64::seed_from_u64(seed ^ DARK_SALT);
+    let (draw, t): (f32, f32) = (rng.random(), rng.random());
+    (draw < cfg.dark_probability).then(|| DARK_FACTOR_MIN * (DARK_FACTOR_MAX / DARK_FACTOR_MIN).powf(t))
 }
 
 /// Generates the material of `seed` under `cfg`: a family drawn from
@@ -217,7 +249,11 @@ pub fn generate(seed: u64, cfg: &ProceduralConfig) -> Svbrdf {
         let top = family_layers(other, other_seed, cfg.size);
         mix_layers(&mut layers, &top, mask_seed);
     }
-    finish(layers)
+    let mut material = finish(layers);
+    if let Some(f) = dark_factor(seed, cfg) {
+        material.diffuse = material.diffuse.map(|v| v * f);
+    }
+    material
 }
 
 /// Generates one material of a given family (never mixed).
@@ -260,6 +296,20 @@ pub fn test_material(index: usize, size: usize) -> Svbrdf {
     generate(test_seeds()[index], &ProceduralConfig::with_size(size))
 }
 
+/// Number of held-out dark materials.
+pub const DARK_TEST_SET_SIZE: usize = 30;
+
+/// First seed of the held-out dark set (issue 53): the 30 seeds after the
+/// test set's, every one darkened. Top bit set: never a training seed.
+pub const DARK_TEST_SEED_BASE: u64 = TEST_SEED_BASE + TEST_SET_SIZE as u64;
+
+/// The held-out dark materials at `size`: the families' materials with
+/// their diffuse albedo darkened ([`ProceduralConfig::dark_probability`] 1).
+pub fn dark_test_set(size: usize) -> Vec<Svbrdf> {
+    let seeds: Vec<u64> = (0..DARK_TEST_SET_SIZE as u64).map(|i| DARK_TEST_SEED_BASE + i).collect();
+    generate_many_with(&seeds, &ProceduralConfig { dark_probability: 1.0, ..ProceduralConfig::with_size(size) })
+}
+
 /// Prefix naming one held-out material: `procedural-test:I` is test material
 /// I (0-based), for single-material experiments (the shadow over-fit).
 pub const TEST_MATERIAL_PREFIX: &str = "procedural-test:";
@@ -275,9 +325,9 @@ pub fn parse_test_material(name: &str) -> anyhow::Result<Option<usize>> {
     Ok(Some(i))
 }
 
-/// Whether `seed` belongs to the held-out test set.
+/// Whether `seed` belongs to a held-out test set (the classic one or the dark one).
 pub fn is_test_seed(seed: u64) -> bool {
-    seed.wrapping_sub(TEST_SEED_BASE) < TEST_SET_SIZE as u64
+    seed.wrapping_sub(TEST_SEED_BASE) < (TEST_SET_SIZE + DARK_TEST_SET_SIZE) as u64
 }
 
 /// Seed of the `index`-th material of the unbounded training stream.
@@ -522,7 +572,7 @@ mod tests {
 
     #[test]
     fn mixed_materials_are_valid_and_blend_both_families() {
-        let cfg = ProceduralConfig { size: S, mix_probability: 1.0, families: Family::ALL.to_vec() };
+        let cfg = ProceduralConfig { size: S, mix_probability: 1.0, families: Family::ALL.to_vec(), dark_probability: 0.0 };
         let mut seen = 0;
         for seed in 0..40u64 {
             let info = describe(seed, &cfg);
@@ -554,7 +604,7 @@ mod tests {
         let empty = generate(1, &ProceduralConfig { size: 0, ..Default::default() });
         assert_eq!(empty.diffuse.data.len(), 0);
         // Empty family list falls back to all families.
-        let cfg = ProceduralConfig { size: 8, mix_probability: 0.5, families: vec![] };
+        let cfg = ProceduralConfig { size: 8, mix_probability: 0.5, families: vec![], dark_probability: 0.0 };
         generate(3, &cfg).validate().unwrap();
     }
 
@@ -659,13 +709,47 @@ mod tests {
         assert!(metal_kd.iter().all(|&v| v <= 0.04), "metal diffuse {metal_kd:?}");
     }
 
+    /// A dark material is the same material with its diffuse albedo times
+    /// one factor in the stated range; the dark held-out set reaches the
+    /// dark photos of issue 53 (identity photo means well below 0.039).
+    #[test]
+    fn dark_materials_scale_only_the_diffuse_albedo() {
+        let plain = ProceduralConfig::with_size(32);
+        assert_eq!(plain.dark_probability, 0.0);
+        let dark = ProceduralConfig::with_dark_share(32, 1.0);
+        let mut factors = vec![];
+        for seed in 0..12u64 {
+            let (a, b) = (generate(seed, &plain), generate(seed, &dark));
+            let f = describe(seed, &dark).dark_factor.expect("every material is dark at share 1");
+            assert_eq!(describe(seed, &plain).dark_factor, None);
+            assert_eq!(describe(seed, &plain).family, describe(seed, &dark).family);
+            assert!((DARK_FACTOR_MIN..=DARK_FACTOR_MAX).contains(&f), "{f}");
+            assert_eq!((a.specular.data.clone(), a.roughness.data.clone(), a.normal.data.clone()), (b.specular.data.clone(), b.roughness.data.clone(), b.normal.data.clone()));
+            assert!(a.diffuse.data.iter().zip(&b.diffuse.data).all(|(x, y)| (x * f - y).abs() <= 1e-6));
+            factors.push(f);
+        }
+        // Log-uniform over a 17x range: both ends are reached among 12 draws.
+        assert!(factors.iter().any(|&f| f < 0.06) && factors.iter().any(|&f| f > 0.12), "{factors:?}");
+        // About a quarter at share 0.25.
+        let quarter = ProceduralConfig::with_dark_share(32, 0.25);
+        let n = (0..400u64).filter(|&s| describe(s, &quarter).dark_factor.is_some()).count();
+        assert!((70..130).contains(&n), "{n} of 400");
+        // The held-out dark set: every material darkened, mean diffuse albedo mostly below 0.1.
+        let set = dark_test_set(16);
+        assert_eq!(set.len(), DARK_TEST_SET_SIZE);
+        let means: Vec<f32> = set.iter().map(|m| m.diffuse.mean()).collect();
+        assert!(means.iter().filter(|&&m| m < 0.1).count() >= DARK_TEST_SET_SIZE * 3 / 4, "{means:?}");
+        assert!(means.iter().any(|&m| m < 0.01), "{means:?}");
+    }
+
     #[test]
     fn held_out_seeds_never_in_training_stream() {
         let test = test_seeds();
         assert_eq!(test.len(), TEST_SET_SIZE);
         assert_eq!(test.iter().collect::<HashSet<_>>().len(), TEST_SET_SIZE);
         assert!(test.iter().all(|&s| is_test_seed(s)));
-        assert!(!is_test_seed(TEST_SEED_BASE - 1) && !is_test_seed(TEST_SEED_BASE + TEST_SET_SIZE as u64));
+        assert!(!is_test_seed(TEST_SEED_BASE - 1) && !is_test_seed(DARK_TEST_SEED_BASE + DARK_TEST_SET_SIZE as u64));
+        assert!(is_test_seed(DARK_TEST_SEED_BASE) && is_test_seed(DARK_TEST_SEED_BASE + DARK_TEST_SET_SIZE as u64 - 1));
         assert!(!is_test_seed(0) && !is_test_seed(u64::MAX));
         // The argument: test seeds have the top bit set, training seeds never do.
         assert!(TEST_SEED_BASE >= 1 << 63);
@@ -707,9 +791,9 @@ mod tests {
             assert!((800..1200).contains(&c), "{f} drawn {c} times out of {n}");
         }
         // Restricted family list.
-        let only = ProceduralConfig { size: S, mix_probability: 1.0, families: vec![Family::Wood] };
+        let only = ProceduralConfig { size: S, mix_probability: 1.0, families: vec![Family::Wood], dark_probability: 0.0 };
         for s in 0..20 {
-            assert_eq!(describe(s, &only), MaterialInfo { family: Family::Wood, mixed_with: None });
+            assert_eq!(describe(s, &only), MaterialInfo { family: Family::Wood, mixed_with: None, dark_factor: None });
         }
     }
 
@@ -731,7 +815,7 @@ mod tests {
         let cfg: ProceduralConfig = toml::from_str("size = 128\nfamilies = [\"wood\", \"rust-paint\"]").unwrap();
         assert_eq!(
             cfg,
-            ProceduralConfig { size: 128, mix_probability: 0.3, families: vec![Family::Wood, Family::RustPaint] }
+            ProceduralConfig { size: 128, mix_probability: 0.3, families: vec![Family::Wood, Family::RustPaint], dark_probability: 0.0 }
         );
     }
 

@@ -37,6 +37,8 @@ pub struct CaptureEvalOptions {
     pub progress: bool,
     /// Refined variants of every flashmat model (`--refine`), one per setting.
     pub refine: Vec<crate::infer::refine::RefineConfig>,
+    /// How flashmat models handle the photo's exposure (`--exposure-mode`).
+    pub exposure: crate::infer::ExposureConfig,
 }
 
 /// Scores of one method on one photo.
@@ -73,7 +75,7 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
     let n = captures.photos.len();
     ensure!(n >= 2, "capture folder {} has 1 photo; it needs at least 2 (one to estimate from, others to compare with)", opts.dir.display());
     // Capture photos are 8-bit: the methods get LDR photos.
-    let mut methods = open_methods(&opts.models, true, opts.device, &opts.refine)?;
+    let mut methods = open_methods(&opts.models, true, opts.device, &opts.refine, &opts.exposure)?;
     let photos = captures.load_compensated(opts.size)?;
     let input = captures.overhead();
     let others: Vec<usize> = (0..n).filter(|&i| i != input).collect();
@@ -257,6 +259,7 @@ mod tests {
             device: Device::Cpu,
             progress: false,
             refine: vec![],
+            exposure: crate::infer::ExposureConfig::default(),
         }
     }
 

@@ -43,6 +43,9 @@ use tch::{Device, Tensor};
 /// Dataset name of the 50 procedural held-out materials.
 pub const PROCEDURAL_TEST: &str = "procedural-test";
 
+/// Dataset name of the held-out dark materials (`procedural::dark_test_set`).
+pub const PROCEDURAL_DARK_TEST: &str = "procedural-dark-test";
+
 /// Configurations per material of the Reflect and Hemisphere cases (the
 /// paper's 128 lights x 128 views, paired).
 pub const DEFAULT_CONFIGS: usize = 128;
@@ -116,6 +119,8 @@ pub struct EvalOptions {
     pub refine: Vec<RefineConfig>,
     /// Exposures (stops) of the exposure curve; 0 is always scored.
     pub exposures: Vec<f64>,
+    /// How flashmat models handle the photo's exposure (`--exposure-mode`).
+    pub exposure: crate::infer::ExposureConfig,
 }
 
 /// One line of a method's CSV.
@@ -153,6 +158,11 @@ pub fn load_materials(dataset: &str, size: usize, limit: Option<usize>) -> Resul
         let n = limit.unwrap_or(seeds.len()).min(seeds.len());
         let mats = procedural::generate_many(&seeds[..n], size);
         return Ok(mats.into_iter().enumerate().map(|(i, m)| (format!("test{i:02}"), m)).collect());
+    }
+    if dataset == PROCEDURAL_DARK_TEST {
+        let mats = procedural::dark_test_set(size);
+        let n = limit.unwrap_or(mats.len()).min(mats.len());
+        return Ok(mats.into_iter().take(n).enumerate().map(|(i, m)| (format!("dark{i:02}"), m)).collect());
     }
     if let Some(i) = procedural::parse_test_material(dataset)? {
         return Ok(vec![(format!("test{i:02}"), procedural::test_material(i, size))]);
@@ -261,7 +271,7 @@ pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     let mut cases = opts.cases.clone();
     cases.dedup();
     let opts = EvalOptions { cases, exposures: exposure_list(&opts.exposures)?, ..opts.clone() };
-    let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device, &opts.refine)?;
+    let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device, &opts.refine, &opts.exposure)?;
     let materials = load_materials(&opts.dataset, opts.size, opts.limit)?;
     let lpips = Lpips::new(opts.device)?;
     std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;

@@ -20,6 +20,7 @@ fn small_eval(models: Vec<String>, out: &std::path::Path) -> EvalOptions {
         progress: false,
         refine: vec![],
         exposures: vec![0.0],
+        exposure: crate::infer::ExposureConfig::default(),
     }
 }
 

@@ -28,7 +28,7 @@
 
 pub mod export;
 
-use crate::infer::nmat::{NeuralMaterial, MAX_LOG_RADIANCE};
+use crate::infer::nmat::NeuralMaterial;
 use crate::optim::Adam;
 use anyhow::{ensure, Result};
 use rand::{Rng, SeedableRng};
@@ -179,8 +179,8 @@ pub fn sample_directions(count: usize, seed: u64, device: Device) -> (Tensor, Te
 }
 
 /// ln(1 + R) of the neural material for direction pairs shared by all
-/// pixels, clamped as [`NeuralMaterial::render`] clamps (to [0,
-/// [`MAX_LOG_RADIANCE`]]). ND_enc runs once per pair; M_render per pixel.
+/// pixels, clamped and scaled by the material's exposure gain as
+/// [`NeuralMaterial::render`] does. ND_enc runs once per pair; M_render per pixel.
 /// wi, wo: `[S, 3]` unit vectors -> `[S, 3, H, W]` on the material's device.
 /// `on_pair(done)` is called after each chunk of pairs.
 pub fn neural_targets(material: &NeuralMaterial, wi: &Tensor, wo: &Tensor, mut on_pair: impl FnMut(usize)) -> Result<Tensor> {
@@ -201,7 +201,7 @@ pub fn neural_targets(material: &NeuralMaterial, wi: &Tensor, wo: &Tensor, mut o
             let chunk = code.narrow(0, start, k).unsqueeze(1); // [k, 1, E]
             let out = material.renderer.m_render.forward(&params, &chunk); // [k, HW, 3]
             ensure!(out.isnan().any().int64_value(&[]) == 0, "M_render produced NaN values for this material (weights out of range?)");
-            parts.push(out.clamp(0.0, MAX_LOG_RADIANCE).view([k, h as i64, w as i64, 3]).permute([0, 3, 1, 2]).contiguous());
+            parts.push(material.with_gain_log(&out).view([k, h as i64, w as i64, 3]).permute([0, 3, 1, 2]).contiguous());
             start += k;
             on_pair(start as usize);
         }

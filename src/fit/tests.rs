@@ -1,6 +1,7 @@
 use super::export::{from_metallic, to_metallic};
 use super::*;
 use crate::svbrdf::Svbrdf;
+use crate::infer::nmat::MAX_LOG_RADIANCE;
 
 /// Four known GGX materials in 8x8 tiles: (kd, ks, roughness, normal slopes).
 fn known_maps(size: usize) -> Tensor {
@@ -113,6 +114,13 @@ fn neural_targets_equal_the_neural_renderer() {
     let direct = tch::no_grad(|| m.renderer.forward_maps(&m.neural_map.unsqueeze(0), &expand(&wi), &expand(&wo))).unwrap().get(0);
     let direct = direct.clamp(0.0, MAX_LOG_RADIANCE);
     assert!(mean_abs(&t, &direct) < 1e-5, "{}", mean_abs(&t, &direct));
+    // The material's exposure gain: the targets are ln(1 + gain R), what its renders show.
+    let mut m = m;
+    m.meta.gain = 3.0;
+    let scaled = neural_targets(&m, &wi, &wo, |_| {}).unwrap();
+    let expect = (direct.expm1() * 3.0).log1p();
+    assert!(mean_abs(&scaled, &expect) < 1e-5, "{}", mean_abs(&scaled, &expect));
+    assert!(mean_abs(&scaled, &t) > 0.01);
 }
 
 #[test]

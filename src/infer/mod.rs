@@ -16,12 +16,14 @@
 //! configuration of every material is [`NeuralMaterial::identity_config`].
 
 pub mod camera;
+pub mod exposure;
 pub mod nmat;
 pub mod photo;
 pub mod refine;
 pub mod show;
 pub mod tiles;
 
+pub use exposure::ExposureConfig;
 pub use nmat::{NeuralMaterial, NmatMeta, NMAT_FORMAT, NMAT_VERSION};
 pub use photo::{load_photo, load_photo_with, prepare_image, prepare_image_with, Crop, PhotoOptions, PreparedPhoto};
 pub use tiles::{plan_estimate, EstPlan};
@@ -116,20 +118,28 @@ pub fn input_mismatch_warning(info: &ModelInfo, model_path: &Path, ldr_photo: bo
 
 /// Runs M_est (inference mode: BatchNorm folded, no autograd) on a
 /// prepared photo and packages the result with a copy of the model's
-/// renderer. The photo is clamped to [0, 1] for LDR-input models (as in
-/// their training), and below at 0 otherwise.
+/// renderer, with the default exposure handling ([`ExposureConfig`]: a dark
+/// photo brought up for M_est, the gain calibrated on the identity render).
 pub fn estimate(model: &Model, info: &ModelInfo, photo: &PreparedPhoto) -> Result<NeuralMaterial> {
-    estimate_planned(model, info, photo, &EstPlan::Whole, || ())
+    estimate_planned(model, info, photo, &EstPlan::Whole, &ExposureConfig::default(), || ())
 }
 
 /// [`estimate`] on the whole photo or in tiles ([`tiles::plan_estimate`]
-/// chooses under a memory bound); `on_tile` is called after each layer-wise block.
-pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, plan: &EstPlan, on_tile: impl FnMut()) -> Result<NeuralMaterial> {
+/// chooses under a memory bound), with the given exposure handling;
+/// `on_tile` is called after each layer-wise block. M_est sees the photo
+/// times [`exposure::normalizing_scale`], clamped to [0, 1] for LDR-input
+/// models (as in their training) and below at 0 otherwise; the material's
+/// gain is the inverse scale, calibrated on the identity render when
+/// `exposure.calibrate` ([`exposure::calibration_factor`]). The stored
+/// input photo is the photo itself (clamped the same way, not normalised).
+pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, plan: &EstPlan, exposure: &ExposureConfig, on_tile: impl FnMut()) -> Result<NeuralMaterial> {
     ensure!(photo.linear.channels == 3, "the prepared photo must have 3 channels, got {}", photo.linear.channels);
+    exposure.validate()?;
     let device = model.device();
-    let linear = photo.linear.to_tensor().unsqueeze(0).to_device(device); // [1, 3, H, W]
-    let linear = if info.ldr_input { crate::spaces::ldr_clamp(&linear) } else { linear.clamp_min(0.0) };
-    let x = photo_est_input(&photo.linear.to_tensor(), info.ldr_input, device); // [1, 4, H, W]
+    let linear = photo.linear.to_tensor(); // [3, H, W]
+    let clamp = |t: &tch::Tensor| if info.ldr_input { crate::spaces::ldr_clamp(t) } else { t.clamp_min(0.0) };
+    let scale = exposure::normalizing_scale(&clamp(&linear), exposure);
+    let x = photo_est_input(&(&linear * scale), info.ldr_input, device); // [1, 4, H, W]
     let est = model.est.fold_batchnorm();
     let map = match plan {
         EstPlan::Whole => est.forward(&x)?,
@@ -144,8 +154,17 @@ pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, 
         ldr_input: photo.ldr,
         model_info: info.clone(),
         refine: None,
+        gain: 1.0 / scale,
     };
-    NeuralMaterial::from_parts(map.get(0), linear.get(0), &model.config, &model.renderer_vs.variables(), meta)
+    let stored = clamp(&linear).to_device(device);
+    let mut material = NeuralMaterial::from_parts(map.get(0), stored, &model.config, &model.renderer_vs.variables(), meta)?;
+    if exposure.calibrate {
+        let identity = material.render(&[NeuralMaterial::identity_config()])?.get(0); // [3, H, W]
+        if let Some(f) = exposure::calibration_factor(&material.input_photo, &identity) {
+            material.meta.gain *= f;
+        }
+    }
+    Ok(material)
 }
 
 /// `frames` configurations of a light circling the material at radius
@@ -196,7 +215,9 @@ mod tests {
         tch::manual_seed(4);
         let model = Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap();
         let info = ModelInfo { ldr_input: true, steps: 0 };
-        let m = estimate(&model, &info, &photo(24, false)).unwrap();
+        // The photo as it is (no exposure normalisation): M_est's input is the stored photo.
+        let m = estimate_planned(&model, &info, &photo(24, false), &EstPlan::Whole, &ExposureConfig::off(), || ()).unwrap();
+        assert_eq!(m.meta.gain, 1.0);
         assert_eq!(m.size(), (24, 24));
         assert_eq!(m.neural_map.size(), [16, 24, 24]);
         // An LDR model sees the HDR photo clamped.
@@ -219,6 +240,47 @@ mod tests {
         let (wi, wo) = crate::svbrdf::render::direction_maps_for(&l.view([1, 1, 3]), &v.view([1, 1, 3]), 24, 24);
         let theirs = tch::no_grad(|| model.renderer.forward_maps(&m.neural_map.unsqueeze(0), &wi, &wo)).unwrap();
         assert!(ours.equal(&theirs.get(0).clamp_max(nmat::MAX_LOG_RADIANCE).expm1().clamp_min(0.0)));
+    }
+
+    /// Issue 53: of two photos darker than the minimum level, the one two
+    /// stops darker gives the same neural map and a quarter of the gain, so
+    /// every render is a quarter as bright; the calibration makes the
+    /// identity render's mean the photo's over the pixels it compares.
+    #[test]
+    fn a_darker_photo_gives_the_same_map_and_a_proportional_gain() {
+        // The bundled model: a random one renders far from any photo, where the calibration refuses to act.
+        let LoadedModel { model, info, .. } = load_model(None, Device::Cpu).unwrap();
+        // Medians of about 0.09 and 0.022: both below the minimum level.
+        let base = photo(24, true);
+        let bright = PreparedPhoto { linear: base.linear.map(|v| v / 4.0), ..base.clone() };
+        let dark = PreparedPhoto { linear: base.linear.map(|v| v / 16.0), ..base.clone() };
+        let relit = [NeuralMaterial::identity_config(), LightView { light: [1.0, 0.5, 2.0], view: overhead_camera() }];
+        for cfg in [ExposureConfig { calibrate: false, ..Default::default() }, ExposureConfig::default()] {
+            let a = estimate_planned(&model, &info, &bright, &EstPlan::Whole, &cfg, || ()).unwrap();
+            let b = estimate_planned(&model, &info, &dark, &EstPlan::Whole, &cfg, || ()).unwrap();
+            let d = (&a.neural_map - &b.neural_map).abs().max().double_value(&[]);
+            assert!(d < 1e-5 * (1.0 + a.neural_map.abs().max().double_value(&[])), "maps differ by {d}");
+            assert!((a.meta.gain / b.meta.gain - 4.0).abs() < 1e-5, "{} / {}", a.meta.gain, b.meta.gain);
+            let (ra, rb) = (a.render(&relit).unwrap(), b.render(&relit).unwrap());
+            let e = (&ra - &rb * 4.0).abs().max().double_value(&[]);
+            assert!(e < 1e-4 * (1.0 + ra.max().double_value(&[])), "renders differ by {e}");
+            // The stored photo is the photo itself, not what M_est saw.
+            assert!(b.input_photo.equal(&dark.linear.to_tensor()));
+            if cfg.calibrate {
+                let photo = b.input_photo.shallow_clone();
+                let mask = exposure::calibration_mask(&photo).unsqueeze(0).expand_as(&photo);
+                let mean = |t: &tch::Tensor| t.masked_select(&mask).mean(tch::Kind::Double).double_value(&[]);
+                let ratio = mean(&rb.get(0)) / mean(&photo);
+                assert!((ratio - 1.0).abs() < 1e-4, "identity over photo {ratio}");
+            } else {
+                // Normalised only: M_est saw the photo at the minimum level, the gain undoes it.
+                let level = exposure::photo_level(&dark.linear.to_tensor()).unwrap();
+                assert!((b.meta.gain - level / exposure::DEFAULT_MIN_LEVEL).abs() < 1e-9);
+                // The bundled model's estimate of a photo above the level is the photo as it is.
+                let plain = estimate_planned(&model, &info, &base, &EstPlan::Whole, &cfg, || ()).unwrap();
+                assert_eq!(plain.meta.gain, 1.0);
+            }
+        }
     }
 
     #[test]

@@ -1,13 +1,14 @@
 //! The `.nmat` neural material file: everything needed to render a material
 //! estimated from a photo, without M_est. A checksummed, versioned
 //! safetensors archive (see `crate::archive`, format tag `flashmat-nmat`,
-//! version 1), specified in docs/NMAT.md for readers in other languages.
+//! version 3), specified in docs/NMAT.md for readers in other languages.
 //!
 //! Tensors (f32): `neural_map` `[C, H, W]`, `input_photo` `[3, H, W]` (the
 //! linear photo M_est saw) and the renderer weights under their model names
 //! (`renderer.nd_enc.*`, `renderer.m_render.*`). Metadata: `model_id`,
 //! `config` (TOML), `fov_deg`, `crop` (JSON), `source`, `ldr_input`,
-//! `model_info` (JSON), `resolution` (JSON).
+//! `model_info` (JSON), `resolution` (JSON), `gain` (the exposure the
+//! network's radiance is multiplied by, [`NmatMeta::gain`]).
 
 use super::photo::Crop;
 use crate::archive::{restore_vars, Archive};
@@ -19,14 +20,15 @@ use std::collections::HashMap;
 use std::path::Path;
 use tch::{nn, Device, Tensor};
 
-/// Format tag and version of `.nmat` files. Version 2 allows rectangular
-/// maps (the shorter side spans [-1, 1]) and stores the crop's width and
-/// height; version-1 files (square, `side`) are still read.
+/// Format tag and version of `.nmat` files. Version 3 adds the exposure
+/// `gain`; version 2 allows rectangular maps (the shorter side spans
+/// [-1, 1]) and stores the crop's width and height. Version-1 files
+/// (square, `side`) and version-2 files are still read (gain 1).
 pub const NMAT_FORMAT: &str = "flashmat-nmat";
-pub const NMAT_VERSION: u32 = 2;
+pub const NMAT_VERSION: u32 = 3;
 
 /// Older versions this flashmat still reads.
-pub const NMAT_READABLE_VERSIONS: &[u32] = &[1, 2];
+pub const NMAT_READABLE_VERSIONS: &[u32] = &[1, 2, 3];
 
 /// Largest ln(1 + R) turned into radiance: exp(80) = 5.5e34 stays finite in
 /// f32, so renders of untrained or diverged models can still be written
@@ -50,6 +52,12 @@ pub struct NmatMeta {
     pub model_info: ModelInfo,
     /// The refinement on the photo applied after M_est, if any.
     pub refine: Option<super::refine::settings::RefineReport>,
+    /// Exposure of the material: every render is the network's radiance
+    /// times this (finite, > 0). M_est saw the photo divided by it (and
+    /// clamped for an LDR model), so a photo one stop darker gives the same
+    /// neural map and half the gain ([`super::exposure`]). 1 in files
+    /// written before version 3.
+    pub gain: f64,
 }
 
 /// A relightable neural material: per-pixel parameters and the neural BRDF
@@ -83,6 +91,7 @@ impl NeuralMaterial {
         let s = neural_map.size();
         ensure!(s.len() == 3 && s[0] == config.neural_channels, "neural map must be [{}, H, W], got {s:?}", config.neural_channels);
         ensure!(input_photo.size() == [3, s[1], s[2]], "input photo must be [3, {}, {}], got {:?}", s[1], s[2], input_photo.size());
+        ensure!(meta.gain.is_finite() && meta.gain > 0.0, "the exposure gain must be a positive number, got {}", meta.gain);
         let device = neural_map.device();
         let mut renderer_vs = nn::VarStore::new(device);
         let renderer = NeuralRenderer::new(&(renderer_vs.root() / "renderer"), config)?;
@@ -133,6 +142,7 @@ impl NeuralMaterial {
         a.set_meta("ldr_input", m.ldr_input.to_string());
         a.set_meta("model_info", serde_json::to_string(&m.model_info)?);
         a.set_meta("resolution", serde_json::to_string(&[h, w])?);
+        a.set_meta("gain", m.gain.to_string());
         if let Some(r) = &m.refine {
             a.set_meta("refine", serde_json::to_string(r)?);
         }
@@ -159,6 +169,11 @@ impl NeuralMaterial {
             }
         };
         let fov_deg: f64 = a.meta("fov_deg")?.parse().context("metadata field 'fov_deg' is not a number")?;
+        let gain = match a.metadata.get("gain") {
+            Some(g) => g.parse::<f64>().ok().filter(|g| g.is_finite() && *g > 0.0).with_context(|| format!("metadata field 'gain' must be a positive number, got '{g}'"))?,
+            // Files before version 3 have no exposure: the network's radiance as it is.
+            None => 1.0,
+        };
         let meta = NmatMeta {
             model_id,
             fov_deg,
@@ -167,6 +182,7 @@ impl NeuralMaterial {
             ldr_input: parse_bool("ldr_input")?,
             model_info: serde_json::from_str(a.meta("model_info")?).context("metadata field 'model_info'")?,
             refine: a.metadata.get("refine").map(|r| serde_json::from_str(r)).transpose().context("metadata field 'refine'")?,
+            gain,
         };
         let neural_map = a.tensor("neural_map")?.to_device(device);
         let input_photo = a.tensor("input_photo")?.shallow_clone();
@@ -178,14 +194,16 @@ impl NeuralMaterial {
         let unknown: Vec<&String> =
             a.tensors.keys().filter(|k| !k.starts_with("renderer.") && *k != "neural_map" && *k != "input_photo").collect();
         ensure!(unknown.is_empty(), "unexpected tensors {unknown:?}");
+        check_meta(&meta, s[1], s[2])?;
         Self::from_parts(neural_map, input_photo, &config, &weights, meta)
     }
 
     /// Linear radiance for K light/view configurations (camera-independent
-    /// rectified view: every pixel is its own BRDF sample, REFERENCE section 1).
-    /// Returns `[K, 3, H, W]`, clamped at 0 (M_render's final LeakyReLU can
-    /// dip slightly below ln(1 + 0)) and, in log space, at
-    /// [`MAX_LOG_RADIANCE`].
+    /// rectified view: every pixel is its own BRDF sample, REFERENCE section 1):
+    /// the network's radiance times the material's exposure
+    /// [`NmatMeta::gain`]. Returns `[K, 3, H, W]`, clamped at 0 (M_render's
+    /// final LeakyReLU can dip slightly below ln(1 + 0)) and, in log space
+    /// before the gain, at [`MAX_LOG_RADIANCE`].
     pub fn render(&self, configs: &[LightView]) -> Result<Tensor> {
         let rows = super::tiles::render_band_rows(&self.config, self.size().1, configs.len());
         self.render_in_bands(configs, rows)
@@ -220,7 +238,17 @@ impl NeuralMaterial {
         // Finite weights can still overflow to Inf - Inf = NaN, which the
         // clamps below would keep (Inf itself clamps to MAX_LOG_RADIANCE).
         ensure!(log.isnan().any().int64_value(&[]) == 0, "M_render produced NaN values for this material (weights out of range?)");
-        Ok(crate::spaces::from_log(&log.get(0).clamp_max(MAX_LOG_RADIANCE)).clamp_min(0.0))
+        Ok(crate::spaces::from_log(&log.get(0).clamp_max(MAX_LOG_RADIANCE)).clamp_min(0.0) * self.meta.gain)
+    }
+
+    /// The network's ln(1 + R) `[..]` (clamped to [0, [`MAX_LOG_RADIANCE`]])
+    /// as the material renders it: ln(1 + gain R). Identity at gain 1.
+    pub fn with_gain_log(&self, network_log: &Tensor) -> Tensor {
+        let log = network_log.clamp(0.0, MAX_LOG_RADIANCE);
+        if self.meta.gain == 1.0 {
+            return log;
+        }
+        crate::spaces::to_log(&(crate::spaces::from_log(&log) * self.meta.gain))
     }
 
     /// Per-pixel unit directions towards the light and the camera of each
@@ -243,6 +271,43 @@ impl NeuralMaterial {
     }
 }
 
+/// Refuses metadata that contradicts itself or the `h x w` neural map
+/// (checksums only prove the file is as written, not that its writer was
+/// right): a field of view outside what a photo can have, a crop outside
+/// its source photo, or a crop whose aspect is not the map's (a map stored
+/// transposed under a consistent header would render scrambled).
+fn check_meta(meta: &NmatMeta, h: i64, w: i64) -> Result<()> {
+    let fov = meta.fov_deg;
+    ensure!(
+        fov.is_finite() && (MODEL_FOV_DEG - 1e-9..=super::photo::MAX_FOV_DEG).contains(&fov),
+        "metadata field 'fov_deg' is {fov}, not a field of view from {MODEL_FOV_DEG} to {} degrees",
+        super::photo::MAX_FOV_DEG
+    );
+    let c = &meta.crop;
+    let inside = |start: usize, len: usize, source: usize| len >= 1 && start.checked_add(len).is_some_and(|end| end <= source);
+    ensure!(
+        inside(c.x0, c.width, c.source_width) && inside(c.y0, c.height, c.source_height),
+        "metadata field 'crop' ({}x{} at ({}, {})) lies outside its {}x{} source photo",
+        c.width,
+        c.height,
+        c.x0,
+        c.y0,
+        c.source_width,
+        c.source_height
+    );
+    // The estimate trims the crop to the map's aspect within one source
+    // pixel of its longer side (`photo::prepare_image_with`).
+    let (cw, ch) = (c.width as f64, c.height as f64);
+    let (h, w) = (h as f64, w as f64);
+    ensure!(
+        (cw * h - ch * w).abs() <= h.max(w) + 1e-9,
+        "metadata field 'crop' ({}x{}) does not have the aspect of the {w}x{h} neural map",
+        c.width,
+        c.height
+    );
+    Ok(())
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
@@ -261,6 +326,7 @@ pub(crate) mod tests {
             ldr_input: true,
             model_info: ModelInfo { ldr_input: true, steps: 7 },
             refine: None,
+            gain: 1.0,
         };
         let map = Tensor::randn([cfg.neural_channels, size, size], (tch::Kind::Float, Device::Cpu));
         let photo = Tensor::rand([3, size, size], (tch::Kind::Float, Device::Cpu));
@@ -328,10 +394,18 @@ pub(crate) mod tests {
 
         // Another version of the format.
         let mut a = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
-        let v3 = dir.path().join("v3.nmat");
-        a.save(&v3, NMAT_FORMAT, 3).unwrap();
-        let e = err(&v3);
-        assert!(e.contains("v3.nmat") && e.contains("version 3 is not supported (this flashmat reads version 1 and 2)"), "{e}");
+        let v4 = dir.path().join("v4.nmat");
+        a.save(&v4, NMAT_FORMAT, 4).unwrap();
+        let e = err(&v4);
+        assert!(e.contains("v4.nmat") && e.contains("version 4 is not supported (this flashmat reads versions 1, 2 and 3)"), "{e}");
+        // A gain that is not a positive number.
+        for bad in ["0", "-2", "NaN", "inf", "bright"] {
+            let mut g = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+            g.set_meta("gain", bad);
+            let path = dir.path().join("gain.nmat");
+            g.save(&path, NMAT_FORMAT, NMAT_VERSION).unwrap();
+            assert!(err(&path).contains("metadata field 'gain' must be a positive number"), "{bad}: {}", err(&path));
+        }
         // A version-1 file (square crop stored as `side`) is still read.
         let mut v1 = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
         v1.set_meta("crop", r#"{"x0":3,"y0":0,"side":20,"source_width":26,"source_height":20}"#.to_string());
@@ -339,6 +413,7 @@ pub(crate) mod tests {
         v1.save(&old, NMAT_FORMAT, 1).unwrap();
         let back = NeuralMaterial::load(&old, Device::Cpu).unwrap();
         assert_eq!((back.meta.crop.width, back.meta.crop.height, back.meta.crop.x0), (20, 20, 3));
+        assert_eq!(back.meta.gain, 1.0, "files before version 3 have no exposure gain");
         v1.set_meta("crop", r#"{"x0":3,"y0":0,"width":20,"source_width":26,"source_height":20}"#.to_string());
         v1.save(&old, NMAT_FORMAT, 1).unwrap();
         assert!(err(&old).contains("width and height"), "{}", err(&old));
@@ -356,6 +431,58 @@ pub(crate) mod tests {
 
         let e = err(&dir.path().join("missing.nmat"));
         assert!(e.contains("missing.nmat") && e.contains("No such file"), "{e}");
+    }
+
+    /// The exposure gain survives the file and multiplies every render,
+    /// and [`NeuralMaterial::with_gain_log`] is the same in log space.
+    #[test]
+    fn the_gain_is_stored_and_scales_every_render() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut m = random_material(5, 8);
+        let unit = m.render(&configs()).unwrap();
+        m.meta.gain = 0.0625;
+        let p = dir.path().join("g.nmat");
+        m.save(&p).unwrap();
+        let back = NeuralMaterial::load(&p, Device::Cpu).unwrap();
+        assert_eq!(back.meta.gain, 0.0625);
+        let scaled = back.render(&configs()).unwrap();
+        assert!(unit.max().double_value(&[]) > 0.0);
+        assert!((&scaled - &unit * 0.0625).abs().max().double_value(&[]) < 1e-6 * (1.0 + unit.max().double_value(&[])));
+        let log = Tensor::from_slice(&[0.0f32, 0.5, 3.0, 100.0]);
+        let expect = Tensor::from_slice(&[0.0f64, 0.5f64.exp_m1() * 0.0625, 3f64.exp_m1() * 0.0625, MAX_LOG_RADIANCE.exp_m1() * 0.0625]).log1p();
+        assert!((back.with_gain_log(&log).to_kind(tch::Kind::Double) - expect).abs().max().double_value(&[]) < 1e-5);
+        assert!(NeuralMaterial::from_parts(m.neural_map.copy(), m.input_photo.copy(), &m.config, &m.renderer_vs.variables(), NmatMeta { gain: f64::NAN, ..m.meta.clone() }).is_err());
+    }
+
+    /// Metadata whose checksums are intact but which contradicts itself is
+    /// refused at load with one line naming the field.
+    #[test]
+    fn contradictory_metadata_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.nmat");
+        random_material(2, 8).save(&p).unwrap();
+        let good = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+        for (field, value, needle) in [
+            ("fov_deg", "NaN", "'fov_deg' is NaN"),
+            ("fov_deg", "12", "'fov_deg' is 12"),
+            ("fov_deg", "179", "'fov_deg' is 179"),
+            ("crop", r#"{"x0":10,"y0":0,"width":20,"height":20,"source_width":26,"source_height":20}"#, "outside its 26x20 source photo"),
+            ("crop", r#"{"x0":0,"y0":0,"width":0,"height":0,"source_width":26,"source_height":20}"#, "outside"),
+            ("crop", r#"{"x0":0,"y0":0,"width":26,"height":13,"source_width":26,"source_height":20}"#, "aspect of the 8x8 neural map"),
+            ("resolution", "[8,9]", "resolution [8, 9]"),
+        ] {
+            let mut a = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+            a.set_meta(field, value.to_string());
+            let bad = dir.path().join("bad.nmat");
+            a.save(&bad, NMAT_FORMAT, NMAT_VERSION).unwrap();
+            let e = format!("{:#}", NeuralMaterial::load(&bad, Device::Cpu).unwrap_err());
+            assert!(e.contains("bad.nmat") && e.contains(needle) && !e.contains('\n'), "{field} = {value}: {e}");
+        }
+        // Within a source pixel of the map's aspect, as estimates trim crops.
+        let mut a = good;
+        a.set_meta("crop", r#"{"x0":0,"y0":0,"width":21,"height":20,"source_width":26,"source_height":20}"#.to_string());
+        a.save(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+        NeuralMaterial::load(&p, Device::Cpu).unwrap();
     }
 
     /// Rendering in bands of rows is the whole render (M_render is per

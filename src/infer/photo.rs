@@ -97,6 +97,10 @@ pub struct PreparedPhoto {
     /// Where the field of view came from and what the camera's EXIF said
     /// (exposure, rotation), for the terminal.
     pub camera_note: String,
+    /// What was done to a usable photo that was not quite right (negative
+    /// EXR values clamped, transparency dropped): one line each, naming the
+    /// file, for the terminal.
+    pub warnings: Vec<String>,
 }
 
 impl PreparedPhoto {
@@ -111,6 +115,7 @@ impl PreparedPhoto {
             crop,
             source: source.into(),
             camera_note: String::new(),
+            warnings: Vec::new(),
         }
     }
 }
@@ -259,7 +264,10 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
     let (image, format) = read_image_with_format(path)?;
     let ldr = !format.is_float();
     let camera = if ldr { super::camera::read_camera(path, image.width, image.height)? } else { super::camera::CameraInfo { orientation: 1, ..Default::default() } };
-    let rgb = crate::io::to_rgb(&image).oriented(camera.orientation);
+    let mut rgb = crate::io::to_rgb(&image).oriented(camera.orientation);
+    let alpha = (image.channels % 2 == 0).then(|| image.plane(image.channels - 1));
+    let warnings = screen_photo(alpha, &mut rgb).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    let warnings = warnings.into_iter().map(|w| format!("{}: {w}", path.display())).collect();
     let mut linear = if ldr { rgb.map(crate::spaces::photo_decode) } else { rgb };
     if let Some(ev) = opts.exposure_ev {
         let gain = 2f32.powf(ev as f32);
@@ -288,7 +296,50 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
     }
     let (linear, crop) = prepare_image_with(&linear, fov, opts.size, opts.square).map_err(|e| anyhow::anyhow!("{}: {e:#}", path.display()))?;
     let source = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    Ok(PreparedPhoto { linear, ldr, fov_deg: fov, crop, source, camera_note: note })
+    Ok(PreparedPhoto { linear, ldr, fov_deg: fov, crop, source, camera_note: note, warnings })
+}
+
+/// Below this fraction of pixels with any light (a colour value above 0)
+/// a photo is black: nothing to estimate.
+pub const MIN_LIT_FRACTION: f64 = 0.001;
+
+/// Checks a decoded photo's values (`rgb` as stored: codes in [0, 1] or
+/// EXR radiance; `alpha` its alpha plane, if any) before they are used:
+/// - negative values (EXR noise) are clamped to 0, with a warning saying
+///   how many;
+/// - any pixel not fully opaque gives a warning that its alpha is ignored
+///   (the colour stored under it is estimated as it is); an all-opaque
+///   alpha channel says nothing;
+/// - a photo where under [`MIN_LIT_FRACTION`] of the pixels hold any
+///   light (all zero or negative) is an error.
+///
+/// Returns the warnings (without the file's name).
+pub fn screen_photo(alpha: Option<&[f32]>, rgb: &mut Image) -> Result<Vec<String>> {
+    let mut warnings = Vec::new();
+    let n = rgb.height * rgb.width;
+    let lit = (0..n).filter(|&i| (0..rgb.channels).any(|c| rgb.data[c * n + i] > 0.0)).count();
+    ensure!(
+        lit as f64 >= MIN_LIT_FRACTION * n as f64 && lit > 0,
+        "the photo is black: {} of its {n} pixels are zero or negative in every channel; there is nothing to estimate",
+        n - lit
+    );
+    let negative = rgb.data.iter().filter(|v| **v < 0.0).count();
+    if negative > 0 {
+        rgb.data.iter_mut().for_each(|v| *v = v.max(0.0));
+        let total = rgb.data.len();
+        warnings.push(format!("{negative} of its {total} colour values ({:.2}%) are negative (sensor noise?); clamped to 0", 100.0 * negative as f64 / total as f64));
+    }
+    if let Some(alpha) = alpha {
+        let clear = alpha.iter().filter(|a| **a < 1.0 - 1e-6).count();
+        if clear > 0 {
+            warnings.push(format!(
+                "{clear} of its {} pixels ({:.2}%) are transparent or partly so; the alpha channel is ignored and the colour stored under it estimated as it is",
+                alpha.len(),
+                100.0 * clear as f64 / alpha.len() as f64
+            ));
+        }
+    }
+    Ok(warnings)
 }
 
 #[cfg(test)]
@@ -504,5 +555,42 @@ mod tests {
         let z = dir.path().join("empty.jpg");
         std::fs::write(&z, b"").unwrap();
         assert!(format!("{:#}", load_photo(&z, None, 32).unwrap_err()).contains("empty"));
+    }
+
+    /// Photos that parse but are not quite right: negative EXR noise is
+    /// clamped with a warning saying how much, transparency is reported,
+    /// all-opaque alpha is not, and a black photo is refused.
+    #[test]
+    fn questionable_photos_are_warned_about_or_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let exr = dir.path().join("noisy.exr");
+        let mut noisy = Image::filled(3, 32, 32, 0.2);
+        for i in 0..30 {
+            noisy.data[i * 7] = -0.01;
+        }
+        crate::io::write_exr(&exr, &noisy).unwrap();
+        let p = load_photo(&exr, None, 32).unwrap();
+        assert_eq!(p.warnings.len(), 1, "{:?}", p.warnings);
+        assert!(p.warnings[0].contains("noisy.exr: 30 of its 3072 colour values (0.98%) are negative") && p.warnings[0].contains("clamped to 0"), "{}", p.warnings[0]);
+        assert!(p.linear.data.iter().all(|v| *v >= 0.0));
+
+        let black = dir.path().join("black.exr");
+        let mut dark = Image::filled(3, 40, 40, -0.5);
+        dark.data[0] = 1.0; // one lit pixel of 1600: under MIN_LIT_FRACTION
+        crate::io::write_exr(&black, &dark).unwrap();
+        let e = format!("{:#}", load_photo(&black, None, 32).unwrap_err());
+        assert!(e.contains("black.exr: the photo is black: 1599 of its 1600 pixels") && !e.contains('\n'), "{e}");
+
+        let rgba = |alpha: f32| Image::from_fn(4, 32, 32, |c, y, x| if c == 3 { if y == 0 && x < 4 { alpha } else { 1.0 } } else { 0.5 });
+        let opaque = dir.path().join("opaque.png");
+        crate::io::write_png(&opaque, &rgba(1.0), crate::io::BitDepth::Eight).unwrap();
+        assert!(load_photo(&opaque, None, 32).unwrap().warnings.is_empty());
+        let clear = dir.path().join("clear.png");
+        crate::io::write_png(&clear, &rgba(0.0), crate::io::BitDepth::Eight).unwrap();
+        let p = load_photo(&clear, None, 32).unwrap();
+        assert_eq!(p.warnings.len(), 1);
+        assert!(p.warnings[0].contains("clear.png: 4 of its 1024 pixels (0.39%) are transparent") && p.warnings[0].contains("alpha channel is ignored"), "{}", p.warnings[0]);
+        // The colour under transparent pixels is what is estimated.
+        assert!(p.linear.data.iter().all(|v| (v - crate::spaces::photo_decode(128.0 / 255.0)).abs() < 1e-6));
     }
 }

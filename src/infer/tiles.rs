@@ -4,6 +4,12 @@
 //! rounding, because every layer's instance norm takes the statistics of
 //! its whole input; no seams, no blending needed); relighting streams row
 //! bands (M_render is per pixel, so bands are exact).
+//!
+//! On a GPU the plan takes `--max-memory` as the card's budget too; it is
+//! not read from the card's free memory: tch exposes no `cudaMemGetInfo`
+//! (PyTorch's `torch.cuda.mem_get_info`), and reaching it through the CUDA
+//! runtime by hand could not be tested without a GPU. Running out anyway is
+//! one error line that says to lower `--max-memory` (`src/main.rs`).
 
 use crate::model::ModelConfig;
 use anyhow::{bail, ensure, Result};

@@ -23,7 +23,7 @@ pub fn step_rng(seed: u64, step: u64, stream: u64) -> Pcg64 {
 /// A source of training materials.
 #[derive(Clone)]
 pub enum MaterialStream {
-    Procedural { size: usize },
+    Procedural { config: procedural::ProceduralConfig },
     /// A bank of procedural materials, drawn with random symmetries.
     Bank(Arc<Vec<Svbrdf>>),
     /// One held-out material (`procedural-test:I`): the over-fitting experiment.
@@ -34,9 +34,9 @@ pub enum MaterialStream {
 impl MaterialStream {
     pub fn open(cfg: &TrainConfig) -> Result<Self> {
         if cfg.data == "procedural" && cfg.bank > 0 {
-            Ok(Self::Bank(Arc::new(generate_bank(cfg.bank, cfg.material_size))))
+            Ok(Self::Bank(Arc::new(generate_bank(cfg.bank, &procedural::ProceduralConfig::with_dark_share(cfg.material_size, cfg.dark_share as f32)))))
         } else if cfg.data == "procedural" {
-            Ok(Self::Procedural { size: cfg.material_size })
+            Ok(Self::Procedural { config: procedural::ProceduralConfig::with_dark_share(cfg.material_size, cfg.dark_share as f32) })
         } else if let Some(index) = procedural::parse_test_material(&cfg.data)? {
             Ok(Self::Single(Arc::new(procedural::test_material(index, cfg.material_size))))
         } else {
@@ -72,9 +72,9 @@ impl MaterialStream {
         let mut rng = step_rng(cfg.seed, step, 1);
         let n = cfg.materials_per_batch as u64;
         let full: Vec<Svbrdf> = match self {
-            Self::Procedural { size } => {
+            Self::Procedural { config } => {
                 let seeds: Vec<u64> = (0..n).map(|i| procedural::training_seed(step * n + i)).collect();
-                procedural::generate_many(&seeds, *size)
+                procedural::generate_many_with(&seeds, config)
             }
             Self::Single(m) => vec![m.as_ref().clone(); n as usize],
             Self::Bank(bank) => {
@@ -102,15 +102,14 @@ impl MaterialStream {
 
 /// The first `count` training materials, generated on all cores, with a
 /// progress bar (thousands take a minute on a 16-core machine).
-pub fn generate_bank(count: usize, size: usize) -> Vec<Svbrdf> {
+pub fn generate_bank(count: usize, config: &procedural::ProceduralConfig) -> Vec<Svbrdf> {
     use indicatif::ParallelProgressIterator;
     use rayon::prelude::*;
     let bar = indicatif::ProgressBar::new(count as u64);
     if let Ok(style) = indicatif::ProgressStyle::with_template("material bank {bar:30} {pos}/{len}  {per_sec}  ETA {eta}") {
         bar.set_style(style);
     }
-    let config = procedural::ProceduralConfig::with_size(size);
-    let bank = (0..count as u64).into_par_iter().progress_with(bar.clone()).map(|i| procedural::generate(procedural::training_seed(i), &config)).collect();
+    let bank = (0..count as u64).into_par_iter().progress_with(bar.clone()).map(|i| procedural::generate(procedural::training_seed(i), config)).collect();
     bar.finish_and_clear();
     bank
 }

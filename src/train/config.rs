@@ -115,6 +115,11 @@ pub struct TrainConfig {
     /// colour from texture instead of reading it from the photo.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub colour_augment: f64,
+    /// Share of dark procedural materials (diffuse albedo darkened,
+    /// `ProceduralConfig::dark_probability`); 0 is the paper's data. Real
+    /// materials are mostly darker than the families' own colours (issue 53).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub dark_share: f64,
     /// Of each material's outputs, this many are co-located (the input's
     /// own view, then light and camera together elsewhere,
     /// `SampleConfig::colocated_outputs`); 0 is the paper's "reflect" only.
@@ -236,6 +241,7 @@ impl Default for TrainConfig {
             straight_through_output: false,
             frozen_bn_from: None,
             colour_augment: 0.0,
+            dark_share: 0.0,
             colocated_outputs: 0,
             hemisphere_outputs: 0,
             checkerboard_free: false,

@@ -370,15 +370,42 @@ pub fn start_any(config: TrainConfig, opts: &RunOptions) -> Result<AnyTrainer> {
     }
 }
 
+/// Takes ownership of a run folder for this process ([`crate::io::lock_folder`]:
+/// a second `train` or `--resume` of it meets one error line) and removes
+/// the temporaries that a killed owner left in it.
+fn own_run_folder(run: &Path) -> Result<crate::io::FolderLock> {
+    let lock = crate::io::lock_folder(run)?;
+    for dir in [run.to_path_buf(), run.join("previews")] {
+        crate::io::remove_stale_temporaries(&dir);
+    }
+    Ok(lock)
+}
+
 fn start_with<T: RunTrainer>(config: TrainConfig, opts: &RunOptions) -> Result<T> {
     let ckpt = checkpoint_path(&opts.run_dir);
+    let holds_a_run = || anyhow::anyhow!("{} already holds a run; continue it with `flashmat train --resume {}`", opts.run_dir.display(), opts.run_dir.display());
     if ckpt.exists() {
-        anyhow::bail!("{} already holds a run; continue it with `flashmat train --resume {}`", opts.run_dir.display(), opts.run_dir.display());
+        return Err(holds_a_run());
     }
     // Networks first: a refused configuration (bad --init-from) leaves no run folder behind.
     let config_json = serde_json::to_string_pretty(&config)?;
     let trainer = T::create(config, opts.device)?;
     let created = !opts.run_dir.exists();
+    let remove_created = || {
+        if created && !ckpt.exists() {
+            let _ = std::fs::remove_dir_all(&opts.run_dir);
+        }
+    };
+    if let Err(e) = std::fs::create_dir_all(&opts.run_dir) {
+        remove_created();
+        return Err(e).with_context(|| format!("cannot create run folder {}", opts.run_dir.display()));
+    }
+    // A run started in the same folder at the same moment owns it now (and
+    // the folder, even one this process created): leave both alone.
+    let _lock = own_run_folder(&opts.run_dir)?;
+    if ckpt.exists() {
+        return Err(holds_a_run());
+    }
     let result = std::fs::create_dir_all(opts.run_dir.join("previews"))
         .with_context(|| format!("cannot create run folder {}", opts.run_dir.display()))
         .and_then(|_| crate::io::atomic_write_bytes(&opts.run_dir.join("config.json"), config_json.as_bytes()))
@@ -388,8 +415,8 @@ fn start_with<T: RunTrainer>(config: TrainConfig, opts: &RunOptions) -> Result<T
         });
     // A start that failed before its first checkpoint (unreadable data, a
     // diverging first step) leaves no run folder behind.
-    if result.is_err() && created && !ckpt.exists() {
-        let _ = std::fs::remove_dir_all(&opts.run_dir);
+    if result.is_err() {
+        remove_created();
     }
     result
 }
@@ -418,8 +445,10 @@ pub fn resume_any(opts: &RunOptions, steps: Option<u64>) -> Result<AnyTrainer> {
 fn resume_with<T: RunTrainer>(opts: &RunOptions, steps: Option<u64>) -> Result<T> {
     let ckpt = checkpoint_path(&opts.run_dir);
     anyhow::ensure!(ckpt.exists(), "{} holds no checkpoint to resume", opts.run_dir.display());
+    let _lock = own_run_folder(&opts.run_dir)?;
     let mut trainer = T::resume_from(&ckpt, opts.device)?;
     if let Some(s) = steps {
+        check_new_total(&opts.run_dir, trainer.steps_done(), s)?;
         trainer.config_mut().steps = s;
     }
     if let Some(lr) = opts.new_lr {
@@ -440,6 +469,17 @@ fn resume_with<T: RunTrainer>(opts: &RunOptions, steps: Option<u64>) -> Result<T
     }
     truncate_log(&opts.run_dir, trainer.steps_done())?;
     train_loop(trainer, opts)
+}
+
+/// A resumed run's new total `--steps` must lie beyond the `done` steps:
+/// anything else would train nothing (and used to exit 0 in silence).
+fn check_new_total(run: &Path, done: u64, steps: u64) -> Result<()> {
+    anyhow::ensure!(
+        steps > done,
+        "run {} is already at step {done}: --steps {steps} trains nothing (with --resume, --steps is the new total; give more than {done})",
+        run.display()
+    );
+    Ok(())
 }
 
 /// Writes the checkpoint, the charts and (with an export folder) the f16
@@ -593,4 +633,17 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
     }
     bar.finish_with_message(format!("done at step {}", trainer.steps_done()));
     Ok(trainer)
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn a_resumed_total_must_lie_beyond_the_run() {
+        let run = std::path::Path::new("runs/r");
+        assert!(super::check_new_total(run, 5, 6).is_ok());
+        for steps in [5, 3, 0] {
+            let e = super::check_new_total(run, 5, steps).unwrap_err().to_string();
+            assert!(e.contains("run runs/r is already at step 5") && e.contains(&format!("--steps {steps}")), "{e}");
+        }
+    }
 }

@@ -327,7 +327,7 @@ fn bank_draws_are_deterministic_per_step_and_turn_the_materials() {
     }
     // Over many steps every draw comes from the 3 bank materials: each crop's
     // diffuse values all occur in one of them (a symmetry only moves pixels).
-    let bank = super::batches::generate_bank(3, cfg.material_size);
+    let bank = super::batches::generate_bank(3, &crate::data::procedural::ProceduralConfig::with_size(cfg.material_size));
     let mut codes_seen = std::collections::HashSet::new();
     for step in 0..20 {
         for m in stream.materials(&cfg, step).unwrap() {

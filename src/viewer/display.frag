@@ -1,7 +1,8 @@
 #version 300 es
 // Display pass: the network's ln(1 + R) (or the input photo) to screen
 // values as `flashmat relight` writes PNGs: R = exp(out) - 1 (out clamped
-// at 80, R at 0), times the exposure, clamp(., 0, 1)^(1 / 2.2).
+// at 80, R at 0) times the material's gain, times the exposure, the sRGB
+// curve of clamp(., 0, 1) (`spaces::photo_encode`).
 precision highp float;
 precision highp int;
 precision highp sampler2D;
@@ -10,6 +11,7 @@ uniform sampler2D uOut;    // ln(1 + R), render pixels, row 0 = top
 uniform sampler2D uPhoto;  // linear input photo, map pixels, row 0 = top
 uniform int uShowPhoto;
 uniform float uExposure;
+uniform float uGain;       // the material's exposure gain (.nmat `gain`): network radiance to the photo's
 uniform ivec2 uRender;     // render resolution of uOut's valid part
 uniform ivec2 uCanvas;     // canvas = map size (the display scales it)
 out vec4 color;
@@ -26,7 +28,9 @@ void main() {
     } else {
         ivec2 r = c * uRender / uCanvas;
         vec3 o = min(texelFetch(uOut, r, 0).rgb, vec3(80.0));
-        radiance = max(vec3(expm1(o.r), expm1(o.g), expm1(o.b)), vec3(0.0));
+        radiance = max(vec3(expm1(o.r), expm1(o.g), expm1(o.b)), vec3(0.0)) * uGain;
     }
-    color = vec4(pow(clamp(radiance * uExposure, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
+    vec3 v = clamp(radiance * uExposure, 0.0, 1.0);
+    vec3 srgb = mix(1.055 * pow(v, vec3(1.0 / 2.4)) - 0.055, 12.92 * v, vec3(lessThanEqual(v, vec3(0.0031308))));
+    color = vec4(srgb, 1.0);
 }

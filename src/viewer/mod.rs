@@ -308,10 +308,11 @@ pub fn pack_map_u8(map: &Tensor) -> Result<U8Map> {
 }
 
 /// Display-level difference between two linear renders `[K, 3, H, W]`:
-/// (mean, max) of |display(a) - display(b)| x 255 with display =
-/// clamp(R, 0, 1)^(1/2.2), the PNG transform of `flashmat relight`.
+/// (mean, max) of |display(a) - display(b)| x 255 with display the sRGB
+/// curve of clamp(R, 0, 1), the PNG transform of `flashmat relight`
+/// ([`crate::spaces::linear_to_photo`]).
 pub fn display_error(a: &Tensor, b: &Tensor) -> (f64, f64) {
-    let d = (crate::spaces::linear_to_display(a) - crate::spaces::linear_to_display(b)).abs() * 255.0;
+    let d = (crate::spaces::linear_to_photo(a) - crate::spaces::linear_to_photo(b)).abs() * 255.0;
     (d.mean(Kind::Double).double_value(&[]), d.max().double_value(&[]))
 }
 
@@ -512,6 +513,7 @@ pub fn build_page(m: &NeuralMaterial, opts: &ViewerOptions) -> Result<(String, V
         "encOut": m.config.enc_out,
         "width": w,
         "height": h,
+        "gain": m.meta.gain,
         "identity": NeuralMaterial::identity_config().view,
         "light": opts.initial.light,
         "view": opts.initial.view,

@@ -288,6 +288,7 @@
       gl.uniform1i(display.loc.uPhoto, 1);
       gl.uniform1i(display.loc.uShowPhoto, state.showPhoto ? 1 : 0);
       gl.uniform1f(display.loc.uExposure, Math.pow(2, state.exposure));
+      gl.uniform1f(display.loc.uGain, meta.gain);
       gl.uniform2i(display.loc.uRender, RW, RH);
       gl.uniform2i(display.loc.uCanvas, W, H);
       gl.drawArrays(gl.TRIANGLES, 0, 3);

@@ -45,10 +45,11 @@ pub struct FitMethod {
 }
 
 impl FitMethod {
-    /// Loads the flashmat model file `path`.
-    pub fn load(path: &Path, name: String, ldr_photo: bool, device: Device, config: FitConfig) -> Result<Self> {
+    /// Loads the flashmat model file `path`; its estimates handle the
+    /// photo's exposure as `exposure` says.
+    pub fn load(path: &Path, name: String, ldr_photo: bool, device: Device, config: FitConfig, exposure: &crate::infer::ExposureConfig) -> Result<Self> {
         config.validate()?;
-        let model = ModelMethod::load(path, name.clone(), ldr_photo, device)?;
+        let model = ModelMethod::load(path, name.clone(), ldr_photo, device)?.with_exposure(*exposure);
         Ok(Self { name, model, config, maps: None, device })
     }
 

@@ -9,7 +9,7 @@ use crate::baselines::{Baseline, BaselineNet, RelightEncoded, TrainMethod};
 use crate::geometry::{config_tensors, LightView, MODEL_FOV_DEG};
 use crate::image::Image;
 use crate::infer::refine::{refine, RefineConfig};
-use crate::infer::{self, NeuralMaterial, PreparedPhoto};
+use crate::infer::{self, ExposureConfig, NeuralMaterial, PreparedPhoto};
 use crate::model::{FoldedMEst, Model, ModelInfo};
 use crate::svbrdf::render::direction_maps_for;
 use anyhow::{bail, ensure, Context, Result};
@@ -56,6 +56,8 @@ pub struct ModelMethod {
     ldr_photo: bool,
     /// Refinement on the photo after M_est (`flashmat eval --refine`).
     refine: Option<RefineConfig>,
+    /// How the photo's exposure reaches the material (`--exposure-mode`).
+    exposure: ExposureConfig,
     material: Option<NeuralMaterial>,
 }
 
@@ -64,7 +66,12 @@ impl ModelMethod {
     /// (recorded in the neural material's metadata).
     pub fn load(path: &Path, name: String, ldr_photo: bool, device: Device) -> Result<Self> {
         let loaded = infer::load_model(Some(path), device)?;
-        Ok(Self { name, model: loaded.model, info: loaded.info, ldr_photo, refine: None, material: None })
+        Ok(Self { name, model: loaded.model, info: loaded.info, ldr_photo, refine: None, exposure: ExposureConfig::default(), material: None })
+    }
+
+    /// The same method with another exposure handling.
+    pub fn with_exposure(self, exposure: ExposureConfig) -> Self {
+        Self { exposure, ..self }
     }
 
     /// The same method with every estimate refined on its photo.
@@ -84,7 +91,7 @@ impl Method for ModelMethod {
     }
 
     fn prepare(&mut self, photo_linear: &Tensor) -> Result<()> {
-        self.material = Some(estimate_material(&self.name, &self.model, &self.info, self.ldr_photo, self.refine.as_ref(), photo_linear)?);
+        self.material = Some(estimate_material(&self.name, &self.model, &self.info, self.ldr_photo, self.refine.as_ref(), &self.exposure, photo_linear)?);
         Ok(())
     }
 
@@ -96,10 +103,10 @@ impl Method for ModelMethod {
 /// A flashmat model's neural material of an evaluation photo `[3, H, W]`
 /// (linear, seen from the co-located view), refined when `refine` says:
 /// the one place evaluation calls inference.
-fn estimate_material(name: &str, model: &Model, info: &ModelInfo, ldr_photo: bool, refine_cfg: Option<&RefineConfig>, photo_linear: &Tensor) -> Result<NeuralMaterial> {
+fn estimate_material(name: &str, model: &Model, info: &ModelInfo, ldr_photo: bool, refine_cfg: Option<&RefineConfig>, exposure: &ExposureConfig, photo_linear: &Tensor) -> Result<NeuralMaterial> {
     let linear = Image::from_tensor(&photo_linear.to_device(Device::Cpu).to_kind(Kind::Float))?;
     let photo = PreparedPhoto::at_model_view(linear, ldr_photo, "evaluation render");
-    let mut material = infer::estimate(model, info, &photo)?;
+    let mut material = infer::estimate_planned(model, info, &photo, &infer::EstPlan::Whole, exposure, || ())?;
     if let Some(cfg) = refine_cfg {
         let report = refine(&mut material, &photo.linear.to_tensor(), ldr_photo, cfg, |_| {})?;
         ensure!(report.stopped.is_none(), "{name}: {}", report.summary());
@@ -114,8 +121,9 @@ fn render_material(name: &str, material: Option<&NeuralMaterial>, configs: &[Lig
     Ok(Tensor::cat(&parts, 0))
 }
 
-/// [`ModelMethod`] on networks it does not own: the checks the training
-/// run logs at every checkpoint score its live model through it.
+/// [`ModelMethod`] on networks it does not own (the default exposure
+/// handling): the checks the training run logs at every checkpoint score
+/// its live model through it.
 pub struct BorrowedModelMethod<'a> {
     pub model: &'a Model,
     pub info: ModelInfo,
@@ -135,7 +143,7 @@ impl Method for BorrowedModelMethod<'_> {
     }
 
     fn prepare(&mut self, photo_linear: &Tensor) -> Result<()> {
-        self.material = Some(estimate_material("model", self.model, &self.info, self.info.ldr_input, None, photo_linear)?);
+        self.material = Some(estimate_material("model", self.model, &self.info, self.info.ldr_input, None, &ExposureConfig::default(), photo_linear)?);
         Ok(())
     }
 
@@ -351,7 +359,8 @@ pub fn open_model_file(path: &Path, name: String, ldr_photo: bool, device: Devic
 /// settings, each flashmat model becomes one method per setting, named
 /// `NAME+refineSTEPS`, and a setting of 0 steps is the unrefined `NAME`
 /// (so `--refine 0,100` scores both, `--refine 100` only the refined one).
-pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &[RefineConfig]) -> Result<Vec<Box<dyn Method>>> {
+/// Flashmat models handle the photo's exposure as `exposure` says.
+pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &[RefineConfig], exposure: &ExposureConfig) -> Result<Vec<Box<dyn Method>>> {
     ensure!(!specs.is_empty(), "give at least one --model (a model file or `printout`)");
     let mut out: Vec<Box<dyn Method>> = Vec::new();
     let mut names: Vec<String> = Vec::new();
@@ -378,21 +387,25 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &
         }
         if let Some((file, steps)) = fit_spec {
             let cfg = crate::fit::FitConfig { steps, ..Default::default() };
-            out.push(Box::new(fit::FitMethod::load(Path::new(file), name, ldr_photo, device, cfg)?));
+            out.push(Box::new(fit::FitMethod::load(Path::new(file), name, ldr_photo, device, cfg, exposure)?));
             continue;
         }
         let path = Path::new(spec);
-        if refine.is_empty() || recorded_method(path)? != TrainMethod::Flashmat {
+        if recorded_method(path)? != TrainMethod::Flashmat {
             out.push(open_model_file(path, name, ldr_photo, device)?);
+            continue;
+        }
+        if refine.is_empty() {
+            out.push(Box::new(ModelMethod::load(path, name, ldr_photo, device)?.with_exposure(*exposure)));
             continue;
         }
         for cfg in refine {
             if cfg.steps == 0 {
-                out.push(Box::new(ModelMethod::load(path, name.clone(), ldr_photo, device)?));
+                out.push(Box::new(ModelMethod::load(path, name.clone(), ldr_photo, device)?.with_exposure(*exposure)));
             } else {
                 let refined = refined_name(&name, cfg.steps);
                 names.push(refined.clone());
-                out.push(Box::new(ModelMethod::load(path, refined, ldr_photo, device)?.with_refine(cfg.clone())));
+                out.push(Box::new(ModelMethod::load(path, refined, ldr_photo, device)?.with_refine(cfg.clone()).with_exposure(*exposure)));
             }
         }
     }

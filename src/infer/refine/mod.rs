@@ -4,12 +4,17 @@
 //!
 //! ```text
 //! loss = data + pull + smooth + range
-//!   data   = mean |ln(1+R_id) - ln(1+photo)|      (one-sided where an 8-bit photo is clipped)
+//!   data   = mean |ln(1+R_id) - ln(1+photo/g)|    (one-sided where an 8-bit photo is clipped)
 //!   pull   = w_pull   * mean((m - m0)^2) / s^2       (stay near the network's estimate m0)
 //!   smooth = w_smooth * mean(e * |grad (m - m0)|) / s (change smoothly where the photo is smooth)
 //!   range  = w_range  * mean(relu(|m_p| - r0)^2) / s^2 (no pixel's code beyond the estimate's largest norm r0)
 //!   relight = w_relight * mean |ln(1+R_k(m)) - ln(1+R_k(m0))|  (renders under other lights stay the network's)
 //! ```
+//!
+//! R_id is the network's identity render and g the material's exposure
+//! gain: the fit runs at the brightness M_est saw, so a photo taken darker
+//! refines to the same map (issue 53), and the priors' weights keep their
+//! meaning at every exposure.
 //!
 //! The relight prior is the render-space form of the pull: the photo says
 //! nothing about the material under other lights, so there the network's
@@ -108,8 +113,11 @@ pub fn refine(material: &mut NeuralMaterial, photo: &Tensor, clipped_photo: bool
     let t0 = Instant::now();
     let device = material.device();
     let photo = photo.to_device(device).to_kind(Kind::Float).clamp_min(0.0);
-    let target = crate::spaces::to_log(&photo);
+    // The network renders the photo divided by the material's exposure gain
+    // (what M_est saw, before any clamp); a pixel is clipped where the photo itself was.
     let clipped = clipped_photo.then(|| photo.ge(CLIP_LEVEL));
+    let photo = photo / material.meta.gain;
+    let target = crate::spaces::to_log(&photo);
     let (edge_x, edge_y) = edge_weights(&target);
 
     let (wi, wo) = material.direction_maps(&[NeuralMaterial::identity_config()]);
@@ -224,8 +232,9 @@ mod tests {
         estimate(model, info, &PreparedPhoto::at_model_view(photo.clone(), ldr, "test")).unwrap()
     }
 
+    /// ln(1 + R / gain): renders at the brightness M_est saw, where the refinement measures.
     fn log_render(m: &NeuralMaterial, c: &LightView) -> Tensor {
-        crate::spaces::to_log(&m.render(std::slice::from_ref(c)).unwrap().get(0))
+        crate::spaces::to_log(&(m.render(std::slice::from_ref(c)).unwrap().get(0) / m.meta.gain))
     }
 
     #[test]
@@ -234,8 +243,8 @@ mod tests {
         let side = LightView { light: [1.5, 1.0, 2.5], view: overhead_camera() };
         let truth = crate::svbrdf::render::render_material(&checker(), &[NeuralMaterial::identity_config(), side]).unwrap();
         let photo = truth[0].to_tensor();
-        let target = crate::spaces::to_log(&photo);
         let unrefined = estimate_from(&model, &info, &truth[0], false);
+        let target = crate::spaces::to_log(&(&photo / unrefined.meta.gain));
         let before = (log_render(&unrefined, &NeuralMaterial::identity_config()) - &target).abs().mean(Kind::Float).double_value(&[]);
 
         let mut free = estimate_from(&model, &info, &truth[0], false);

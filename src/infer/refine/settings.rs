@@ -84,7 +84,8 @@ pub struct RefineReport {
     pub steps_done: usize,
     pub seconds: f64,
     /// Data term (mean |ln(1+R) - ln(1+photo)|, one-sided on clipped
-    /// pixels) of the identity render before and after.
+    /// pixels, render and photo divided by the exposure gain) of the
+    /// identity render before and after.
     pub identity_l1_before: f64,
     pub identity_l1_after: f64,
     /// Why it stopped early and kept the unrefined map, if it did.

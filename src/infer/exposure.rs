@@ -1,0 +1,186 @@
+//! Exposure that cannot fool the model (issue 53): M_est never sees a photo
+//! darker than the brightness it was trained at, and the material carries
+//! the photo's exposure as a gain ([`super::NmatMeta::gain`]) that every
+//! renderer applies.
+//!
+//! ```text
+//! level  = median over pixels of the photo's RGB mean        (robust: a highlight is a few pixels)
+//! s      = max(1, min_level / level)                         (dark photos are brought up)
+//! M_est  sees clamp(s * photo)                               (LDR models: clamped to [0, 1] as in training)
+//! gain   = 1 / s, times the identity calibration below
+//! ```
+//!
+//! Every photo darker than the minimum level reaches M_est at that level: a
+//! photo taken k stops darker gives the same neural map (wherever the
+//! darker 8-bit photo is not quantised away) and a gain 2^-k times the
+//! first, so its renders are exactly 2^-k times as bright. Brighter photos
+//! are left as they are: the bundled model follows their brightness (and
+//! normalising them down cost detail: on held-out material 19, median
+//! 0.49, the identity log error doubled, 0.026 -> 0.051; reports/exposure.md).
+//!
+//! The identity calibration then makes the material give its photo back:
+//! the network's render under the photo's own flash is compared with the
+//! photo over the pixels that are neither clipped nor in the flash
+//! highlight (above [`HIGHLIGHT_FACTOR`] x the median: the highlight is
+//! what the network is least sure of, and a few bright pixels must not set
+//! the brightness of the rest), and the gain takes the ratio of their
+//! means. It is one scalar: colour, texture and the shape of the highlight
+//! stay the network's.
+
+use anyhow::{ensure, Result};
+use tch::{Kind, Tensor};
+
+/// Median level (RGB mean, linear) below which photos are brought up for
+/// M_est. The bundled model's identity renders follow the photo best around
+/// here and drift brighter below (`examples/probe_exposure.rs`,
+/// reports/exposure.md); most procedural training photos are brighter.
+pub const DEFAULT_MIN_LEVEL: f64 = 0.1;
+
+/// Pixels brighter than this many times the photo's median are the flash
+/// highlight (the moved-highlight test's S_in, issue 48), left out of the
+/// identity calibration.
+pub const HIGHLIGHT_FACTOR: f64 = 2.0;
+
+/// Photo values at or above this are clipped (8-bit white, after decoding).
+pub const CLIPPED_LEVEL: f64 = 0.999;
+
+/// Calibration factors outside this range are refused (the network's
+/// identity render is then far from the photo for another reason, and the
+/// normalised gain alone is kept).
+pub const MAX_CALIBRATION: f64 = 8.0;
+
+/// How a photo's exposure is taken out before M_est and put back after.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExposureConfig {
+    /// Bring photos darker than [`ExposureConfig::min_level`] up to it
+    /// before M_est (false: the photo as it is, the behaviour before issue 53).
+    pub normalize: bool,
+    /// Median RGB-mean level below which photos are brought up.
+    pub min_level: f64,
+    /// Calibrate the gain on the identity render.
+    pub calibrate: bool,
+}
+
+impl Default for ExposureConfig {
+    fn default() -> Self {
+        Self { normalize: true, min_level: DEFAULT_MIN_LEVEL, calibrate: true }
+    }
+}
+
+impl ExposureConfig {
+    /// The photo as it is and no calibration: what flashmat did before.
+    pub fn off() -> Self {
+        Self { normalize: false, calibrate: false, ..Self::default() }
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        ensure!(self.min_level.is_finite() && self.min_level > 0.0 && self.min_level <= 1.0, "the exposure's minimum level must be in (0, 1], got {}", self.min_level);
+        Ok(())
+    }
+}
+
+/// Per-pixel RGB mean of a linear photo `[3, H, W]` -> `[H, W]`.
+fn luminance(photo: &Tensor) -> Tensor {
+    photo.to_kind(Kind::Float).clamp_min(0.0).mean_dim(&[0i64][..], false, Kind::Float)
+}
+
+/// The photo's exposure level: the median over pixels of the RGB mean, or
+/// None for a photo with no light in half of its pixels (nothing to
+/// normalise by). photo: linear `[3, H, W]`.
+pub fn photo_level(photo: &Tensor) -> Option<f64> {
+    let level = luminance(photo).flatten(0, -1).median().double_value(&[]);
+    (level.is_finite() && level > 1e-8).then_some(level)
+}
+
+/// The scale M_est's input is multiplied by: min_level / level for a photo
+/// darker than the minimum, else 1 (also when off, or when the photo has
+/// no level).
+pub fn normalizing_scale(photo: &Tensor, cfg: &ExposureConfig) -> f64 {
+    match (cfg.normalize, photo_level(photo)) {
+        (true, Some(level)) => (cfg.min_level / level).max(1.0),
+        _ => 1.0,
+    }
+}
+
+/// Pixels the identity calibration compares `[H, W]` (bool): not clipped in
+/// any channel and not in the flash highlight. photo: linear `[3, H, W]`.
+pub fn calibration_mask(photo: &Tensor) -> Tensor {
+    let lum = luminance(photo);
+    let median = lum.flatten(0, -1).median().double_value(&[]);
+    let unclipped = photo.max_dim(0, false).0.lt(CLIPPED_LEVEL);
+    let below_highlight = lum.le(HIGHLIGHT_FACTOR * median.max(0.0));
+    unclipped.logical_and(&below_highlight)
+}
+
+/// The factor that makes the identity render's mean equal the photo's over
+/// [`calibration_mask`], or None where it cannot be trusted (under a
+/// hundredth of the pixels, a black render, or a factor beyond
+/// [`MAX_CALIBRATION`] either way). photo, identity: linear `[3, H, W]`.
+pub fn calibration_factor(photo: &Tensor, identity: &Tensor) -> Option<f64> {
+    let mask = calibration_mask(photo);
+    let pixels = mask.sum(Kind::Int64).int64_value(&[]);
+    if pixels * 100 < mask.numel() as i64 {
+        return None;
+    }
+    let m = mask.unsqueeze(0).expand_as(photo);
+    let mean = |t: &Tensor| t.to_kind(Kind::Double).clamp_min(0.0).masked_select(&m).mean(Kind::Double).double_value(&[]);
+    let factor = mean(photo) / mean(identity);
+    (factor.is_finite() && factor > 1.0 / MAX_CALIBRATION && factor < MAX_CALIBRATION).then_some(factor)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::Device;
+
+    fn photo(f: impl Fn(usize, usize, usize) -> f32) -> Tensor {
+        crate::image::Image::from_fn(3, 8, 8, f).to_tensor()
+    }
+
+    #[test]
+    fn the_level_is_the_median_and_ignores_a_highlight() {
+        // 64 pixels: 40 at 0.02, 24 at 0.005 (RGB means); one highlight pixel at 5.
+        let p = photo(|c, y, x| if (y, x) == (4, 4) { 5.0 } else if y < 5 { [0.01, 0.02, 0.03][c] } else { 0.005 });
+        assert!((photo_level(&p).unwrap() - 0.02).abs() < 1e-7);
+        let cfg = ExposureConfig::default();
+        assert!((normalizing_scale(&p, &cfg) - DEFAULT_MIN_LEVEL / 0.02).abs() < 1e-5);
+        // Two stops darker: four times the scale, so the same input for M_est.
+        let dark = &p / 4.0;
+        assert!((normalizing_scale(&dark, &cfg) - 4.0 * normalizing_scale(&p, &cfg)).abs() < 1e-4);
+        assert_eq!(normalizing_scale(&p, &ExposureConfig::off()), 1.0);
+        // A photo at or above the minimum level is left as it is.
+        assert_eq!(normalizing_scale(&(&p * 6.0), &cfg), 1.0);
+        assert_eq!(normalizing_scale(&(&p * 50.0), &cfg), 1.0);
+        // A black photo has no level: left as it is.
+        assert_eq!(photo_level(&Tensor::zeros([3, 8, 8], (Kind::Float, Device::Cpu))), None);
+        assert_eq!(normalizing_scale(&Tensor::zeros([3, 8, 8], (Kind::Float, Device::Cpu)), &cfg), 1.0);
+    }
+
+    #[test]
+    fn calibration_compares_the_unclipped_pixels_outside_the_highlight() {
+        // Photo: 0.2 everywhere, a clipped highlight (1.0) in the top row.
+        let p = photo(|_, y, _| if y == 0 { 1.0 } else { 0.2 });
+        let mask = calibration_mask(&p);
+        assert_eq!(mask.sum(Kind::Int64).int64_value(&[]), 56);
+        // The render is half the photo where it counts and 10x in the
+        // highlight: the factor is 2, whatever the highlight does.
+        let r = photo(|_, y, _| if y == 0 { 10.0 } else { 0.1 });
+        assert!((calibration_factor(&p, &r).unwrap() - 2.0).abs() < 1e-9);
+        // A bright unclipped pixel above 2x the median is highlight too.
+        let p2 = photo(|_, y, x| if (y, x) == (3, 3) { 0.5 } else { 0.2 });
+        assert_eq!(calibration_mask(&p2).sum(Kind::Int64).int64_value(&[]), 63);
+        // Untrustworthy: a black render, or a factor beyond the bound.
+        assert_eq!(calibration_factor(&p, &Tensor::zeros([3, 8, 8], (Kind::Float, Device::Cpu))), None);
+        assert_eq!(calibration_factor(&p, &(&r * 0.01)), None);
+        // All pixels clipped: nothing to compare.
+        assert_eq!(calibration_factor(&photo(|_, _, _| 1.0), &r), None);
+    }
+
+    #[test]
+    fn minimum_levels_are_checked() {
+        assert!(ExposureConfig::default().validate().is_ok());
+        for bad in [0.0, -0.1, 1.5, f64::NAN] {
+            assert!(ExposureConfig { min_level: bad, ..Default::default() }.validate().is_err(), "{bad}");
+        }
+    }
+}
