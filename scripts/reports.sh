@@ -191,3 +191,12 @@ $FLASHMAT eval --uniform --model target/bundled-45660.safetensors -o target/unif
 cp target/uniform-bundled-45660/uniform.md reports/gpu-campaign-2026-11-26-night/uniform-45660.md
 cargo run --release --quiet --example compare_models -- target/bundled-41607.safetensors $M/flashmat.safetensors target/photos-45660.jpg \
     | grep '^|' > reports/gpu-campaign-2026-11-26-night/photos.md
+
+# Issues 48 and 53's measurements of the bundled model and the print-out
+# (reports/highlights.md, reports/exposure.md): the moved-highlight ratios and
+# the exposure curve on 8-bit photos of the 50 held-out materials (Identity
+# only for LPIPS; 20-28 minutes on the shared 2-core machine).
+$FLASHMAT eval --model $M/flashmat.safetensors --model printout --ldr-input --cases identity \
+    --exposures=-6,-4,-2,0,1 -o target/eval-highlights-exposure
+mkdir -p reports/highlights-exposure
+cp -r target/eval-highlights-exposure/summary.md target/eval-highlights-exposure/highlights target/eval-highlights-exposure/exposure reports/highlights-exposure/

@@ -133,10 +133,11 @@ fn synthetic_captures_then_eval_captures() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("Scored on the other 3 photos at 64x64"), "{stdout}");
-    for f in ["captures.csv", "summary.md", "grid.jpg", "grid.txt"] {
+    for f in ["captures.csv", "summary.md", "grid.jpg", "grid.txt", "highlights.csv"] {
         assert!(report.join(f).exists(), "{f}");
     }
     no_temp_files(&report);
+    assert!(stdout.contains("## Moved highlights"), "{stdout}");
 
     // Bad inputs: one line each; eval-table options are usage errors with --captures.
     assert_error(&flashmat(&["svbrdf", "captures", "--svbrdf", "procedural:3", "--photos", "1", "-o", cap.to_str().unwrap()]), &["--photos"]);
@@ -146,6 +147,21 @@ fn synthetic_captures_then_eval_captures() {
     assert_error(&flashmat(&["eval", "--model", "printout", "--captures", cap.to_str().unwrap(), "-o", report.to_str().unwrap()]), &["light_pos.txt"]);
     let out = flashmat(&["eval", "--model", "printout", "--captures", cap.to_str().unwrap(), "--cases", "identity", "-o", report.to_str().unwrap()]);
     assert_eq!(out.status.code(), Some(2));
+}
+
+#[test]
+fn eval_exposures_take_negative_stops_and_refuse_non_numbers() {
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("report");
+    let args = |ev: &str| ["eval", "--model", "printout", "--size", "32", "--limit", "1", "--cases", "identity", "--ldr-input", "--exposures", ev, "-o", report.to_str().unwrap()].map(String::from);
+    let out = flashmat(&args("-2,1").iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let curve = std::fs::read_to_string(report.join("exposure/curve.csv")).unwrap();
+    // -2, 0 (always) and +1 stops.
+    assert_eq!(curve.lines().skip(1).map(|l| l.split(',').nth(2).unwrap().to_string()).collect::<Vec<_>>(), ["-2", "0", "1"]);
+    assert!(report.join("highlights/ratios.csv").is_file() && report.join("highlights/moved.jpg").is_file());
+    no_temp_files(&report);
+    assert_error(&flashmat(&args("nan").iter().map(String::as_str).collect::<Vec<_>>()), &["--exposures", "NaN"]);
 }
 
 #[test]

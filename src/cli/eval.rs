@@ -28,17 +28,17 @@ pub struct EvalArgs {
     /// Score on real captures instead: a folder of photos NN.png of one flat material with camera_pos.txt, light_pos.txt
     /// (x,y,z per photo, origin at the sample centre) and image_size.txt (the sample's width, the positions' unit).
     /// Estimates from the photo nearest overhead, re-renders the others (1/r^2 fall-off compensated), LPIPS on display images.
-    #[arg(long, value_name = "DIR", conflicts_with_all = ["dataset", "cases", "seed", "limit", "configs", "ldr_input"])]
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["dataset", "cases", "seed", "limit", "configs", "ldr_input", "exposures"])]
     pub captures: Option<PathBuf>,
     /// Run the uniform-colour check instead: 9 flat colours, matte and glossy, estimated from their flash photo
     /// and re-rendered (identity, side light); writes uniform.md and uniform.json (flashmat models only).
-    #[arg(long, conflicts_with_all = ["captures", "dataset", "cases", "seed", "limit", "configs", "ldr_input"])]
+    #[arg(long, conflicts_with_all = ["captures", "dataset", "cases", "seed", "limit", "configs", "ldr_input", "exposures"])]
     pub uniform: bool,
     /// Cases of the paper's table, comma-separated.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "reflect,identity,hemisphere")]
     pub cases: Vec<Sampling>,
-    /// Output folder: NAME.csv per method, summary.md, best.jpg, worst.jpg, grids.txt
-    /// (with --captures: captures.csv, summary.md, grid.jpg, grid.txt).
+    /// Output folder: NAME.csv per method, summary.md, best.jpg, worst.jpg, grids.txt, highlights/ (ratios.csv, moved.jpg:
+    /// the moved-highlight test) and exposure/curve.csv (with --captures: captures.csv, summary.md, grid.jpg, grid.txt).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Resolution in pixels (a multiple of 8, at least 32; capture photos are resized to it).
@@ -56,6 +56,11 @@ pub struct EvalArgs {
     /// Give the methods LDR photos (renders clamped to [0, 1]) instead of HDR ones.
     #[arg(long)]
     pub ldr_input: bool,
+    /// Exposures in stops for the exposure curve, comma-separated (e.g. -6,-4,-2,0,1): the photo is the linear render
+    /// x 2^EV, clamped after the scaling with --ldr-input; each method estimates from it and renders the identity and the
+    /// moved-highlight lights (exposure/curve.csv, summary.md). 0 is always scored (identity brightness ratio).
+    #[arg(long, value_name = "EV", value_delimiter = ',', allow_hyphen_values = true, default_value = "0")]
+    pub exposures: Vec<f64>,
     /// cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -124,6 +129,7 @@ fn eval_options(args: &EvalArgs) -> Result<EvalOptions> {
         device: flashmat::device::parse_device(&args.device)?,
         progress: true,
         refine: args.refine_configs()?,
+        exposures: args.exposures.clone(),
         exposure: args.exposure_mode.config(),
     })
 }

@@ -55,6 +55,10 @@ pub struct CaptureRow {
 pub struct CaptureResults {
     pub name: String,
     pub rows: Vec<CaptureRow>,
+    /// The moved-highlight ratios per scored photo (as `rows`): S_in the
+    /// input photo's highlight (8-bit: all there is), S_gt the scored photo's own, the method's
+    /// render over the photo ([`super::highlights`]; no crop LPIPS).
+    pub highlights: Vec<super::highlights::LightRatios>,
 }
 
 fn file_name(p: &Path) -> String {
@@ -83,6 +87,8 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
     let bar = if opts.progress { ProgressBar::new(methods.len() as u64) } else { ProgressBar::hidden() };
     bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} methods, {elapsed} {msg}").expect("valid template"));
     let shown: Vec<usize> = grid_picks(others.len());
+    let moved = super::highlights::HighlightConfig::default();
+    let s_in = super::highlights::highlight_mask(&super::highlights::luminance(&photos[input])?, moved.threshold);
     let mut results = Vec::new();
     // Grid columns: the photos, then each method's renders.
     let mut columns: Vec<Vec<Tensor>> = vec![std::iter::once(photos[input].shallow_clone()).chain(shown.iter().map(|&k| target.get(k as i64))).collect()];
@@ -100,12 +106,14 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
             .collect();
         let identity = method.render(&[captures.config(input)]).map_err(|e| anyhow!("{name}: {e:#}"))?.get(0);
         columns.push(std::iter::once(identity).chain(shown.iter().map(|&k| pred.get(k as i64))).collect());
-        results.push(CaptureResults { name, rows });
+        let highlights = super::highlights::light_ratios(&s_in, &pred, &target, &moved, None).map_err(|e| anyhow!("{name}: {e:#}"))?;
+        results.push(CaptureResults { name, rows, highlights });
         bar.inc(1);
     }
     bar.finish_and_clear();
 
     crate::io::atomic_write_bytes(&opts.out.join("captures.csv"), csv_text(&results).as_bytes())?;
+    crate::io::atomic_write_bytes(&opts.out.join("highlights.csv"), highlights_csv(&results).as_bytes())?;
     crate::io::atomic_write_bytes(&opts.out.join("summary.md"), summary_markdown(&captures, opts.size, &results).as_bytes())?;
     let grid_rows: Vec<Vec<Image>> = (0..=shown.len())
         .map(|r| columns.iter().map(|c| grid_cell(&c[r])).collect::<Result<_>>())
@@ -155,6 +163,18 @@ pub fn csv_text(results: &[CaptureResults]) -> String {
     s
 }
 
+/// `method,photo,ghost,lobe,rest` (empty where the region is too small).
+pub fn highlights_csv(results: &[CaptureResults]) -> String {
+    let mut s = String::from("method,photo,ghost,lobe,rest\n");
+    let cell = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.5}"));
+    for r in results {
+        for (row, h) in r.rows.iter().zip(&r.highlights) {
+            let _ = writeln!(s, "{},{},{},{},{}", r.name, row.photo, cell(h.ghost), cell(h.lobe), cell(h.rest));
+        }
+    }
+    s
+}
+
 /// Markdown summary: the input photo's geometry against the model's, the
 /// mean scores per method (95% intervals over photos) and LPIPS per photo.
 pub fn summary_markdown(captures: &Captures, size: usize, results: &[CaptureResults]) -> String {
@@ -197,6 +217,20 @@ pub fn summary_markdown(captures: &Captures, size: usize, results: &[CaptureResu
             format!("{m:.digits$} ± {h:.digits$}")
         };
         let _ = writeln!(s, "| {} | {} | {} | {} |", r.name, stat(|x| x.lpips, 3), stat(|x| x.rmse_log, 3), stat(|x| x.psnr, 2));
+    }
+    let _ = writeln!(
+        s,
+        "\n## Moved highlights\n\nMethod's render over the photo on the input photo's highlight minus the scored photo's own (ghost), on the scored photo's highlight minus the input's (lobe) \
+         and elsewhere (rest); highlights: pixels brighter than {}x the image's median (RGB mean). Cells: geometric mean | median | photos past 1.5x (ghost), below 0.67x (lobe) / photos with the region (highlights.csv has each photo).\n",
+        super::highlights::HIGHLIGHT_THRESHOLD
+    );
+    let _ = writeln!(s, "| Method | ghost | median | > 1.5x | lobe | median | < 0.67x | rest | median |\n|---|---|---|---|---|---|---|---|---|");
+    for r in results {
+        let stats = |get: fn(&super::highlights::LightRatios) -> Option<f64>| super::highlights::ratio_stats(r.highlights.iter().map(get));
+        let (g, l, rest) = (stats(|h| h.ghost), stats(|h| h.lobe), stats(|h| h.rest));
+        let cells = |x: &super::highlights::RatioStats, count: usize| if x.n == 0 { "- | - | -".to_string() } else { format!("{:.2} | {:.2} | {count}/{}", x.geo_mean, x.median, x.n) };
+        let rest_cells = if rest.n == 0 { "- | -".to_string() } else { format!("{:.2} | {:.2}", rest.geo_mean, rest.median) };
+        let _ = writeln!(s, "| {} | {} | {} | {rest_cells} |", r.name, cells(&g, g.above_1_5), cells(&l, l.below_0_67));
     }
     let _ = writeln!(s, "\n## LPIPS per photo\n");
     let _ = writeln!(s, "| Photo | light | camera | {} |", results.iter().map(|r| r.name.as_str()).collect::<Vec<_>>().join(" | "));
@@ -251,6 +285,12 @@ mod tests {
         assert_eq!(res[0].rows[0].photo, "01.png");
         let csv = std::fs::read_to_string(out.join("captures.csv")).unwrap();
         assert_eq!(csv.lines().count(), 5);
+        // A matte print-out relights exactly: wherever a highlight region counts, ratios of 1.
+        assert_eq!(res[0].highlights.len(), 4);
+        for h in &res[0].highlights {
+            assert!([h.ghost, h.lobe, h.rest].iter().flatten().all(|v| (v - 1.0).abs() < 0.02), "{h:?}");
+        }
+        assert_eq!(std::fs::read_to_string(out.join("highlights.csv")).unwrap().lines().count(), 5);
         assert!(csv.lines().nth(1).unwrap().starts_with("printout,01.png,"));
         let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
         assert!(summary.contains("Estimated from `00.png`") && summary.contains("| printout |"), "{summary}");

@@ -10,8 +10,13 @@
 //!
 //! Configurations are drawn per (seed, material index, case), so every
 //! method, and every run with the same seed and dataset, sees the same ones.
+//! Every run also scores the moved-highlight test ([`highlights`]) and the
+//! identity brightness at the photo's exposure and any other asked for
+//! ([`exposure`]) on the same prepared materials.
 
 pub mod captures;
+pub mod exposure;
+pub mod highlights;
 pub mod methods;
 pub mod metrics;
 pub mod photos;
@@ -112,6 +117,8 @@ pub struct EvalOptions {
     pub progress: bool,
     /// Refined variants of every flashmat model (`--refine`), one per setting.
     pub refine: Vec<RefineConfig>,
+    /// Exposures (stops) of the exposure curve; 0 is always scored.
+    pub exposures: Vec<f64>,
     /// How flashmat models handle the photo's exposure (`--exposure-mode`).
     pub exposure: crate::infer::ExposureConfig,
 }
@@ -129,6 +136,17 @@ pub struct Row {
 pub struct MethodResults {
     pub name: String,
     pub rows: Vec<Row>,
+    /// The moved-highlight test, one row per material.
+    pub highlights: Vec<highlights::MaterialHighlights>,
+    /// The exposure curve, one row per material and exposure.
+    pub exposure: Vec<exposure::ExposureRow>,
+}
+
+impl MethodResults {
+    /// Results with no rows yet.
+    pub fn new(name: String) -> Self {
+        Self { name, rows: vec![], highlights: vec![], exposure: vec![] }
+    }
 }
 
 /// Loads the materials at `size x size`: the procedural test set, or a
@@ -179,15 +197,15 @@ pub fn reference_renders(m: &Svbrdf, configs: &[LightView]) -> Tensor {
     crate::svbrdf::cpu::render_tensor(m, configs)
 }
 
+/// The co-located GGX render of a material, `[3, H, W]` linear, unclamped.
+pub fn colocated_render(m: &Svbrdf) -> Tensor {
+    reference_renders(m, &[LightView::colocated(MODEL_FOV_DEG)]).get(0)
+}
+
 /// The input photo of a material: its co-located GGX render `[3, H, W]`,
-/// clamped to [0, 1] when `ldr`.
+/// clamped to [0, 1] when `ldr` (the exposure curve's photo at 0 stops).
 pub fn input_photo(m: &Svbrdf, ldr: bool) -> Tensor {
-    let p = reference_renders(m, &[LightView::colocated(MODEL_FOV_DEG)]).get(0);
-    if ldr {
-        crate::spaces::ldr_clamp(&p)
-    } else {
-        p
-    }
+    exposure::exposed(&colocated_render(m), 0.0, ldr)
 }
 
 /// Scores every method on every material and case; returns rows per method.
@@ -197,11 +215,16 @@ pub fn evaluate(
     opts: &EvalOptions,
     lpips: &Lpips,
 ) -> Result<Vec<MethodResults>> {
-    let mut results: Vec<MethodResults> = methods.iter().map(|m| MethodResults { name: m.name(), rows: vec![] }).collect();
+    let mut results: Vec<MethodResults> = methods.iter().map(|m| MethodResults::new(m.name())).collect();
+    let moved = highlights::HighlightConfig::default();
+    let exposures = exposure_list(&opts.exposures)?;
     let bar = if opts.progress { ProgressBar::new((materials.len() * methods.len()) as u64) } else { ProgressBar::hidden() };
     bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} material x method, {elapsed} (eta {eta}) {msg}").expect("valid template"));
     for (mi, (name, m)) in materials.iter().enumerate() {
-        let photo = input_photo(m, opts.ldr_input);
+        let linear = colocated_render(m);
+        let photo = exposure::exposed(&linear, 0.0, opts.ldr_input);
+        let moved_truth = reference_renders(m, &moved.configs());
+        let glossiness = highlights::glossiness(m);
         let cases: Vec<(Sampling, Vec<LightView>, Tensor)> = opts
             .cases
             .iter()
@@ -219,6 +242,12 @@ pub fn evaluate(
                 let scores = mean_scores(&score_renders(lpips, &pred, reference)?);
                 res.rows.push(Row { material: name.clone(), case: *case, scores });
             }
+            let method_name = res.name.clone();
+            let fail = |e: anyhow::Error| anyhow!("{method_name} on {name}: {e:#}");
+            let (h, moved_pred) = highlights::measure(method.as_ref(), name, glossiness, &linear, &moved_truth, &moved, Some(lpips)).map_err(fail)?;
+            res.highlights.push(h);
+            let curve = exposure::measure(method.as_mut(), name, &linear, &exposures, opts.ldr_input, &moved.configs(), Some(&moved_pred)).map_err(fail)?;
+            res.exposure.extend(curve);
             bar.inc(1);
         }
     }
@@ -241,7 +270,7 @@ pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     check_eval_size(opts.size)?;
     let mut cases = opts.cases.clone();
     cases.dedup();
-    let opts = EvalOptions { cases, ..opts.clone() };
+    let opts = EvalOptions { cases, exposures: exposure_list(&opts.exposures)?, ..opts.clone() };
     let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device, &opts.refine, &opts.exposure)?;
     let materials = load_materials(&opts.dataset, opts.size, opts.limit)?;
     let lpips = Lpips::new(opts.device)?;
@@ -249,7 +278,22 @@ pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     let results = evaluate(&mut methods, &materials, &opts, &lpips)?;
     report::write_reports(&opts, &results)?;
     report::write_grids(&opts, &mut methods, &materials, &results)?;
+    report::write_highlight_picture(&opts, &mut methods, &materials)?;
     Ok(results)
+}
+
+/// The exposures to score, checked and sorted: finite, each once, 0
+/// included (the relit scale's reference).
+pub fn exposure_list(asked: &[f64]) -> Result<Vec<f64>> {
+    let mut out = vec![0.0];
+    for &ev in asked {
+        ensure!(ev.is_finite() && ev.abs() <= 30.0, "--exposures: each exposure must be a number of stops within +-30, got {ev}");
+        if !out.contains(&ev) {
+            out.push(ev);
+        }
+    }
+    out.sort_by(f64::total_cmp);
+    Ok(out)
 }
 
 #[cfg(test)]

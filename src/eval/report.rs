@@ -9,6 +9,14 @@ use crate::svbrdf::Svbrdf;
 use anyhow::Result;
 use std::fmt::Write as _;
 
+/// Subfolder of an evaluation's output with the moved-highlight test's
+/// `ratios.csv` and `moved.jpg` (apart, so the folder's `*.csv` stay the
+/// methods' own).
+pub const HIGHLIGHTS_DIR: &str = "highlights";
+
+/// Subfolder with the exposure curve's `curve.csv`.
+pub const EXPOSURE_DIR: &str = "exposure";
+
 /// JPEG quality of report pictures (grids): small enough for the
 /// repository, no visible blocking at the grids' cell sizes.
 pub const REPORT_JPEG_QUALITY: u8 = 88;
@@ -48,7 +56,7 @@ pub fn read_csv(path: &std::path::Path) -> Result<MethodResults> {
             Ok(super::Row { material: f[0].to_string(), case, scores: super::Scores { lpips: num(f[2])?, rmse_log: num(f[3])?, psnr: num(f[4])? } })
         })
         .collect::<Result<Vec<_>>>()?;
-    Ok(MethodResults { name, rows })
+    Ok(MethodResults { rows, ..MethodResults::new(name) })
 }
 
 /// The one evaluation CSV of an output folder (`flashmat eval` names it
@@ -136,7 +144,23 @@ pub fn summary_markdown(opts: &EvalOptions, results: &[MethodResults]) -> String
         }
         s.push('\n');
     }
+    if results.iter().any(|r| !r.highlights.is_empty()) {
+        s.push_str(&super::highlights::markdown(&highlight_rows(results), &super::highlights::HighlightConfig::default()));
+        s.push('\n');
+    }
+    if results.iter().any(|r| !r.exposure.is_empty()) {
+        s.push_str(&super::exposure::markdown(&exposure_rows(results), opts.ldr_input));
+        s.push('\n');
+    }
     s
+}
+
+fn highlight_rows(results: &[MethodResults]) -> Vec<(String, Vec<super::highlights::MaterialHighlights>)> {
+    results.iter().map(|r| (r.name.clone(), r.highlights.clone())).collect()
+}
+
+fn exposure_rows(results: &[MethodResults]) -> Vec<(String, Vec<super::exposure::ExposureRow>)> {
+    results.iter().map(|r| (r.name.clone(), r.exposure.clone())).collect()
 }
 
 /// Writes `NAME.csv` per method and `summary.md` (atomically), and
@@ -146,12 +170,33 @@ pub fn write_reports(opts: &EvalOptions, results: &[MethodResults]) -> Result<()
         crate::io::atomic_write_bytes(&opts.out.join(format!("{}.csv", r.name)), csv_text(r).as_bytes())?;
     }
     crate::io::atomic_write_bytes(&opts.out.join("summary.md"), summary_markdown(opts, results).as_bytes())?;
+    if results.iter().any(|r| !r.highlights.is_empty()) {
+        let dir = opts.out.join(HIGHLIGHTS_DIR);
+        std::fs::create_dir_all(&dir).map_err(|e| anyhow::anyhow!("cannot create {}: {e}", dir.display()))?;
+        crate::io::atomic_write_bytes(&dir.join("ratios.csv"), super::highlights::csv_text(&highlight_rows(results)).as_bytes())?;
+    }
+    if results.iter().any(|r| !r.exposure.is_empty()) {
+        let dir = opts.out.join(EXPOSURE_DIR);
+        std::fs::create_dir_all(&dir).map_err(|e| anyhow::anyhow!("cannot create {}: {e}", dir.display()))?;
+        crate::io::atomic_write_bytes(&dir.join("curve.csv"), super::exposure::csv_text(&exposure_rows(results)).as_bytes())?;
+    }
     let series = refine_series(opts, results);
     if series.first().is_some_and(|s| s.points.len() >= 2) {
         let chart = crate::viz::line_chart("mean LPIPS against refinement steps", &series, 640, 360)?;
         crate::io::write_png(&opts.out.join("refine.png"), &chart, crate::io::BitDepth::Eight)?;
     }
     Ok(())
+}
+
+/// Writes `highlights/moved.jpg` and `moved.txt`: the moved-highlight
+/// test's picture of the glossiest materials ([`super::highlights::picture`]).
+pub fn write_highlight_picture(opts: &EvalOptions, methods: &mut [Box<dyn Method>], materials: &[(String, Svbrdf)]) -> Result<()> {
+    let cfg = super::highlights::HighlightConfig::default();
+    let Some((grid, note)) = super::highlights::picture(methods, materials, opts.ldr_input, &cfg)? else { return Ok(()) };
+    let dir = opts.out.join(HIGHLIGHTS_DIR);
+    std::fs::create_dir_all(&dir).map_err(|e| anyhow::anyhow!("cannot create {}: {e}", dir.display()))?;
+    crate::io::write_jpeg(&dir.join("moved.jpg"), &grid, REPORT_JPEG_QUALITY)?;
+    crate::io::atomic_write_bytes(&dir.join("moved.txt"), note.as_bytes())
 }
 
 /// Refinement steps of a method name: 0 for a flashmat model `NAME` when

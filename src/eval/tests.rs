@@ -19,6 +19,7 @@ fn small_eval(models: Vec<String>, out: &std::path::Path) -> EvalOptions {
         device: Device::Cpu,
         progress: false,
         refine: vec![],
+        exposures: vec![0.0],
         exposure: crate::infer::ExposureConfig::default(),
     }
 }
@@ -119,6 +120,17 @@ fn eval_end_to_end_on_two_materials() {
     let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
     assert!(summary.contains("| Method | Reflect | Identity | Hemisphere |"), "{summary}");
     assert!(summary.contains("| printout |") && summary.contains("| tiny |"));
+    // The moved-highlight test and the identity ratio, for every method; the
+    // folder's own *.csv stay the methods' (so `--summarize` reads them back).
+    assert!(summary.contains("## Moved highlights") && summary.contains("## Exposure"), "{summary}");
+    for r in &results {
+        assert_eq!((r.highlights.len(), r.exposure.len()), (2, 2), "{}", r.name);
+        assert!(r.highlights.iter().all(|h| h.rest.is_some_and(|v| v > 0.0)));
+    }
+    assert!(results[1].exposure.iter().all(|e| (e.ratio - 1.0).abs() < 1e-5), "{:?}", results[1].exposure);
+    assert_eq!(std::fs::read_to_string(out.join("highlights/ratios.csv")).unwrap().lines().count(), 1 + 2 * 2);
+    assert_eq!(std::fs::read_to_string(out.join("exposure/curve.csv")).unwrap().lines().count(), 1 + 2 * 2);
+    assert!(out.join("highlights/moved.jpg").is_file() && out.join("highlights/moved.txt").is_file());
     // Same seed, same numbers.
     let again = run(&EvalOptions { out: t.path().join("again"), ..opts }).unwrap();
     assert_eq!(csv, std::fs::read_to_string(t.path().join("again/printout.csv")).unwrap());

@@ -360,6 +360,11 @@ fn time_limit_stops_with_checkpoint_and_export_then_warm_start_continues_the_ste
     assert!(line["identity_chroma_error"].as_f64().unwrap().is_finite());
     // And the photo check on the 13 bundled photos.
     assert!(line["photo_chroma_error"].as_f64().unwrap().is_finite() && line["photo_log_l1"].as_f64().unwrap() > 0.0, "{line}");
+    // And the moved-highlight ratios (null only where no material had the region).
+    for key in ["highlight_ghost", "highlight_lobe", "highlight_rest"] {
+        assert!(line[key].is_null() || line[key].as_f64().unwrap() > 0.0, "{key}: {line}");
+    }
+    assert!(line["highlight_rest"].as_f64().unwrap() > 0.0, "{line}");
     let file = export.join(run::EXPORT_FILE);
     let (model, info) = crate::model::Model::load(&file, tch::Device::Cpu).unwrap();
     assert_eq!(info, crate::model::ModelInfo { ldr_input: false, steps: 1 });

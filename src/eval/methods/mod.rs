@@ -91,22 +91,64 @@ impl Method for ModelMethod {
     }
 
     fn prepare(&mut self, photo_linear: &Tensor) -> Result<()> {
-        let linear = Image::from_tensor(&photo_linear.to_device(Device::Cpu).to_kind(Kind::Float))?;
-        let photo = PreparedPhoto::at_model_view(linear, self.ldr_photo, "evaluation render");
-        let mut material = infer::estimate_planned(&self.model, &self.info, &photo, &infer::EstPlan::Whole, &self.exposure, || ())?;
-        if let Some(cfg) = &self.refine {
-            let report = refine(&mut material, &photo.linear.to_tensor(), self.ldr_photo, cfg, |_| {})?;
-            ensure!(report.stopped.is_none(), "{}: {}", self.name, report.summary());
-        }
-        self.material = Some(material);
+        self.material = Some(estimate_material(&self.name, &self.model, &self.info, self.ldr_photo, self.refine.as_ref(), &self.exposure, photo_linear)?);
         Ok(())
     }
 
     fn render(&self, configs: &[LightView]) -> Result<Tensor> {
-        let Some(m) = &self.material else { bail!("{}: render before prepare", self.name) };
-        let parts: Vec<Tensor> =
-            configs.chunks(RENDER_CHUNK).map(|c| m.render(c).map(|t| t.to_device(Device::Cpu))).collect::<Result<_>>()?;
-        Ok(Tensor::cat(&parts, 0))
+        render_material(&self.name, self.material.as_ref(), configs)
+    }
+}
+
+/// A flashmat model's neural material of an evaluation photo `[3, H, W]`
+/// (linear, seen from the co-located view), refined when `refine` says:
+/// the one place evaluation calls inference.
+fn estimate_material(name: &str, model: &Model, info: &ModelInfo, ldr_photo: bool, refine_cfg: Option<&RefineConfig>, exposure: &ExposureConfig, photo_linear: &Tensor) -> Result<NeuralMaterial> {
+    let linear = Image::from_tensor(&photo_linear.to_device(Device::Cpu).to_kind(Kind::Float))?;
+    let photo = PreparedPhoto::at_model_view(linear, ldr_photo, "evaluation render");
+    let mut material = infer::estimate_planned(model, info, &photo, &infer::EstPlan::Whole, exposure, || ())?;
+    if let Some(cfg) = refine_cfg {
+        let report = refine(&mut material, &photo.linear.to_tensor(), ldr_photo, cfg, |_| {})?;
+        ensure!(report.stopped.is_none(), "{name}: {}", report.summary());
+    }
+    Ok(material)
+}
+
+/// Renders a prepared neural material in chunks: `[K, 3, H, W]` linear on the CPU.
+fn render_material(name: &str, material: Option<&NeuralMaterial>, configs: &[LightView]) -> Result<Tensor> {
+    let Some(m) = material else { bail!("{name}: render before prepare") };
+    let parts: Vec<Tensor> = configs.chunks(RENDER_CHUNK).map(|c| m.render(c).map(|t| t.to_device(Device::Cpu))).collect::<Result<_>>()?;
+    Ok(Tensor::cat(&parts, 0))
+}
+
+/// [`ModelMethod`] on networks it does not own (the default exposure
+/// handling): the checks the training run logs at every checkpoint score
+/// its live model through it.
+pub struct BorrowedModelMethod<'a> {
+    pub model: &'a Model,
+    pub info: ModelInfo,
+    material: Option<NeuralMaterial>,
+}
+
+impl<'a> BorrowedModelMethod<'a> {
+    /// LDR-input models ([`ModelInfo::ldr_input`]) see clamped photos.
+    pub fn new(model: &'a Model, info: ModelInfo) -> Self {
+        Self { model, info, material: None }
+    }
+}
+
+impl Method for BorrowedModelMethod<'_> {
+    fn name(&self) -> String {
+        "model".into()
+    }
+
+    fn prepare(&mut self, photo_linear: &Tensor) -> Result<()> {
+        self.material = Some(estimate_material("model", self.model, &self.info, self.info.ldr_input, None, &ExposureConfig::default(), photo_linear)?);
+        Ok(())
+    }
+
+    fn render(&self, configs: &[LightView]) -> Result<Tensor> {
+        render_material("model", self.material.as_ref(), configs)
     }
 }
 
