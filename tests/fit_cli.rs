@@ -232,3 +232,44 @@ fn bad_inputs_give_one_line_and_leave_no_folder() {
     after.retain(|n| !["bad.nmat", "short.nmat", "blocker", "other"].contains(&n.as_str()));
     assert_eq!(after, before, "left behind: {after:?}");
 }
+
+/// Whole folders: `estimate DIR -o OUTDIR` with one broken photo writes the
+/// others, reports the broken one in one line, ends with the summary and
+/// exit code 1; `fit OUTDIR -o FITS` then fits every material; `view` alike.
+#[test]
+fn batches_go_on_past_a_bad_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (model, photo, _) = material(d);
+    let photos = d.join("photos");
+    std::fs::create_dir(&photos).unwrap();
+    std::fs::copy(&photo, photos.join("a.exr")).unwrap();
+    std::fs::copy(&photo, photos.join("c.exr")).unwrap();
+    std::fs::write(photos.join("b.png"), b"not a png").unwrap();
+    std::fs::write(photos.join("notes.txt"), b"skipped: not a photo").unwrap();
+    let nmats = d.join("nmats");
+    let out = flashmat(&["estimate", s(&photos), "--model", s(&model), "--size", "32", "-o", s(&nmats)]);
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert_eq!(files_in(&nmats), ["a.nmat", "c.nmat"]);
+    let failed: Vec<&str> = err.lines().filter(|l| l.starts_with("failed: ")).collect();
+    assert_eq!(failed.len(), 1, "{err}");
+    assert!(failed[0].contains("b.png"), "{err}");
+    let last = err.lines().last().unwrap();
+    assert!(last.starts_with("error: estimate: 2 of 3 inputs written to") && last.contains("1 failed") && last.contains("b.png"), "{err}");
+
+    // A file and a folder mixed: one fit folder each, exit 0.
+    let more = d.join("more");
+    std::fs::create_dir(&more).unwrap();
+    std::fs::copy(nmats.join("a.nmat"), more.join("z.nmat")).unwrap();
+    let fits = d.join("fits");
+    let err = assert_ok(&flashmat(&["fit", s(&more.join("z.nmat")), s(&nmats), "--steps", "5", "--samples", "8", "-o", s(&fits)]));
+    assert!(err.lines().last().unwrap().starts_with("fit: 3 of 3 inputs written to"), "{err}");
+    assert_eq!(files_in(&fits), ["a", "c", "z"]);
+    for f in files_in(&fits) {
+        assert!(fits.join(&f).join("fit.json").is_file(), "{f}");
+    }
+    let pages = d.join("pages");
+    assert_ok(&flashmat(&["view", s(&nmats), "-o", s(&pages)]));
+    assert_eq!(files_in(&pages), ["a.html", "c.html"]);
+}

@@ -12,8 +12,11 @@ use std::path::PathBuf;
 #[derive(Args, Debug)]
 pub struct FitArgs {
     /// A neural material (.nmat), or a flash photo (estimated first, as `relight` does, with the options below).
-    pub material: PathBuf,
-    /// Output folder (written whole or not at all; an earlier fit's folder is replaced).
+    /// Several, or a folder (its .nmat/.png/.jpg/.jpeg/.exr files), make a batch: one OUTDIR/NAME/ each.
+    #[arg(required = true, num_args = 1.., value_name = "MATERIAL|DIR")]
+    pub material: Vec<PathBuf>,
+    /// Output folder (written whole or not at all; an earlier fit's folder is replaced); for a batch, the folder
+    /// that receives one fit folder per input.
     #[arg(short, long)]
     pub output: PathBuf,
     /// Adam steps of the per-pixel fit.
@@ -38,13 +41,27 @@ pub struct FitArgs {
 pub fn fit(a: &FitArgs) -> Result<()> {
     let cfg = FitConfig { steps: a.steps, samples: a.samples, learning_rate: a.fit_lr, smooth_weight: a.smooth, seed: a.seed };
     cfg.validate()?;
+    if super::batch::is_batch(&a.material) {
+        let mut extensions = super::batch::PHOTO_EXTENSIONS.to_vec();
+        extensions.push("nmat");
+        let total = cfg.samples + cfg.steps;
+        return super::batch::run_batch("fit", &a.material, &extensions, &a.output, "", |input, output, bar| {
+            check_output_dir(output)?;
+            let (material, _) = open_material(input, &a.estimate)?;
+            // The batch's one bar shows this fit's progress in its message.
+            let result = fit_material(&material, &cfg, |done, _| bar.set_message(format!("{} {done}/{total}", input.display())))?;
+            let report = write_fit(output, &result, &input.display().to_string())?;
+            Ok(format!("mean error {:.4}", report.fit.mean_error))
+        });
+    }
+    let input = &a.material[0];
     check_output_dir(&a.output)?;
-    let (material, summary) = open_material(&a.material, &a.estimate)?;
+    let (material, summary) = open_material(input, &a.estimate)?;
     let bar = ProgressBar::new((cfg.samples + cfg.steps) as u64)
         .with_style(ProgressStyle::with_template("fitting {bar:40} {pos}/{len} (direction pairs, then steps) ETA {eta}")?);
     let result = fit_material(&material, &cfg, |done, _| bar.set_position(done as u64))?;
     bar.finish_and_clear();
-    let report = write_fit(&a.output, &result, &a.material.display().to_string())?;
+    let report = write_fit(&a.output, &result, &input.display().to_string())?;
     summary.iter().for_each(|l| eprintln!("{l}"));
     eprintln!("{}", report.fit.summary());
     eprintln!(

@@ -133,9 +133,11 @@ fn refine_with_progress(material: &mut NeuralMaterial, photo: &tch::Tensor, clip
 
 #[derive(Args, Debug)]
 pub struct EstimateArgs {
-    /// Flash photo: PNG/JPEG (8-bit, gamma-decoded, LDR) or EXR (linear HDR).
-    pub photo: PathBuf,
-    /// Output neural material (.nmat).
+    /// Flash photo: PNG/JPEG (8-bit, gamma-decoded, LDR) or EXR (linear HDR). Several photos or a folder (its
+    /// .png/.jpg/.jpeg/.exr files) make a batch: one OUTDIR/NAME.nmat each, a failed photo reported and skipped.
+    #[arg(required = true, num_args = 1.., value_name = "PHOTO|DIR")]
+    pub photo: Vec<PathBuf>,
+    /// Output neural material (.nmat); for a batch, the output folder.
     #[arg(short, long)]
     pub output: PathBuf,
     #[command(flatten)]
@@ -282,9 +284,20 @@ fn looks_like_image(path: &Path) -> bool {
 }
 
 pub fn estimate(a: &EstimateArgs) -> Result<()> {
+    if super::batch::is_batch(&a.photo) {
+        // Settings are checked once, before any photo.
+        a.estimate.refine_config()?;
+        return super::batch::run_batch("estimate", &a.photo, super::batch::PHOTO_EXTENSIONS, &a.output, ".nmat", |photo, output, _| {
+            let (material, _) = estimate_photo(photo, &a.estimate)?;
+            material.save(output)?;
+            let (h, w) = material.size();
+            Ok(format!("{w}x{h} map"))
+        });
+    }
+    let photo = &a.photo[0];
     require_extension(&a.output, &["nmat"], "the output must end in .nmat")?;
     let out_dir = prepare_output(&a.output)?;
-    let (material, summary) = estimate_photo(&a.photo, &a.estimate)?;
+    let (material, summary) = estimate_photo(photo, &a.estimate)?;
     material.save(&a.output)?;
     out_dir.keep();
     eprintln!("{summary}");

@@ -1,6 +1,7 @@
 //! The `flashmat` command line: argument parsing and dispatch. Each
 //! subcommand's work lives in the module of its pipeline stage.
 
+pub mod batch;
 pub mod bench;
 pub mod eval;
 pub mod fit;
