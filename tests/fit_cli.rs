@@ -123,6 +123,19 @@ fn fit_writes_maps_that_flashmat_and_a_gltf_loader_read_back() {
     let normal = mat.normal_texture().unwrap();
     assert_eq!(normal.scale(), 1.0);
     let normal = texture(normal.texture());
+    // Occlusion: the loader finds the texture, its red channel is maps/ao.png.
+    let occlusion = mat.occlusion_texture().unwrap();
+    assert_eq!(occlusion.strength(), 1.0);
+    let orm = texture(occlusion.texture());
+    let ao = flashmat::io::read_image(&out.join("maps/ao.png")).unwrap();
+    assert!(ao.data.iter().enumerate().all(|(i, &a)| (orm[i * 3] as f32 / 255.0 - a).abs() < 0.5 / 255.0 + 1e-6));
+    assert!(ao.data.iter().all(|&a| a > 0.0 && a <= 1.0));
+    // Height: height.png spans fit.json's range, height.exr holds the heights themselves.
+    let [lo, hi] = [report["height_range"][0].as_f64().unwrap() as f32, report["height_range"][1].as_f64().unwrap() as f32];
+    let (hp, he) = (flashmat::io::read_image(&out.join("maps/height.png")).unwrap(), flashmat::io::read_image(&out.join("maps/height.exr")).unwrap());
+    assert!(hi > lo);
+    assert!(hp.data.iter().zip(&he.data).all(|(p, e)| (lo + p * (hi - lo) - e).abs() <= (hi - lo) * 1e-4));
+    assert!(std::fs::read_to_string(out.join("maps/README.md")).unwrap().contains(&format!("a relief of **{:.6}** plane units", hi - lo)));
 
     // Re-render the glTF material: each pixel centre's UV from the loader's
     // quad (axis-aligned, so UV is linear in x, y), textures decoded as glTF
