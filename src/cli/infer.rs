@@ -53,6 +53,10 @@ pub struct EstimateOptions {
     pub refine: Option<usize>,
     #[command(flatten)]
     pub refine_weights: RefineWeights,
+    /// Make the material tile seamlessly (after any refinement): the neural map is made periodic by joining a
+    /// half-shifted copy along minimum-error seams, codes copied, never blended (`flashmat::infer::tiling`).
+    #[arg(long)]
+    pub tile: bool,
 }
 
 /// Settings of the refinement on the photo (`--refine`), except its steps.
@@ -247,7 +251,25 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
         Some(cfg) => format!("{summary}\n{}", refine_with_progress(&mut material, &prepared.linear.to_tensor(), prepared.ldr, cfg)?),
         None => summary,
     };
+    let summary = match opts.tile {
+        true => format!("{summary}\n{}", tile(&mut material)?),
+        false => summary,
+    };
     Ok((material, summary))
+}
+
+/// `--tile`: makes the material's map periodic; returns the report line.
+fn tile(material: &mut NeuralMaterial) -> Result<String> {
+    let before = infer::tiling::wrap_steps(&material.neural_map);
+    material.neural_map = infer::tiling::make_tileable(&material.neural_map)?;
+    let (wx, ix, wy, iy) = infer::tiling::wrap_steps(&material.neural_map);
+    Ok(format!(
+        "tiled: code step across the wrap / inside {:.2}x {:.2}y (before {:.2}x {:.2}y)",
+        wx / ix.max(1e-12),
+        wy / iy.max(1e-12),
+        before.0 / before.1.max(1e-12),
+        before.2 / before.3.max(1e-12)
+    ))
 }
 
 /// Opens a `.nmat`, or estimates a material from a photo (recognised by its
@@ -268,6 +290,10 @@ pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMater
             Some(refine_with_progress(&mut material, &photo, clipped, cfg)?)
         }
         None => None,
+    };
+    let line = match opts.tile {
+        true => Some([line, Some(tile(&mut material)?)].into_iter().flatten().collect::<Vec<_>>().join("\n")),
+        false => line,
     };
     Ok((material, line))
 }
