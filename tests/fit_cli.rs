@@ -286,3 +286,21 @@ fn batches_go_on_past_a_bad_file() {
     assert_ok(&flashmat(&["view", s(&nmats), "-o", s(&pages)]));
     assert_eq!(files_in(&pages), ["a.html", "c.html"]);
 }
+
+/// `--tile`: the written material's map wraps around as smoothly as its
+/// inside, and says so; `--ao-depth` below 0 is one error line.
+#[test]
+fn tile_makes_the_written_map_wrap() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (model, photo, nmat) = material(d);
+    let tiled = d.join("tiled.nmat");
+    let err = assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--size", "32", "--tile", "-o", s(&tiled)]));
+    assert!(err.contains("tiled: code step across the wrap / inside"), "{err}");
+    let map = |p: &Path| flashmat::infer::NeuralMaterial::load(p, Device::Cpu).unwrap().neural_map;
+    let (wx, ix, wy, iy) = flashmat::infer::tiling::wrap_steps(&map(&tiled));
+    let (wx0, ix0, wy0, iy0) = flashmat::infer::tiling::wrap_steps(&map(&nmat));
+    eprintln!("wrap / interior: before {:.2} {:.2}, after {:.2} {:.2}", wx0 / ix0, wy0 / iy0, wx / ix, wy / iy);
+    assert!(wx < 2.0 * ix && wy < 2.0 * iy, "{wx} {ix} {wy} {iy}");
+    assert_error(&flashmat(&["fit", s(&tiled), "--ao-depth", "-1", "-o", s(&d.join("f"))]), &["--ao-depth must be a finite number >= 0"]);
+}

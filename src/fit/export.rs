@@ -220,7 +220,7 @@ pub fn quantized_gltf_maps(maps: &Tensor) -> Result<Tensor> {
 
 /// Writes the Blender/Unreal/Substance folder: PNG (8-bit; colour maps
 /// sRGB, data maps linear) and EXR (float, linear) maps and a README.
-fn write_maps_folder(dir: &Path, maps: &Tensor, mr: &MetallicRoughness, relief: &Relief) -> Result<()> {
+fn write_maps_folder(dir: &Path, maps: &Tensor, mr: &MetallicRoughness, relief: &Relief, relief_cfg: &ReliefConfig) -> Result<()> {
     std::fs::create_dir(dir).with_context(|| format!("cannot create folder {}", dir.display()))?;
     let (kd, ks, rough, normal) = parts(maps);
     let png = |name: &str, im: Image| write_png(&dir.join(name), &im, BitDepth::Eight);
@@ -245,11 +245,11 @@ fn write_maps_folder(dir: &Path, maps: &Tensor, mr: &MetallicRoughness, relief: 
     write_exr(&dir.join("height.exr"), &relief.height)?;
     png("ao.png", relief.ao.clone())?;
     let (h, w) = (relief.height.height, relief.height.width);
-    crate::io::atomic_write_bytes(&dir.join("README.md"), format!("{MAPS_README}{}", height_readme(lo, hi, h, w)).as_bytes())
+    crate::io::atomic_write_bytes(&dir.join("README.md"), format!("{MAPS_README}{}", height_readme(lo, hi, h, w, relief_cfg)).as_bytes())
 }
 
 /// The README's height section: this fit's scale.
-fn height_readme(lo: f32, hi: f32, h: usize, w: usize) -> String {
+fn height_readme(lo: f32, hi: f32, h: usize, w: usize, cfg: &ReliefConfig) -> String {
     let range = hi - lo;
     let short = h.min(w);
     format!(
@@ -271,13 +271,15 @@ scale) alike. The height is integrated from the fitted normals
 `ao.png` (8-bit, linear, Non-Color): ambient occlusion of that height field,
 the cosine-weighted fraction of the sky above each pixel that the relief
 leaves open (1 = open, from {dirs} fixed directions; rays leaving the
-material count as open). glTF reads it as `occlusionTexture` from the red
+material count as open), with the relief multiplied by {depth} (`--ao-depth`;
+1 is the fitted relief: nearly flat materials give AO near 1 everywhere). glTF reads it as `occlusionTexture` from the red
 channel of `../gltf/metallic_roughness.png`. For a rectangle the occlusion
 march treats the material as square (the longer side squeezed).
 ",
         pct = range / 2.0 * 100.0,
         px = range / 2.0 * short as f32,
-        dirs = ReliefConfig::default().ao_directions,
+        dirs = cfg.ao_directions,
+        depth = cfg.ao_depth,
     )
 }
 
@@ -464,7 +466,8 @@ pub fn check_output_dir(dir: &Path) -> Result<()> {
 
 /// Writes a fit (see the module docs for the layout) to `dir`, all or
 /// nothing. Returns what fit.json holds.
-pub fn write_fit(dir: &Path, fit: &FitResult, source: &str) -> Result<ExportReport> {
+pub fn write_fit(dir: &Path, fit: &FitResult, relief_cfg: &ReliefConfig, source: &str) -> Result<ExportReport> {
+    relief_cfg.validate()?;
     let (wi, wo) = (&fit.wi, &fit.wo);
     check_output_dir(dir)?;
     let s = fit.maps.size();
@@ -483,8 +486,7 @@ pub fn write_fit(dir: &Path, fit: &FitResult, source: &str) -> Result<ExportRepo
     let mut guard = TempDir(Some(tmp.clone()));
 
     let mr = MetallicRoughness::from_maps(&maps);
-    let relief_cfg = ReliefConfig::default();
-    let relief = Relief::from_normals(&mr.normal, &relief_cfg)?;
+    let relief = Relief::from_normals(&mr.normal, relief_cfg)?;
     let (lo, hi) = relief.range();
     let gltf_maps = quantized_gltf_maps(&maps)?;
     let report = ExportReport {
@@ -497,13 +499,13 @@ pub fn write_fit(dir: &Path, fit: &FitResult, source: &str) -> Result<ExportRepo
         error_scale: ERROR_SCALE,
         height_range: [lo, hi],
         mean_ao: relief.ao.data.iter().map(|&v| v as f64).sum::<f64>() / relief.ao.data.len().max(1) as f64,
-        relief: relief_cfg,
+        relief: *relief_cfg,
         conventions: conventions(),
     };
     let write = || -> Result<()> {
         write_png(&tmp.join("error.png"), &heat_map(&fit.error)?, BitDepth::Eight)?;
         write_exr(&tmp.join("error.exr"), &image(&fit.error.unsqueeze(0))?)?;
-        write_maps_folder(&tmp.join(MAPS_DIR), &maps, &mr, &relief)?;
+        write_maps_folder(&tmp.join(MAPS_DIR), &maps, &mr, &relief, relief_cfg)?;
         let svbrdf = Svbrdf::from_stacked(&image(&maps)?)?;
         crate::data::loaders::write_matfusion(&tmp.join(SVBRDF_DIR), SVBRDF_INDEX, &svbrdf)?;
         write_gltf(&tmp.join(GLTF_DIR), &mr, &relief.ao, &name)?;
