@@ -260,6 +260,8 @@ fn batches_go_on_past_a_bad_file() {
     std::fs::copy(&photo, photos.join("c.exr")).unwrap();
     std::fs::write(photos.join("b.png"), b"not a png").unwrap();
     std::fs::write(photos.join("notes.txt"), b"skipped: not a photo").unwrap();
+    // A folder with a .nmat output is a mistake, refused in one line.
+    assert_error(&flashmat(&["estimate", s(&photos), "--model", s(&model), "-o", s(&d.join("x.nmat"))]), &["-o names an output folder, not a .nmat file"]);
     let nmats = d.join("nmats");
     let out = flashmat(&["estimate", s(&photos), "--model", s(&model), "--size", "32", "-o", s(&nmats)]);
     let err = stderr(&out);

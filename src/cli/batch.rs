@@ -72,6 +72,11 @@ pub fn output_names(files: &[PathBuf]) -> Vec<String> {
 /// in one line and skipped; the summary line ends the run, and when any
 /// input failed it is the error (exit code 1).
 pub fn run_batch(verb: &str, inputs: &[PathBuf], extensions: &[&str], out_dir: &Path, suffix: &str, mut work: impl FnMut(&Path, &Path, &ProgressBar) -> Result<String>) -> Result<()> {
+    // `estimate DIR -o m.nmat` is most likely a mistake (a folder where a photo was meant): one line, no run.
+    let ext = suffix.trim_start_matches('.');
+    if !ext.is_empty() && out_dir.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case(ext)) {
+        bail!("{}: with several inputs or a directory of them, -o names an output folder, not a {suffix} file", out_dir.display());
+    }
     if let Ok(m) = std::fs::symlink_metadata(out_dir) {
         if !m.is_dir() {
             bail!("{}: with several inputs or a folder, -o names an output folder, and a file of that name exists", out_dir.display());
