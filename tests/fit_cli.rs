@@ -123,6 +123,19 @@ fn fit_writes_maps_that_flashmat_and_a_gltf_loader_read_back() {
     let normal = mat.normal_texture().unwrap();
     assert_eq!(normal.scale(), 1.0);
     let normal = texture(normal.texture());
+    // Occlusion: the loader finds the texture, its red channel is maps/ao.png.
+    let occlusion = mat.occlusion_texture().unwrap();
+    assert_eq!(occlusion.strength(), 1.0);
+    let orm = texture(occlusion.texture());
+    let ao = flashmat::io::read_image(&out.join("maps/ao.png")).unwrap();
+    assert!(ao.data.iter().enumerate().all(|(i, &a)| (orm[i * 3] as f32 / 255.0 - a).abs() < 0.5 / 255.0 + 1e-6));
+    assert!(ao.data.iter().all(|&a| a > 0.0 && a <= 1.0));
+    // Height: height.png spans fit.json's range, height.exr holds the heights themselves.
+    let [lo, hi] = [report["height_range"][0].as_f64().unwrap() as f32, report["height_range"][1].as_f64().unwrap() as f32];
+    let (hp, he) = (flashmat::io::read_image(&out.join("maps/height.png")).unwrap(), flashmat::io::read_image(&out.join("maps/height.exr")).unwrap());
+    assert!(hi > lo);
+    assert!(hp.data.iter().zip(&he.data).all(|(p, e)| (lo + p * (hi - lo) - e).abs() <= (hi - lo) * 1e-4));
+    assert!(std::fs::read_to_string(out.join("maps/README.md")).unwrap().contains(&format!("a relief of **{:.6}** plane units", hi - lo)));
 
     // Re-render the glTF material: each pixel centre's UV from the loader's
     // quad (axis-aligned, so UV is linear in x, y), textures decoded as glTF
@@ -231,4 +244,65 @@ fn bad_inputs_give_one_line_and_leave_no_folder() {
     let mut after = files_in(d);
     after.retain(|n| !["bad.nmat", "short.nmat", "blocker", "other"].contains(&n.as_str()));
     assert_eq!(after, before, "left behind: {after:?}");
+}
+
+/// Whole folders: `estimate DIR -o OUTDIR` with one broken photo writes the
+/// others, reports the broken one in one line, ends with the summary and
+/// exit code 1; `fit OUTDIR -o FITS` then fits every material; `view` alike.
+#[test]
+fn batches_go_on_past_a_bad_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (model, photo, _) = material(d);
+    let photos = d.join("photos");
+    std::fs::create_dir(&photos).unwrap();
+    std::fs::copy(&photo, photos.join("a.exr")).unwrap();
+    std::fs::copy(&photo, photos.join("c.exr")).unwrap();
+    std::fs::write(photos.join("b.png"), b"not a png").unwrap();
+    std::fs::write(photos.join("notes.txt"), b"skipped: not a photo").unwrap();
+    // A folder with a .nmat output is a mistake, refused in one line.
+    assert_error(&flashmat(&["estimate", s(&photos), "--model", s(&model), "-o", s(&d.join("x.nmat"))]), &["-o names an output folder, not a .nmat file"]);
+    let nmats = d.join("nmats");
+    let out = flashmat(&["estimate", s(&photos), "--model", s(&model), "--size", "32", "-o", s(&nmats)]);
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert_eq!(files_in(&nmats), ["a.nmat", "c.nmat"]);
+    let failed: Vec<&str> = err.lines().filter(|l| l.starts_with("failed: ")).collect();
+    assert_eq!(failed.len(), 1, "{err}");
+    assert!(failed[0].contains("b.png"), "{err}");
+    let last = err.lines().last().unwrap();
+    assert!(last.starts_with("error: estimate: 2 of 3 inputs written to") && last.contains("1 failed") && last.contains("b.png"), "{err}");
+
+    // A file and a folder mixed: one fit folder each, exit 0.
+    let more = d.join("more");
+    std::fs::create_dir(&more).unwrap();
+    std::fs::copy(nmats.join("a.nmat"), more.join("z.nmat")).unwrap();
+    let fits = d.join("fits");
+    let err = assert_ok(&flashmat(&["fit", s(&more.join("z.nmat")), s(&nmats), "--steps", "5", "--samples", "8", "-o", s(&fits)]));
+    assert!(err.lines().last().unwrap().starts_with("fit: 3 of 3 inputs written to"), "{err}");
+    assert_eq!(files_in(&fits), ["a", "c", "z"]);
+    for f in files_in(&fits) {
+        assert!(fits.join(&f).join("fit.json").is_file(), "{f}");
+    }
+    let pages = d.join("pages");
+    assert_ok(&flashmat(&["view", s(&nmats), "-o", s(&pages)]));
+    assert_eq!(files_in(&pages), ["a.html", "c.html"]);
+}
+
+/// `--tile`: the written material's map wraps around as smoothly as its
+/// inside, and says so; `--ao-depth` below 0 is one error line.
+#[test]
+fn tile_makes_the_written_map_wrap() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (model, photo, nmat) = material(d);
+    let tiled = d.join("tiled.nmat");
+    let err = assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--size", "32", "--tile", "-o", s(&tiled)]));
+    assert!(err.contains("tiled: code step across the wrap / inside"), "{err}");
+    let map = |p: &Path| flashmat::infer::NeuralMaterial::load(p, Device::Cpu).unwrap().neural_map;
+    let (wx, ix, wy, iy) = flashmat::infer::tiling::wrap_steps(&map(&tiled));
+    let (wx0, ix0, wy0, iy0) = flashmat::infer::tiling::wrap_steps(&map(&nmat));
+    eprintln!("wrap / interior: before {:.2} {:.2}, after {:.2} {:.2}", wx0 / ix0, wy0 / iy0, wx / ix, wy / iy);
+    assert!(wx < 2.0 * ix && wy < 2.0 * iy, "{wx} {ix} {wy} {iy}");
+    assert_error(&flashmat(&["fit", s(&tiled), "--ao-depth", "-1", "-o", s(&d.join("f"))]), &["--ao-depth must be a finite number >= 0"]);
 }

@@ -53,6 +53,10 @@ pub struct EstimateOptions {
     pub refine: Option<usize>,
     #[command(flatten)]
     pub refine_weights: RefineWeights,
+    /// Make the material tile seamlessly (after any refinement): the neural map is made periodic by joining a
+    /// half-shifted copy along minimum-error seams, codes copied, never blended (`flashmat::infer::tiling`).
+    #[arg(long)]
+    pub tile: bool,
 }
 
 /// Settings of the refinement on the photo (`--refine`), except its steps.
@@ -133,9 +137,11 @@ fn refine_with_progress(material: &mut NeuralMaterial, photo: &tch::Tensor, clip
 
 #[derive(Args, Debug)]
 pub struct EstimateArgs {
-    /// Flash photo: PNG/JPEG (8-bit, gamma-decoded, LDR) or EXR (linear HDR).
-    pub photo: PathBuf,
-    /// Output neural material (.nmat).
+    /// Flash photo: PNG/JPEG (8-bit, gamma-decoded, LDR) or EXR (linear HDR). Several photos or a folder (its
+    /// .png/.jpg/.jpeg/.exr files) make a batch: one OUTDIR/NAME.nmat each, a failed photo reported and skipped.
+    #[arg(required = true, num_args = 1.., value_name = "PHOTO|DIR")]
+    pub photo: Vec<PathBuf>,
+    /// Output neural material (.nmat); for a batch, the output folder.
     #[arg(short, long)]
     pub output: PathBuf,
     #[command(flatten)]
@@ -245,7 +251,25 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
         Some(cfg) => format!("{summary}\n{}", refine_with_progress(&mut material, &prepared.linear.to_tensor(), prepared.ldr, cfg)?),
         None => summary,
     };
+    let summary = match opts.tile {
+        true => format!("{summary}\n{}", tile(&mut material)?),
+        false => summary,
+    };
     Ok((material, summary))
+}
+
+/// `--tile`: makes the material's map periodic; returns the report line.
+fn tile(material: &mut NeuralMaterial) -> Result<String> {
+    let before = infer::tiling::wrap_steps(&material.neural_map);
+    material.neural_map = infer::tiling::make_tileable(&material.neural_map)?;
+    let (wx, ix, wy, iy) = infer::tiling::wrap_steps(&material.neural_map);
+    Ok(format!(
+        "tiled: code step across the wrap / inside {:.2}x {:.2}y (before {:.2}x {:.2}y)",
+        wx / ix.max(1e-12),
+        wy / iy.max(1e-12),
+        before.0 / before.1.max(1e-12),
+        before.2 / before.3.max(1e-12)
+    ))
 }
 
 /// Opens a `.nmat`, or estimates a material from a photo (recognised by its
@@ -267,6 +291,10 @@ pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMater
         }
         None => None,
     };
+    let line = match opts.tile {
+        true => Some([line, Some(tile(&mut material)?)].into_iter().flatten().collect::<Vec<_>>().join("\n")),
+        false => line,
+    };
     Ok((material, line))
 }
 
@@ -282,9 +310,20 @@ fn looks_like_image(path: &Path) -> bool {
 }
 
 pub fn estimate(a: &EstimateArgs) -> Result<()> {
+    if super::batch::is_batch(&a.photo) {
+        // Settings are checked once, before any photo.
+        a.estimate.refine_config()?;
+        return super::batch::run_batch("estimate", &a.photo, super::batch::PHOTO_EXTENSIONS, &a.output, ".nmat", |photo, output, _| {
+            let (material, _) = estimate_photo(photo, &a.estimate)?;
+            material.save(output)?;
+            let (h, w) = material.size();
+            Ok(format!("{w}x{h} map"))
+        });
+    }
+    let photo = &a.photo[0];
     require_extension(&a.output, &["nmat"], "the output must end in .nmat")?;
     let out_dir = prepare_output(&a.output)?;
-    let (material, summary) = estimate_photo(&a.photo, &a.estimate)?;
+    let (material, summary) = estimate_photo(photo, &a.estimate)?;
     material.save(&a.output)?;
     out_dir.keep();
     eprintln!("{summary}");

@@ -1,6 +1,7 @@
 //! The `flashmat` command line: argument parsing and dispatch. Each
 //! subcommand's work lives in the module of its pipeline stage.
 
+pub mod batch;
 pub mod bench;
 pub mod eval;
 pub mod fit;
@@ -38,7 +39,7 @@ pub enum Command {
     Export(train::ExportArgs),
     /// Average the weights of several exported models of one run (late checkpoints) into one model file.
     Average(train::AverageArgs),
-    /// Estimate a neural material (.nmat) from one flash photo.
+    /// Estimate a neural material (.nmat) from one flash photo (or one each from several photos or a folder).
     Estimate(infer::EstimateArgs),
     /// Render a neural material (or a photo, estimated first) under a new light and view, or an orbit GIF.
     Relight(infer::RelightArgs),

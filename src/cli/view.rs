@@ -14,9 +14,12 @@ use std::path::PathBuf;
 
 #[derive(Args, Debug)]
 pub struct ViewArgs {
-    /// A neural material (.nmat), or a photo (estimated first with the options below).
-    pub material: PathBuf,
-    /// Output page (.html): open it in a browser with WebGL2 (double-click; no server needed).
+    /// A neural material (.nmat), or a photo (estimated first with the options below). Several, or a folder (its
+    /// .nmat/.png/.jpg/.jpeg/.exr files), make a batch: one OUTDIR/NAME.html each.
+    #[arg(required = true, num_args = 1.., value_name = "MATERIAL|DIR")]
+    pub material: Vec<PathBuf>,
+    /// Output page (.html): open it in a browser with WebGL2 (double-click; no server needed); for a batch, the
+    /// output folder.
     #[arg(short, long)]
     pub output: PathBuf,
     /// Light position X,Y,Z the page opens with (default: the input photo's, co-located with the camera).
@@ -38,7 +41,9 @@ pub struct ViewArgs {
 }
 
 pub fn view(a: &ViewArgs) -> Result<()> {
+    let batch = super::batch::is_batch(&a.material);
     match a.output.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
+        _ if batch => {}
         Some("html" | "htm") => {}
         _ => bail!("{}: the output must end in .html", a.output.display()),
     }
@@ -54,9 +59,21 @@ pub fn view(a: &ViewArgs) -> Result<()> {
         Some(l) => above_surface("light", l.0)?,
         None => identity.light,
     };
+    if batch {
+        let mut extensions = super::batch::PHOTO_EXTENSIONS.to_vec();
+        extensions.push("nmat");
+        return super::batch::run_batch("view", &a.material, &extensions, &a.output, ".html", |input, output, _| {
+            let (material, _) = open_material(input, &a.estimate)?;
+            let relight_input = input.to_string_lossy().into_owned();
+            let opts = ViewerOptions { map_bits: a.map_bits, weight_bits: a.weight_bits, initial: LightView { light, view }, relight_input };
+            let report = write_page(&material, output, &opts)?;
+            Ok(format!("{:.1} MB", report.bytes as f64 / 1e6))
+        });
+    }
+    let input = &a.material[0];
     let out_dir = prepare_output(&a.output)?;
-    let (material, summary) = open_material(&a.material, &a.estimate)?;
-    let relight_input = a.material.to_string_lossy().into_owned();
+    let (material, summary) = open_material(input, &a.estimate)?;
+    let relight_input = input.to_string_lossy().into_owned();
     let opts = ViewerOptions { map_bits: a.map_bits, weight_bits: a.weight_bits, initial: LightView { light, view }, relight_input };
     let report = write_page(&material, &a.output, &opts)?;
     out_dir.keep();

@@ -3,9 +3,11 @@
 //! ```text
 //! DIR/fit.json            settings, errors, timings, the conversions below
 //! DIR/error.png, .exr     per-pixel fit error |ln(1+R) diff| (PNG: heat map, 0 black .. ERROR_SCALE white-yellow)
-//! DIR/maps/               Blender / Unreal / Substance texture folder + README.md naming each colour space
+//! DIR/maps/               Blender / Unreal / Substance texture folder + README.md naming each colour space,
+//!                         with height.png/.exr and ao.png ([`super::relief`]; the height's scale in README.md)
 //! DIR/svbrdf/             the MatFusion layout flashmat reads (`flashmat render --svbrdf DIR/svbrdf`)
-//! DIR/gltf/material.gltf  a textured 2x2 square (glTF 2.0, metallic-roughness) + square.bin + its textures
+//! DIR/gltf/material.gltf  a textured 2x2 square (glTF 2.0, metallic-roughness) + square.bin + its textures;
+//!                         AO in the red channel of metallic_roughness.png (glTF's occlusion-roughness-metallic packing)
 //! ```
 //!
 //! The folder is written under a temporary name beside DIR and renamed
@@ -29,6 +31,7 @@
 //!   exactly to m = 0, c = kd; coloured or strong dielectric speculars are
 //!   approximated, and fit.json reports what that costs in renders.
 
+use super::relief::{ambient_occlusion, height_map, normalized_height, ReliefConfig};
 use super::{FitReport, FitResult};
 use crate::image::Image;
 use crate::io::{write_exr, write_png, BitDepth};
@@ -158,6 +161,29 @@ fn encoded_normal(n: &Tensor) -> Result<Image> {
     Ok(image(n)?.map(|v| ((v + 1.0) * 0.5).clamp(0.0, 1.0)))
 }
 
+/// Height and AO of the fitted maps ([`super::relief`]).
+pub struct Relief {
+    /// `[1, H, W]` plane units, mean zero.
+    pub height: Image,
+    /// `[1, H, W]` in [0, 1].
+    pub ao: Image,
+}
+
+impl Relief {
+    /// normals: `[3, H, W]` unit vectors.
+    pub fn from_normals(normals: &Tensor, cfg: &ReliefConfig) -> Result<Self> {
+        let height = height_map(&image(normals)?)?;
+        let ao = ambient_occlusion(&height, cfg)?;
+        Ok(Self { height, ao })
+    }
+
+    /// (lowest, highest) height in plane units: what height.png's 0 and 65535 stand for.
+    pub fn range(&self) -> (f32, f32) {
+        let (_, lo, hi) = normalized_height(&self.height);
+        (lo, hi)
+    }
+}
+
 /// What the export wrote, for fit.json.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ExportReport {
@@ -172,6 +198,11 @@ pub struct ExportReport {
     /// Mean metallic of the glTF material.
     pub mean_metallic: f64,
     pub error_scale: f64,
+    /// Heights (plane units) of height.png's 0 and 65535.
+    pub height_range: [f32; 2],
+    /// Mean AO of ao.png.
+    pub mean_ao: f64,
+    pub relief: ReliefConfig,
     pub conventions: serde_json::Value,
 }
 
@@ -189,7 +220,7 @@ pub fn quantized_gltf_maps(maps: &Tensor) -> Result<Tensor> {
 
 /// Writes the Blender/Unreal/Substance folder: PNG (8-bit; colour maps
 /// sRGB, data maps linear) and EXR (float, linear) maps and a README.
-fn write_maps_folder(dir: &Path, maps: &Tensor, mr: &MetallicRoughness) -> Result<()> {
+fn write_maps_folder(dir: &Path, maps: &Tensor, mr: &MetallicRoughness, relief: &Relief, relief_cfg: &ReliefConfig) -> Result<()> {
     std::fs::create_dir(dir).with_context(|| format!("cannot create folder {}", dir.display()))?;
     let (kd, ks, rough, normal) = parts(maps);
     let png = |name: &str, im: Image| write_png(&dir.join(name), &im, BitDepth::Eight);
@@ -209,7 +240,47 @@ fn write_maps_folder(dir: &Path, maps: &Tensor, mr: &MetallicRoughness) -> Resul
     exr("normal.exr", &normal)?;
     exr("base_color.exr", &mr.base_color)?;
     exr("metallic.exr", &mr.metallic)?;
-    crate::io::atomic_write_bytes(&dir.join("README.md"), MAPS_README.as_bytes())
+    let (height, lo, hi) = normalized_height(&relief.height);
+    write_png(&dir.join("height.png"), &height, BitDepth::Sixteen)?;
+    write_exr(&dir.join("height.exr"), &relief.height)?;
+    png("ao.png", relief.ao.clone())?;
+    let (h, w) = (relief.height.height, relief.height.width);
+    crate::io::atomic_write_bytes(&dir.join("README.md"), format!("{MAPS_README}{}", height_readme(lo, hi, h, w, relief_cfg)).as_bytes())
+}
+
+/// The README's height section: this fit's scale.
+fn height_readme(lo: f32, hi: f32, h: usize, w: usize, cfg: &ReliefConfig) -> String {
+    let range = hi - lo;
+    let short = h.min(w);
+    format!(
+        "
+## Height and ambient occlusion of this fit
+
+`height.png` (16-bit grey, linear) maps 0 .. 65535 to heights {lo:.6} .. {hi:.6}
+plane units, a relief of **{range:.6}** plane units, where the material's
+shorter side is 2 plane units ({short} pixels): the relief is **{pct:.3}%** of
+the shorter side, {px:.3} pixels. `height.exr` holds the heights themselves
+(plane units, mean 0). In Blender, a Displacement node with Midlevel 0 and
+Scale = {range:.6} x (the object's size across the shorter side / 2) gives
+the fitted relief on the material's 2 x 2 square (`../gltf/material.gltf`);
+Unreal (World Position Offset / Nanite displacement, magnitude = the same
+scale) and Unity (HDRP/URP height map: set the amplitude to the same
+scale) alike. The height is integrated from the fitted normals
+(least-squares, so it only holds their relief: its offset is arbitrary).
+
+`ao.png` (8-bit, linear, Non-Color): ambient occlusion of that height field,
+the cosine-weighted fraction of the sky above each pixel that the relief
+leaves open (1 = open, from {dirs} fixed directions; rays leaving the
+material count as open), with the relief multiplied by {depth} (`--ao-depth`;
+1 is the fitted relief: nearly flat materials give AO near 1 everywhere). glTF reads it as `occlusionTexture` from the red
+channel of `../gltf/metallic_roughness.png`. For a rectangle the occlusion
+march treats the material as square (the longer side squeezed).
+",
+        pct = range / 2.0 * 100.0,
+        px = range / 2.0 * short as f32,
+        dirs = cfg.ao_directions,
+        depth = cfg.ao_depth,
+    )
 }
 
 /// The README of the texture folder.
@@ -228,6 +299,8 @@ glTF / Unreal / Substance, so it needs no conversion.
 | `normal_directx.png` | the same, DirectX convention (green = down, -Y): Unreal, Substance (DirectX) | **Non-Color** (linear) |
 | `diffuse.png` | specular workflow: diffuse albedo kd | **sRGB** |
 | `specular.png` | specular workflow: specular albedo ks (F0, reflectance at normal incidence) | **sRGB** |
+| `height.png` | height integrated from the normals, 16-bit, 0 .. 65535 = lowest .. highest (scale below); displacement / parallax / height slots | **Non-Color** (linear) |
+| `ao.png` | ambient occlusion of that height (1 = unoccluded); AO slots | **Non-Color** (linear) |
 | `*.exr` | the same maps as float (linear values; `normal.exr` holds the unit vector x, y, z in [-1, 1], not encoded) | **Linear** / Non-Color |
 
 PNG colour maps use the sRGB transfer function; PNG data maps hold linear
@@ -254,13 +327,13 @@ metallic m and base colour c were chosen so that (1 - m) c (diffuse) and
 
 /// Writes the glTF 2.0 square: `material.gltf`, `square.bin` (positions,
 /// normals, tangents, UVs, indices) and three textures.
-fn write_gltf(dir: &Path, mr: &MetallicRoughness, name: &str) -> Result<()> {
+fn write_gltf(dir: &Path, mr: &MetallicRoughness, ao: &Image, name: &str) -> Result<()> {
     std::fs::create_dir(dir).with_context(|| format!("cannot create folder {}", dir.display()))?;
     let s = mr.base_color.size();
     let (h, w) = (s[1], s[2]);
     write_png(&dir.join("base_color.png"), &srgb(&mr.base_color)?, BitDepth::Eight)?;
-    // glTF's metallicRoughness texture: G = roughness, B = metallic (R is unused; 1 = no occlusion).
-    let orm = Tensor::cat(&[Tensor::ones([1, h, w], (Kind::Float, mr.metallic.device())), mr.roughness.to_kind(Kind::Float), mr.metallic.to_kind(Kind::Float)], 0);
+    // glTF's metallicRoughness texture: G = roughness, B = metallic; R (unused by it) holds the occlusion texture.
+    let orm = Tensor::cat(&[ao.to_tensor().to_device(mr.metallic.device()), mr.roughness.to_kind(Kind::Float), mr.metallic.to_kind(Kind::Float)], 0);
     write_png(&dir.join("metallic_roughness.png"), &image(&orm)?, BitDepth::Eight)?;
     write_png(&dir.join("normal.png"), &encoded_normal(&mr.normal)?, BitDepth::Eight)?;
 
@@ -305,7 +378,8 @@ fn write_gltf(dir: &Path, mr: &MetallicRoughness, name: &str) -> Result<()> {
                 "roughnessFactor": 1.0,
                 "metallicRoughnessTexture": {"index": 1, "texCoord": 0}
             },
-            "normalTexture": {"index": 2, "texCoord": 0, "scale": 1.0}
+            "normalTexture": {"index": 2, "texCoord": 0, "scale": 1.0},
+            "occlusionTexture": {"index": 1, "texCoord": 0, "strength": 1.0}
         }],
         "textures": [{"sampler": 0, "source": 0}, {"sampler": 0, "source": 1}, {"sampler": 0, "source": 2}],
         "images": [{"uri": "base_color.png", "mimeType": "image/png"}, {"uri": "metallic_roughness.png", "mimeType": "image/png"}, {"uri": "normal.png", "mimeType": "image/png"}],
@@ -323,7 +397,9 @@ fn write_gltf(dir: &Path, mr: &MetallicRoughness, name: &str) -> Result<()> {
 fn conventions() -> serde_json::Value {
     json!({
         "maps/*.png colour maps": "sRGB transfer function (diffuse, specular, base_color)",
-        "maps/*.png data maps": "linear (roughness, metallic); normals (n + 1) / 2, OpenGL (+y up) and DirectX (normal_directx.png)",
+        "maps/*.png data maps": "linear (roughness, metallic, ao); normals (n + 1) / 2, OpenGL (+y up) and DirectX (normal_directx.png); height.png 16-bit, 0 .. 65535 = height_range",
+        "height": "least-squares integral of the fitted normals (svbrdf::height), plane units (shorter side 2), mean 0; offset arbitrary",
+        "ao": "mean visibility over cosine-distributed hemisphere directions (relief.ao_directions) of the height field's shadow march; glTF occlusionTexture = red channel of metallic_roughness.png",
         "svbrdf/": "MatFusion layout as flashmat reads it: diffuse and specular gamma 2.2 encoded, roughness linear, normals (n + 1) / 2",
         "roughness": "alpha = roughness^2 in flashmat (REFERENCE section 2) and in glTF, Blender, Unreal, Substance: written unchanged",
         "metallic": "per pixel m, c minimising |(1 - m) c - kd|^2 + |0.04 (1 - m) + m c - ks|^2 over m in {0, 0.01, ..., 1}",
@@ -390,7 +466,8 @@ pub fn check_output_dir(dir: &Path) -> Result<()> {
 
 /// Writes a fit (see the module docs for the layout) to `dir`, all or
 /// nothing. Returns what fit.json holds.
-pub fn write_fit(dir: &Path, fit: &FitResult, source: &str) -> Result<ExportReport> {
+pub fn write_fit(dir: &Path, fit: &FitResult, relief_cfg: &ReliefConfig, source: &str) -> Result<ExportReport> {
+    relief_cfg.validate()?;
     let (wi, wo) = (&fit.wi, &fit.wo);
     check_output_dir(dir)?;
     let s = fit.maps.size();
@@ -409,6 +486,8 @@ pub fn write_fit(dir: &Path, fit: &FitResult, source: &str) -> Result<ExportRepo
     let mut guard = TempDir(Some(tmp.clone()));
 
     let mr = MetallicRoughness::from_maps(&maps);
+    let relief = Relief::from_normals(&mr.normal, relief_cfg)?;
+    let (lo, hi) = relief.range();
     let gltf_maps = quantized_gltf_maps(&maps)?;
     let report = ExportReport {
         fit: fit.report.clone(),
@@ -418,15 +497,18 @@ pub fn write_fit(dir: &Path, fit: &FitResult, source: &str) -> Result<ExportRepo
         gltf_conversion_error: render_difference(&maps, &gltf_maps, wi, wo),
         mean_metallic: mr.metallic.mean(Kind::Double).double_value(&[]),
         error_scale: ERROR_SCALE,
+        height_range: [lo, hi],
+        mean_ao: relief.ao.data.iter().map(|&v| v as f64).sum::<f64>() / relief.ao.data.len().max(1) as f64,
+        relief: *relief_cfg,
         conventions: conventions(),
     };
     let write = || -> Result<()> {
         write_png(&tmp.join("error.png"), &heat_map(&fit.error)?, BitDepth::Eight)?;
         write_exr(&tmp.join("error.exr"), &image(&fit.error.unsqueeze(0))?)?;
-        write_maps_folder(&tmp.join(MAPS_DIR), &maps, &mr)?;
+        write_maps_folder(&tmp.join(MAPS_DIR), &maps, &mr, &relief, relief_cfg)?;
         let svbrdf = Svbrdf::from_stacked(&image(&maps)?)?;
         crate::data::loaders::write_matfusion(&tmp.join(SVBRDF_DIR), SVBRDF_INDEX, &svbrdf)?;
-        write_gltf(&tmp.join(GLTF_DIR), &mr, &name)?;
+        write_gltf(&tmp.join(GLTF_DIR), &mr, &relief.ao, &name)?;
         crate::io::atomic_write_bytes(&tmp.join(REPORT_FILE), serde_json::to_string_pretty(&report)?.as_bytes())?;
         Ok(())
     };

@@ -27,6 +27,7 @@
 //! near 1 where the material looks smooth and near 0 across its edges.
 
 pub mod export;
+pub mod relief;
 
 use crate::infer::nmat::NeuralMaterial;
 use crate::optim::Adam;

@@ -22,6 +22,7 @@ pub mod photo;
 pub mod refine;
 pub mod show;
 pub mod tiles;
+pub mod tiling;
 
 pub use exposure::ExposureConfig;
 pub use nmat::{NeuralMaterial, NmatMeta, NMAT_FORMAT, NMAT_VERSION};

@@ -44,6 +44,20 @@ pub fn height_from_normals(normals: &Image) -> Result<Image> {
 /// [`height_from_normals`] multiplied by `height_scale` (relief strength of a
 /// normal map whose real-world height is unknown).
 pub fn height_from_normals_scaled(normals: &Image, height_scale: f64) -> Result<Image> {
+    let (sx, sy) = (2.0 / normals.width.max(1) as f64, 2.0 / normals.height.max(1) as f64);
+    integrate(normals, sx, sy, height_scale)
+}
+
+/// [`height_from_normals`] for a material with square texels, as flashmat
+/// lays out rectangles (`geometry::half_extents`: the shorter side spans
+/// [-1, 1]): a pixel is 2 / min(H, W) plane units both ways.
+pub fn height_from_normals_square_texels(normals: &Image) -> Result<Image> {
+    let step = 2.0 / normals.height.min(normals.width).max(1) as f64;
+    integrate(normals, step, step, 1.0)
+}
+
+/// The integration (module docs) with pixel steps `sx` across, `sy` down.
+fn integrate(normals: &Image, sx: f64, sy: f64, height_scale: f64) -> Result<Image> {
     let (h, w) = (normals.height, normals.width);
     if normals.channels != 3 {
         bail!("normal map has {} channels, expected 3", normals.channels);
@@ -58,7 +72,6 @@ pub fn height_from_normals_scaled(normals: &Image, height_scale: f64) -> Result<
         bail!("height scale must be finite (got {height_scale})");
     }
     let plane = h * w;
-    let (sx, sy) = (2.0 / w as f64, 2.0 / h as f64);
     // Per-pixel-step height differences along columns and rows.
     let mut g_col = vec![0f64; plane];
     let mut g_row = vec![0f64; plane];
