@@ -43,8 +43,10 @@ use tch::{Kind, Tensor};
 /// photo's camera well away from the centre.
 pub const MOVED_LIGHTS: [[f64; 3]; 3] = [[1.2, 1.2, 3.5], [-1.5, 0.6, 3.0], [0.4, -1.6, 3.2]];
 
-/// Highlight pixels are brighter than this many times the median.
-pub const HIGHLIGHT_THRESHOLD: f64 = 2.0;
+/// Highlight pixels are brighter than this many times the median: the
+/// flash highlight the exposure calibration leaves out (one home, in the
+/// lower layer).
+pub const HIGHLIGHT_THRESHOLD: f64 = crate::infer::exposure::HIGHLIGHT_FACTOR;
 
 /// A region counts on a light when it holds more than this many pixels at
 /// 256 x 256 (scaled with the pixel count at other sizes).
