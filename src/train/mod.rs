@@ -155,6 +155,16 @@ impl Trainer {
         }
     }
 
+    /// Runs the three optimizers on flat buffers, the GPU's path, wherever
+    /// the networks are (`optim::Adam::new_flat`): the CPU's tests and
+    /// `bench train` prove it with this. Before the first step (the
+    /// moments start again from zero).
+    pub fn use_flat_optimizers(&mut self) {
+        self.opt_est = Adam::new_flat(trainable(&self.model.est_vs));
+        self.opt_render = Adam::new_flat(trainable(&self.model.renderer_vs));
+        self.opt_disc = Adam::new_flat(trainable(&self.disc_vs));
+    }
+
     /// One training step on a batch; returns its losses. A NaN/Inf loss or
     /// gradient skips every update of the step (logged, never saved).
     pub fn train_step(&mut self, batch: &TrainingBatch) -> Result<StepLosses> {

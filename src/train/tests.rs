@@ -723,6 +723,49 @@ fn shared_forward_step_matches_two_passes() {
     assert!(compared > 100, "{compared}");
 }
 
+/// The GPU's optimizer path (every network's weights in one flat buffer,
+/// `optim::Adam::new_flat`) trains as the CPU's does: the same losses and,
+/// after three real steps of every network, the same weights to f32
+/// rounding (a near-zero gradient can turn a rounding difference into a
+/// step of either sign, so the bound is one Adam step, lr, and the typical
+/// difference is far below it). A checkpoint of the flat trainer resumes
+/// into a plain one exactly.
+#[test]
+fn flat_optimizers_train_as_the_per_parameter_ones() {
+    let cfg = TrainConfig { weight_chroma: 0.1, ..tiny_config() };
+    let stream = batches::MaterialStream::open(&cfg).unwrap();
+    let mut plain = Trainer::new(cfg.clone(), tch::Device::Cpu).unwrap();
+    let mut flat = Trainer::new(cfg.clone(), tch::Device::Cpu).unwrap();
+    flat.use_flat_optimizers();
+    for s in 0..3 {
+        let b = batches::batch_for_step(&cfg, &stream.materials(&cfg, s).unwrap(), s, tch::Device::Cpu).unwrap();
+        let (a, f) = (plain.train_step(&b).unwrap(), flat.train_step(&b).unwrap());
+        assert!(!a.skipped && !f.skipped);
+        for (name, x, y) in [("l1", a.l1, f.l1), ("lpips", a.lpips, f.lpips), ("l1_render", a.l1_render, f.l1_render), ("loss_disc", a.loss_disc, f.loss_disc)] {
+            assert!((x - y).abs() <= 1e-4 * x.abs().max(1e-3), "step {s} {name}: {x} vs {y}");
+        }
+    }
+    let (wa, wf) = (all_weights(&plain), all_weights(&flat));
+    let lr = cfg.lr_at(2);
+    let (mut worst, mut mean, mut n) = (0f64, 0f64, 0f64);
+    for ((name, x), (_, y)) in wa.iter().zip(&wf) {
+        let d = (x - y).abs();
+        worst = worst.max(d.max().double_value(&[]));
+        mean += d.sum(tch::Kind::Double).double_value(&[]);
+        n += x.numel() as f64;
+        assert!(worst <= 2.0 * lr + 1e-6, "{name}: {worst} (lr {lr})");
+    }
+    assert!(mean / n <= 0.01 * lr, "mean difference {} against lr {lr}", mean / n);
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("flat.ckpt");
+    flat.save_checkpoint(&file).unwrap();
+    let resumed = Trainer::resume(&file, tch::Device::Cpu, Some(&cfg)).unwrap();
+    for ((name, x), (_, y)) in wf.iter().zip(&all_weights(&resumed)) {
+        assert!(x.equal(y), "{name} changed in the round trip");
+    }
+    assert_eq!(resumed.opt_est.steps, 3);
+}
+
 /// `--shift-weight`: each second photo is its material's window at the
 /// logged offset from the first photo's (the material's diffuse colour
 /// encodes its position, so the first window's maps tell where it was),
