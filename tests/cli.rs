@@ -244,3 +244,50 @@ fn absurd_material_maps_are_refused_or_raised_with_a_warning() {
     assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
     assert!(stderr(&out).contains("specular.exr has the value"), "{}", stderr(&out));
 }
+
+/// `bench infer` times the plan `estimate` would run (whole, or tiles
+/// under `--max-memory`) and sets the authors' numbers beside flashmat's:
+/// a stand-in for their timing script answers in its JSON lines (one size
+/// measured, one out of memory) and the table takes their figures and the
+/// ratio from them.
+#[test]
+fn bench_infer_plans_tiles_and_sets_the_authors_numbers_beside() {
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("authors");
+    std::fs::create_dir(&repo).unwrap();
+    std::fs::write(repo.join("prl_main_train.py"), "").unwrap();
+    let script = dir.path().join("ref_bench.py");
+    std::fs::write(
+        &script,
+        r#"import json, os, sys
+assert os.environ["REF_DIR"].endswith("authors") and "--infer" in sys.argv and sys.argv[sys.argv.index("--size") + 1] == "64,256"
+print(json.dumps({"what": "ref_mest_forward", "size": 64, "ms_median": 5000.0, "per_s": 0.2}))
+print(json.dumps({"what": "ref_render_frame", "size": 64, "ms_median": 2500.0, "per_s": 0.4}))
+print(json.dumps({"what": "ref_mest_forward", "size": 256, "error": "OutOfMemoryError: CUDA out of memory"}))
+print("their own chatter", file=sys.stderr)
+"#,
+    )
+    .unwrap();
+    let report = dir.path().join("infer.md");
+    let out = flashmat(&[
+        "bench", "infer", "--preset", "tiny", "--size", "64,256", "--max-memory", "64M", "--runs", "1",
+        "--reference", repo.to_str().unwrap(), "--ref-bench", script.to_str().unwrap(), "--report", report.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let md = std::fs::read_to_string(&report).unwrap();
+    let row = |start: &str| -> Vec<String> {
+        let line = md.lines().find(|l| l.starts_with(start)).unwrap_or_else(|| panic!("no row {start} in\n{md}"));
+        line.split('|').map(|c| c.trim().to_string()).collect()
+    };
+    let small = row("| M_est forward, tiny, 64x64 |");
+    let ours: f64 = small[2].parse().unwrap();
+    assert_eq!(small[3], "5000.0");
+    let ratio: f64 = small[4].trim_end_matches('x').parse().unwrap();
+    assert!((ratio - 5000.0 / ours).abs() <= 0.01 * ratio, "{small:?}"); // ours printed to 0.1 ms
+    assert!(row("| relit frame, tiny, 64x64 |")[3] == "2500.0");
+    let large = row("| M_est forward, tiny, 256x256, tiles of");
+    assert!(large[1].contains("authors': OutOfMemoryError") && large[3] == "-", "{large:?}");
+    assert!(large[2].parse::<f64>().unwrap() > 0.0);
+    // Not the authors' repository: one line.
+    assert_error(&flashmat(&["bench", "infer", "--preset", "tiny", "--size", "64", "--reference", dir.path().to_str().unwrap()]), &["not a copy of the authors' repository"]);
+}

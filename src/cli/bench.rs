@@ -7,6 +7,7 @@ use flashmat::geometry::{config_tensors, pixel_center, sample_configs, Sampling}
 use flashmat::svbrdf::cpu;
 use flashmat::svbrdf::render::render;
 use flashmat::svbrdf::scalar;
+use crate::cli::reference_bench::{find, markdown, BusySampler, ReferenceBench, Row};
 use anyhow::Result;
 use clap::{Args, Subcommand};
 use rand::SeedableRng;
@@ -62,6 +63,25 @@ pub struct SmokeArgs {
     pub device: String,
 }
 
+/// The authors' step beside flashmat's (`--reference`), and where the
+/// table goes.
+#[derive(Args, Debug, Clone)]
+pub struct SideBySideArgs {
+    /// A copy of the authors' repository (APeculiarCamber/neural_appearance_estimation), kept outside
+    /// this one: their step is timed in the same job with the same shapes (../shared/bench/README.md).
+    #[arg(long, value_name = "DIR")]
+    pub reference: Option<std::path::PathBuf>,
+    /// The timing script (default: ../shared/bench/ref_bench.py beside the checkout, .gpu/bench/ref_bench.py, or FLASHMAT_REF_BENCH).
+    #[arg(long, value_name = "FILE")]
+    pub ref_bench: Option<std::path::PathBuf>,
+    /// Also time the authors' code under bf16 autocast.
+    #[arg(long)]
+    pub amp: bool,
+    /// Write the side-by-side table (Markdown) to this file too.
+    #[arg(long, value_name = "FILE")]
+    pub report: Option<std::path::PathBuf>,
+}
+
 #[derive(Args, Debug)]
 pub struct TrainBenchArgs {
     /// Model preset (paper, compact, tiny).
@@ -70,6 +90,9 @@ pub struct TrainBenchArgs {
     /// Training crop size.
     #[arg(long, default_value_t = 128)]
     pub crop: usize,
+    /// Materials per batch.
+    #[arg(long, default_value_t = 2)]
+    pub batch: usize,
     /// Output renders per material.
     #[arg(long, default_value_t = 8)]
     pub outputs: usize,
@@ -79,6 +102,8 @@ pub struct TrainBenchArgs {
     /// cpu or cuda.
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    #[command(flatten)]
+    pub side: SideBySideArgs,
 }
 
 #[derive(Args, Debug)]
@@ -86,15 +111,20 @@ pub struct InferBenchArgs {
     /// Model preset (paper, compact, tiny).
     #[arg(long, default_value = "compact")]
     pub preset: String,
-    /// Photo / frame resolution.
-    #[arg(long, default_value_t = 256)]
-    pub size: usize,
+    /// Photo / frame resolutions, comma-separated (256,1024,2048).
+    #[arg(long, default_value = "256", value_delimiter = ',')]
+    pub size: Vec<usize>,
     /// Timed runs (median reported).
     #[arg(long, default_value_t = 3)]
     pub runs: usize,
     /// cpu or cuda.
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// Memory budget of M_est, as for `estimate`: a photo whose whole forward does not fit runs layer by layer in tiles.
+    #[arg(long, default_value = "8G")]
+    pub max_memory: String,
+    #[command(flatten)]
+    pub side: SideBySideArgs,
 }
 
 #[derive(Args, Debug)]
@@ -113,14 +143,111 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Train(a) => bench_train(a),
         BenchCommand::Smoke(a) => smoke(a),
         BenchCommand::Refine(a) => bench_refine(a),
-        BenchCommand::Infer(a) => {
-            let device = flashmat::device::parse_device(&a.device)?;
-            let t = flashmat::model::bench_infer_runs(&flashmat::model::ModelConfig::preset(&a.preset)?, a.size, device, a.runs)?;
-            println!("{t}");
-            println!("paper reference: the authors' PyTorch M_est takes about 20 s at 256x256 (paper preset) on a 2-core CPU");
-            Ok(())
-        }
+        BenchCommand::Infer(a) => bench_infer(a),
     }
+}
+
+/// The authors' benchmark of `side`, when asked for.
+fn reference_of(side: &SideBySideArgs) -> Result<Option<ReferenceBench>> {
+    side.reference.as_deref().map(|repo| ReferenceBench::new(repo, side.ref_bench.as_deref())).transpose()
+}
+
+/// Prints the side-by-side table and writes it to `--report`.
+fn finish_table(side: &SideBySideArgs, title: &str, rows: &[Row]) -> Result<()> {
+    let md = markdown(title, rows);
+    println!("\n{md}");
+    if let Some(path) = &side.report {
+        flashmat::io::atomic_write_bytes(path, md.as_bytes())?;
+        println!("side-by-side table written to {}", path.display());
+    }
+    Ok(())
+}
+
+/// The authors' median milliseconds and rate of a measurement, or why
+/// there is none (their out-of-memory, say), from its JSON line.
+fn theirs(line: Option<&serde_json::Value>, rate: &str) -> (Option<f64>, Option<f64>, Option<String>) {
+    match line {
+        Some(l) if l["error"].is_string() => (None, None, l["error"].as_str().map(|e| e.chars().take(120).collect())),
+        Some(l) => (l["ms_median"].as_f64(), l[rate].as_f64(), None),
+        None => (None, None, Some("not measured".into())),
+    }
+}
+
+fn bench_infer(a: &InferBenchArgs) -> Result<()> {
+    let device = flashmat::device::parse_device(&a.device)?;
+    let cfg = flashmat::model::ModelConfig::preset(&a.preset)?;
+    let max_memory = flashmat::infer::tiles::parse_memory(&a.max_memory)?;
+    let reference = reference_of(&a.side)?;
+    let mut rows = vec![];
+    for &size in &a.size {
+        flashmat::infer::photo::check_size(size)?;
+        let tile_core = match flashmat::infer::plan_estimate(&cfg, size, size, max_memory)? {
+            flashmat::infer::tiles::EstPlan::Whole => None,
+            flashmat::infer::tiles::EstPlan::Tiled(core) => Some(core),
+        };
+        let sampler = device_index(device).and_then(BusySampler::start);
+        let t = flashmat::model::bench_infer_runs(&cfg, size, device, a.runs, tile_core)?;
+        let busy = sampler.and_then(BusySampler::finish);
+        println!("{t}");
+        if let Some(gib) = peak_device_memory_gib(device) {
+            println!("  GPU memory held by the process: {gib:.2} GiB (the caching allocator keeps its peak; --max-memory {})", a.max_memory);
+        }
+        let how = tile_core.map_or(String::new(), |c| format!(", tiles of {c}"));
+        rows.push(Row { what: format!("M_est forward, {}, {size}x{size}{how}", a.preset), ours_ms: Some(t.est_s * 1e3), theirs_ms: None, ours_rate: Some(1.0 / t.est_s), theirs_rate: None, busy, tflops: Some(t.est_gflop / t.est_s / 1e3) });
+        rows.push(Row { what: format!("relit frame, {}, {size}x{size}", a.preset), ours_ms: Some(t.render_s * 1e3), theirs_ms: None, ours_rate: Some(1.0 / t.render_s), theirs_rate: None, busy: None, tflops: Some(t.render_gflop / t.render_s / 1e3) });
+    }
+    if let Some(r) = &reference {
+        let sizes = a.size.iter().map(usize::to_string).collect::<Vec<_>>().join(",");
+        let mut args = vec!["--device".into(), device_name(device), "--infer".into(), "--size".into(), sizes, "--steps".into(), a.runs.to_string(), "--warmup".into(), "1".into()];
+        if a.side.amp {
+            args.push("--amp".into());
+        }
+        let lines = r.run(&args)?;
+        let mut extra = vec![];
+        for (i, &size) in a.size.iter().enumerate() {
+            for (j, what) in ["ref_mest_forward", "ref_render_frame"].into_iter().enumerate() {
+                let (ms, rate, why) = theirs(find(&lines, what, &[("size", size.into())]), "per_s");
+                let row = &mut rows[2 * i + j];
+                (row.theirs_ms, row.theirs_rate) = (ms, rate);
+                if let Some(why) = why {
+                    row.what += &format!(" (authors': {why})");
+                }
+                if a.side.amp {
+                    let (ms, rate, why) = theirs(find(&lines, &format!("{what}_amp_bf16"), &[("size", size.into())]), "per_s");
+                    let what = format!("{} — authors' under bf16 autocast{}", row.what, why.map_or(String::new(), |w| format!(" ({w})")));
+                    extra.push(Row { what, ours_ms: row.ours_ms, theirs_ms: ms, ours_rate: row.ours_rate, theirs_rate: rate, busy: None, tflops: None });
+                }
+            }
+        }
+        rows.extend(extra);
+    } else if device == Device::Cpu {
+        println!("paper reference: the authors' PyTorch M_est takes about 20 s at 256x256 (paper preset) on a 2-core CPU");
+    }
+    finish_table(&a.side, &format!("## bench infer: {} on {}", a.preset, device_name(device)), &rows)
+}
+
+/// `cpu` or `cuda:N`, as the authors' script takes it.
+fn device_name(device: Device) -> String {
+    match device {
+        Device::Cuda(i) => format!("cuda:{i}"),
+        _ => "cpu".into(),
+    }
+}
+
+fn device_index(device: Device) -> Option<usize> {
+    match device {
+        Device::Cuda(i) => Some(i),
+        _ => None,
+    }
+}
+
+/// The CUDA caching allocator's peak so far, in GiB (None on the CPU).
+/// tch binds no `max_memory_allocated`; the NVML figure from `nvidia-smi`
+/// (memory.used, the whole process) is read instead.
+fn peak_device_memory_gib(device: Device) -> Option<f64> {
+    let i = device_index(device)?;
+    let out = std::process::Command::new("nvidia-smi").args(["--query-gpu=memory.used", "--format=csv,noheader,nounits", "-i", &i.to_string()]).stderr(std::process::Stdio::null()).output().ok()?;
+    String::from_utf8_lossy(&out.stdout).trim().parse::<f64>().ok().map(|mib| mib / 1024.0)
 }
 
 /// Refinement cost: ms per step (M_render forward + backward to the map,
@@ -199,7 +326,9 @@ fn bench_train(args: &TrainBenchArgs) -> Result<()> {
     use flashmat::train::{batches::batch_for_step, TrainConfig, Trainer, UpdateScheme};
     let device = flashmat::device::parse_device(&args.device)?;
     let model = flashmat::model::ModelConfig::preset(&args.preset)?;
-    println!("flashmat bench train: {} preset, crop {}, 2 materials x (1 + {}) renders, {device:?}, {} torch threads", args.preset, args.crop, args.outputs, tch::get_num_threads());
+    anyhow::ensure!(args.batch >= 1 && args.steps >= 1, "--batch and --steps must be at least 1");
+    let reference = reference_of(&args.side)?;
+    println!("flashmat bench train: {} preset, crop {}, {} materials x (1 + {}) renders, {device:?}, {} torch threads", args.preset, args.crop, args.batch, args.outputs, tch::get_num_threads());
     // The OpenMP wait is fixed for the whole process and changes every
     // variant's time (reports/training-speed.md): say which one ran.
     let env_or = |name: &str| std::env::var(name).unwrap_or_else(|_| "unset".into());
@@ -211,7 +340,7 @@ fn bench_train(args: &TrainBenchArgs) -> Result<()> {
         ("alternating (one shared forward, fused Adam)", UpdateScheme::Alternating, false),
         ("combined (one update)", UpdateScheme::Combined, false),
     ];
-    let base = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), outputs_per_material: args.outputs, ..Default::default() };
+    let base = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), materials_per_batch: args.batch, outputs_per_material: args.outputs, ..Default::default() };
     let stream = flashmat::train::batches::MaterialStream::open(&base)?;
     let batches: Vec<_> = (0..=args.steps as u64).map(|s| batch_for_step(&base, &stream.materials(&base, s)?, s, device)).collect::<Result<_>>()?;
     let step = |t: &mut Trainer, b, reference: bool| if reference { flashmat::reference_paths::with(|| t.train_step(b)) } else { t.train_step(b) };
@@ -235,19 +364,84 @@ fn bench_train(args: &TrainBenchArgs) -> Result<()> {
             t.push(start.elapsed().as_secs_f64() * 1000.0);
         }
     }
-    let median = |t: &mut Vec<f64>| {
-        t.sort_by(f64::total_cmp);
-        t[t.len() / 2]
-    };
-    let ms: Vec<f64> = times.iter_mut().map(median).collect();
+    let ms: Vec<f64> = times.iter_mut().map(|t| median(t)).collect();
     for ((name, _, _), t) in variants.iter().zip(&ms) {
         println!("{name:<58} {t:9.1} ms/step (median of {})  {:.2}x the reference's steps per second", args.steps, ms[0] / t);
     }
+    drop(trainers);
+    // The default step alone, step after step as a run trains, with the
+    // GPU's busy fraction sampled meanwhile.
+    let mut trainer = Trainer::new(base.clone(), device)?;
+    trainer.train_step(&batches[0])?;
+    let sampler = device_index(device).and_then(BusySampler::start);
+    let mut sustained = vec![];
+    for b in &batches[1..] {
+        let start = Instant::now();
+        trainer.train_step(b)?;
+        if let Device::Cuda(i) = device {
+            tch::Cuda::synchronize(i as i64);
+        }
+        sustained.push(start.elapsed().as_secs_f64() * 1000.0);
+    }
+    let busy = sampler.and_then(BusySampler::finish);
+    drop(trainer);
+    let ours = median(&mut sustained);
+    let flops = model_flops_per_step(&base);
+    println!(
+        "default step, one after another: {ours:.1} ms/step, {:.2} materials/s, {:.2} TFLOP/s of M_est + renderer forward and backward{}",
+        args.batch as f64 * 1e3 / ours,
+        flops / (ours * 1e9),
+        busy.map_or(String::new(), |b| format!(", GPU busy {:.0}%", 100.0 * b))
+    );
     step_breakdown(args, &model, device)?;
     if let Some(gib) = peak_memory_gib() {
         println!("peak resident memory: {gib:.2} GiB");
     }
-    Ok(())
+    if let Some(gib) = peak_device_memory_gib(device) {
+        println!("GPU memory held by the process: {gib:.2} GiB (the caching allocator keeps its peak)");
+    }
+    let shape = format!("{}, crop {}, {} x {}", args.preset, args.crop, args.batch, args.outputs);
+    let mut rows = vec![
+        Row { what: format!("training step, {shape}"), ours_ms: Some(ours), theirs_ms: None, ours_rate: Some(args.batch as f64 * 1e3 / ours), theirs_rate: None, busy, tflops: Some(flops / (ours * 1e9)) },
+        Row { what: format!("training step, {shape}, flashmat's previous step"), ours_ms: Some(ms[0]), theirs_ms: None, ours_rate: Some(args.batch as f64 * 1e3 / ms[0]), theirs_rate: None, busy: None, tflops: Some(flops / (ms[0] * 1e9)) },
+    ];
+    if let Some(r) = &reference {
+        let mut cmd: Vec<String> = ["--device", &device_name(device), "--crop", &args.crop.to_string(), "--batch", &args.batch.to_string(), "--outputs", &args.outputs.to_string()].map(String::from).to_vec();
+        cmd.extend(["--steps".into(), args.steps.max(3).to_string(), "--warmup".into(), "2".into()]);
+        if args.side.amp {
+            cmd.push("--amp".into());
+        }
+        let lines = r.run(&cmd)?;
+        let (ms, rate, why) = theirs(find(&lines, "ref_train_step", &[]), "samples_per_s");
+        (rows[0].theirs_ms, rows[0].theirs_rate) = (ms, rate);
+        (rows[1].theirs_ms, rows[1].theirs_rate) = (ms, rate);
+        if let Some(why) = why {
+            rows[0].what += &format!(" (authors': {why})");
+        }
+        if args.side.amp {
+            let (ms, rate, why) = theirs(find(&lines, "ref_train_step_amp_bf16", &[]), "samples_per_s");
+            let what = format!("training step, {shape}, authors' under bf16 autocast{}", why.map_or(String::new(), |w| format!(" ({w})")));
+            rows.push(Row { what, ours_ms: Some(ours), theirs_ms: ms, ours_rate: rows[0].ours_rate, theirs_rate: rate, busy: None, tflops: None });
+        }
+        if model.model_id() != flashmat::model::ModelConfig::preset("paper")?.model_id() {
+            println!("note: the authors' step is the paper's model; flashmat's is the {} preset", args.preset);
+        }
+    }
+    finish_table(&args.side, &format!("## bench train on {}", device_name(device)), &rows)
+}
+
+/// Median of a list of timings.
+fn median(t: &mut [f64]) -> f64 {
+    t.sort_by(f64::total_cmp);
+    t[t.len() / 2]
+}
+
+/// FLOPs of one step's M_est and renderer passes, forward and backward
+/// (backward taken as twice the forward): the floor of what a step
+/// computes (LPIPS and the discriminator not counted).
+fn model_flops_per_step(cfg: &flashmat::train::TrainConfig) -> f64 {
+    let (nb, k, px) = (cfg.materials_per_batch as f64, cfg.outputs_per_material as f64, (cfg.crop * cfg.crop) as f64);
+    3.0 * nb * (flashmat::model::est_flops(&cfg.model, cfg.crop as i64, cfg.crop as i64) + k * px * flashmat::model::renderer_flops_per_row(&cfg.model))
 }
 
 /// Median milliseconds of `f` over `runs` calls, after one warm-up call.
@@ -273,7 +467,7 @@ fn median_ms(device: Device, runs: usize, mut f: impl FnMut() -> Result<()>) -> 
 fn step_breakdown(args: &TrainBenchArgs, model: &flashmat::model::ModelConfig, device: Device) -> Result<()> {
     use flashmat::train::{batches::batch_for_step, losses, TrainConfig, Trainer};
     use tch::Kind;
-    let cfg = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), outputs_per_material: args.outputs, ..Default::default() };
+    let cfg = TrainConfig { model: model.clone(), crop: args.crop, material_size: args.crop.max(256), materials_per_batch: args.batch, outputs_per_material: args.outputs, ..Default::default() };
     let runs = args.steps.max(1);
     let opts = (Kind::Float, device);
     let n = 1024;

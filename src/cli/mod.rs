@@ -8,6 +8,7 @@ pub mod fit;
 pub mod infer;
 pub mod materials;
 pub mod nmat_rows;
+pub mod reference_bench;
 pub mod train;
 pub mod view;
 

@@ -327,18 +327,21 @@ pub struct InferTimings {
     pub size: usize,
     pub threads: i32,
     pub runs: usize,
-    /// Median seconds of one M_est forward (folded BatchNorm, no autograd).
+    /// Median seconds of one M_est forward (folded BatchNorm, no autograd),
+    /// over the whole photo or layer by layer in tiles of this core side.
     pub est_s: f64,
+    pub tile_core: Option<i64>,
     /// Median seconds of ND_enc + M_render for one size x size frame.
     pub render_s: f64,
     pub est_gflop: f64,
     pub render_gflop: f64,
     /// Seconds of one naive M_est forward (eval-mode BatchNorm, autograd
     /// recording), the baseline the inference path is compared with.
-    pub naive_est_s: f64,
+    /// Whole-photo forwards only (the baselines keep every activation).
+    pub naive_est_s: Option<f64>,
     /// Median seconds of the folded M_est forward with every conv direct
     /// (no Winograd), the baseline of [`crate::model::winograd`].
-    pub direct_est_s: f64,
+    pub direct_est_s: Option<f64>,
     /// Median seconds of the frame with the direction encoding in tensor
     /// operations ([`crate::reference_paths`]), the baseline of the host
     /// encoding.
@@ -347,21 +350,20 @@ pub struct InferTimings {
 
 impl std::fmt::Display for InferTimings {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let how = match self.tile_core {
+            Some(core) => format!(" layer by layer in tiles of {core} px"),
+            None => String::new(),
+        };
+        write!(f, "{} @ {}x{} ({} threads, median of {}): M_est{how} {:.3} s ({:.1} GFLOP, {:.1} GFLOP/s", self.model_id, self.size, self.size, self.threads, self.runs, self.est_s, self.est_gflop, self.est_gflop / self.est_s)?;
+        if let Some(d) = self.direct_est_s {
+            write!(f, "; every conv direct, no Winograd: {d:.3} s, {:.2}x slower", d / self.est_s)?;
+        }
+        if let Some(n) = self.naive_est_s {
+            write!(f, "; naive eval-mode forward with autograd {n:.3} s, {:.2}x slower", n / self.est_s)?;
+        }
         write!(
             f,
-            "{} @ {}x{} ({} threads, median of {}): M_est {:.3} s ({:.1} GFLOP, {:.1} GFLOP/s; every conv direct, no Winograd: {:.3} s, {:.2}x slower; naive eval-mode forward with autograd {:.3} s, {:.2}x slower); ND_enc+M_render {:.3} s/frame ({:.1} GFLOP, {:.1} GFLOP/s; direction encoding in tensor operations: {:.3} s, {:.2}x slower)",
-            self.model_id,
-            self.size,
-            self.size,
-            self.threads,
-            self.runs,
-            self.est_s,
-            self.est_gflop,
-            self.est_gflop / self.est_s,
-            self.direct_est_s,
-            self.direct_est_s / self.est_s,
-            self.naive_est_s,
-            self.naive_est_s / self.est_s,
+            "); ND_enc+M_render {:.3} s/frame ({:.1} GFLOP, {:.1} GFLOP/s; direction encoding in tensor operations: {:.3} s, {:.2}x slower)",
             self.render_s,
             self.render_gflop,
             self.render_gflop / self.render_s,
@@ -403,11 +405,14 @@ fn median_time(runs: usize, device: Device, mut f: impl FnMut() -> Result<()>) -
 /// 1.2 s/frame; compact 0.79 s and 0.23 s/frame (`reports/inference-speed.md`; the machine is
 /// shared, expect +-15%). The authors' PyTorch M_est takes about 20 s there.
 pub fn bench_infer(cfg: &ModelConfig, size: usize, device: Device) -> Result<InferTimings> {
-    bench_infer_runs(cfg, size, device, 3)
+    bench_infer_runs(cfg, size, device, 3, None)
 }
 
-/// [`bench_infer`] with a chosen number of timed runs.
-pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: usize) -> Result<InferTimings> {
+/// [`bench_infer`] with a chosen number of timed runs, M_est over the
+/// whole photo (`tile_core` None, with the direct and naive baselines) or
+/// layer by layer in tiles of that core side (what `--max-memory` plans
+/// for large photos; no baselines, they would hold every activation).
+pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: usize, tile_core: Option<i64>) -> Result<InferTimings> {
     ensure!(runs >= 1, "need at least one timed run");
     let model = Model::new(cfg, device)?;
     let folded = model.est.fold_batchnorm();
@@ -415,23 +420,41 @@ pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: us
     let opts = (Kind::Float, device);
     let (wi, wo) = crate::data::samples::input_directions(size, size, 28.0, device);
     let x = Tensor::cat(&[Tensor::rand([1, 3, s, s], opts), crate::svbrdf::render::half_vector_z(&wi, &wo)], 1);
-    let est_s = median_time(runs, device, || folded.forward(&x).map(drop))?;
-    let map = folded.forward(&x)?;
-    let mut direct = model.est.fold_batchnorm();
-    direct.set_winograd(None);
-    let direct_est_s = median_time(runs, device, || direct.forward(&x).map(drop))?;
-    drop(direct);
-    let t0 = Instant::now();
-    let _ = model.est.forward_t(&x, false)?;
-    sync(device);
-    let naive_est_s = t0.elapsed().as_secs_f64();
+    drop((wi, wo));
+    let forward = |x: &Tensor| match tile_core {
+        Some(core) => folded.forward_layerwise(x, core, || {}),
+        None => folded.forward(x),
+    };
+    let est_s = median_time(runs, device, || forward(&x).map(drop))?;
+    let map = forward(&x)?;
+    let (mut direct_est_s, mut naive_est_s) = (None, None);
+    if tile_core.is_none() {
+        let mut direct = model.est.fold_batchnorm();
+        direct.set_winograd(None);
+        direct_est_s = Some(median_time(runs, device, || direct.forward(&x).map(drop))?);
+        drop(direct);
+        let t0 = Instant::now();
+        let _ = model.est.forward_t(&x, false)?;
+        sync(device);
+        naive_est_s = Some(t0.elapsed().as_secs_f64());
+    }
+    drop(x);
     let dirs = |z: f32| {
         let v = Tensor::randn([1, 1, 3, s, s], opts) * 0.3 + Tensor::from_slice(&[0.0f32, 0.0, z]).to_device(device).view([1, 1, 3, 1, 1]);
         &v / v.square().sum_dim_intlist([2i64].as_slice(), true, Kind::Float).sqrt()
     };
     let (wi, wo) = (dirs(1.0), dirs(1.0));
-    let render_s = tch::no_grad(|| median_time(runs, device, || model.renderer.forward_maps(&map, &wi, &wo).map(drop)))?;
-    let reference_render_s = crate::reference_paths::with(|| tch::no_grad(|| median_time(runs, device, || model.renderer.forward_maps(&map, &wi, &wo).map(drop))))?;
+    // A tiled photo's frame in bands of rows, as `relight` streams it.
+    let band = if tile_core.is_some() { 256.min(s) } else { s };
+    let frame = || -> Result<()> {
+        for r in (0..s).step_by(band as usize) {
+            let n = band.min(s - r);
+            drop(model.renderer.forward_maps(&map.narrow(2, r, n), &wi.narrow(3, r, n), &wo.narrow(3, r, n))?);
+        }
+        Ok(())
+    };
+    let render_s = tch::no_grad(|| median_time(runs, device, frame))?;
+    let reference_render_s = crate::reference_paths::with(|| tch::no_grad(|| median_time(runs, device, frame)))?;
     let px = (s * s) as f64;
     Ok(InferTimings {
         model_id: cfg.model_id(),
@@ -439,6 +462,7 @@ pub fn bench_infer_runs(cfg: &ModelConfig, size: usize, device: Device, runs: us
         threads: tch::get_num_threads(),
         runs,
         est_s,
+        tile_core,
         render_s,
         est_gflop: est_flops(cfg, s, s) / 1e9,
         render_gflop: renderer_flops_per_row(cfg) * px / 1e9,
