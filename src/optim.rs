@@ -189,6 +189,9 @@ impl Adam {
         if let Some(g) = self.flat_grad() {
             return g.square().sum(tch::Kind::Double).sqrt();
         }
+        if self.fused && self.params.values().all(|p| p.device() == tch::Device::Cpu) {
+            return Tensor::from(self.grad_norm()); // the host's sum: nothing to wait for
+        }
         let device = self.params.values().next().map_or(tch::Device::Cpu, Tensor::device);
         let squares: Vec<Tensor> = self.params.values().map(|p| p.grad()).filter(Tensor::defined).map(|g| g.square().sum(tch::Kind::Double)).collect();
         match squares.is_empty() {

@@ -82,7 +82,23 @@ pub fn code_l1(neural: &Tensor, target: &Tensor) -> Tensor {
 
 /// Mean L2 norm of the neural parameter vectors. neural: `[N, C, H, W]`.
 pub fn mean_param_norm(neural: &Tensor) -> f64 {
-    neural.detach().square().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).sqrt().mean(Kind::Float).double_value(&[])
+    mean_param_norm_tensor(neural).double_value(&[])
+}
+
+/// [`mean_param_norm`] as a 0-dim tensor on the map's device (no read-back).
+pub fn mean_param_norm_tensor(neural: &Tensor) -> Tensor {
+    neural.detach().square().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).sqrt().mean(Kind::Float)
+}
+
+/// The values of 0-dim tensors, read back in one transfer: on a GPU each
+/// `double_value` waits for the queue to drain, so a step reads its losses
+/// and gradient norms once, at its end.
+pub fn read_scalars(scalars: &[&Tensor]) -> Vec<f64> {
+    if scalars.is_empty() {
+        return vec![];
+    }
+    let stacked = Tensor::stack(&scalars.iter().map(|t| t.detach().to_kind(Kind::Double).reshape([])).collect::<Vec<_>>(), 0);
+    Vec::<f64>::try_from(stacked.to_device(tch::Device::Cpu)).expect("a 1-D f64 tensor converts to Vec<f64>")
 }
 
 /// The shift-consistency term: M_est's codes of two photos of the same

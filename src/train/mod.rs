@@ -313,27 +313,20 @@ impl Trainer {
         };
         let mut loss_est = &l1 * cfg.weight_l1 + &shared;
         if let Some(c) = &code_term {
-            out.code = c.double_value(&[]) / weight_code;
             loss_est = loss_est + c;
         }
         if let Some(t) = &shift_term {
-            out.shift = t.double_value(&[]) / cfg.weight_shift;
             loss_est = loss_est + t;
         }
         let loss_render = &l1_r * cfg.weight_l1 + &shared;
-        out.l1 = l1.double_value(&[]);
-        out.lpips = lp.double_value(&[]);
-        out.adv = adv.double_value(&[]);
-        out.loss_est = loss_est.double_value(&[]);
-        out.param_norm = losses::mean_param_norm(&neural);
-        out.l1_render = l1_r.double_value(&[]);
-        out.loss_render = loss_render.double_value(&[]);
-        if !(out.loss_est.is_finite() && out.loss_render.is_finite()) {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
-        }
+        let param_norm = losses::mean_param_norm_tensor(&neural);
+        let zero = || Tensor::zeros([], (Kind::Float, pred.device()));
+        let code_value = code_term.as_ref().map_or_else(zero, |c| c.detach() / weight_code);
+        let shift_value = shift_term.as_ref().map_or_else(zero, |t| t.detach() / cfg.weight_shift);
 
         // d(loss)/d(prediction): the shared terms' once, each L1's on its own.
+        // Nothing is read back before the step's end: a non-finite loss
+        // makes non-finite gradients, and the one check there skips both.
         let grad_of = |loss: &Tensor| {
             let g = if loss.requires_grad() { Tensor::run_backward(&[loss], &[&pred], true, false).pop() } else { None };
             g.filter(|g| g.defined()).unwrap_or_else(|| pred.zeros_like())
@@ -360,21 +353,21 @@ impl Trainer {
         self.opt_disc.zero_grad();
         let loss_disc = std::thread::scope(|scope| {
             let renderer = scope.spawn(move || render_objective.backward());
-            let discriminator = scope.spawn(move || -> Result<f64> {
+            let discriminator = scope.spawn(move || -> Result<Tensor> {
                 let loss = losses::discriminator_loss(disc.get(), &pred, &truth, &photo, weight_adv)?;
-                let value = loss.double_value(&[]);
-                if value.is_finite() && weight_adv > 0.0 {
+                if weight_adv > 0.0 {
                     loss.backward();
                 }
-                Ok(value)
+                Ok(loss.detach())
             });
             est_objective.backward();
             renderer.join().map_err(|_| anyhow::anyhow!("the renderer's backward pass panicked"))?;
             discriminator.join().map_err(|_| anyhow::anyhow!("the discriminator's update panicked"))?
         })?;
-        out.loss_disc = loss_disc;
-        let finite = self.opt_est.grad_norm().is_finite() && self.opt_render.grad_norm().is_finite() && loss_disc.is_finite() && self.opt_disc.grad_norm().is_finite();
-        if !finite {
+        let norms = [self.opt_est.grad_norm_tensor(), self.opt_render.grad_norm_tensor(), self.opt_disc.grad_norm_tensor()];
+        let v = losses::read_scalars(&[&l1, &lp, &adv, &loss_est, &param_norm, &l1_r, &loss_render, &loss_disc, &code_value, &shift_value, &norms[0], &norms[1], &norms[2]]);
+        (out.l1, out.lpips, out.adv, out.loss_est, out.param_norm, out.l1_render, out.loss_render, out.loss_disc, out.code, out.shift) = (v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8], v[9]);
+        if !v.iter().all(|x| x.is_finite()) {
             self.zero_all();
             return Ok(StepLosses { skipped: true, ..out });
         }
