@@ -51,6 +51,16 @@
 #             DIR/settled.safetensors and DIR/uniform.md (the check to judge
 #             it by); run it again to continue from its checkpoint
 #
+#   GPU:    bash scripts/gpu-train.sh bench
+#             issue 49's side-by-side benchmark, the first thing a GPU job
+#             does (docs/GPU.md): flashmat's training step (paper preset at
+#             both paper recipes and at 8 x 4; the compact GPU recipe) and
+#             inference (256, 1024, 2048 within 32 GiB), each against the
+#             authors' PyTorch step in the same job where `stage` staged
+#             their code (FLASHMAT_REF_DIR: a copy of their repository ->
+#             .gpu/ref, with ../shared/bench/ref_bench.py -> .gpu/bench);
+#             writes bench.md (the tables) and bench.log to $OUT
+#
 #   bash scripts/gpu-train.sh --cpu-dry-run
 #             the same steps on the CPU with the tiny preset (smoke test,
 #             chunks with a resume from the export and from the checkpoint,
@@ -490,10 +500,63 @@ stage() {
       cargo run --release --example truncate_frequencies -- models/flashmat.safetensors "$PRESET" "$RESUME_MODEL"
     fi
   fi
+  # The authors' code for the side-by-side benchmark (bench): their .py
+  # files and models/ (about 140 KB), never committed; FLASHMAT_REF_DIR is
+  # a copy of their repository (docs/GPU.md says how to get one).
+  if [ -n "${FLASHMAT_REF_DIR:-}" ]; then
+    [ -f "$FLASHMAT_REF_DIR/prl_main_train.py" ] || die "FLASHMAT_REF_DIR=$FLASHMAT_REF_DIR is not a copy of the authors' repository"
+    rm -rf .gpu/ref && mkdir -p .gpu/ref .gpu/bench
+    tar -c -C "$FLASHMAT_REF_DIR" --exclude=./.git --exclude=./demo_images --exclude=./data --exclude='*.ipynb' . | tar -x -C .gpu/ref
+    cp "${FLASHMAT_REF_BENCH:-$ROOT/../shared/bench/ref_bench.py}" .gpu/bench/ref_bench.py
+    echo "staged the authors' code in .gpu/ref and ref_bench.py in .gpu/bench (for bench)"
+  fi
   local size; size=$(git ls-files -z | xargs -0 du -cb | tail -n 1 | cut -f1)
   local extra; extra=$(du -cb .gpu | tail -n 1 | cut -f1)
   echo "staged .gpu/ ($((extra / 1048576)) MiB; tracked tree $((size / 1048576)) MiB; a job takes at most 64 MiB)"
   [ -f "$RESUME_MODEL" ] && echo "chunks will warm-start from $RESUME_MODEL when the machine's disk is gone" || true
+}
+
+# Issue 49's side-by-side benchmark (docs/GPU.md). The shapes are the
+# paper's recipes (crop 192, 2 x 8; crop 256, 2 x 4), the batch the authors'
+# f32 step cannot fit (crop 256, 8 x 4) and the compact GPU recipe; inference
+# at 256, 1024 and 2048 under a 32 GiB budget. BENCH_* override them (the dry run).
+bench() {
+  local out="${OUT:?set OUT to the folder that comes back}"
+  use_machine_libtorch
+  mkdir -p "$out" "$WORK"
+  rm -f "$WORK"/bench-*.md
+  local steps="${BENCH_STEPS:-10}" sizes="${BENCH_SIZES:-256,1024,2048}"
+  local paper="${BENCH_PAPER_PRESET:-paper}" compact="${BENCH_COMPACT:-$PRESET 128 8 8}"
+  read -r -a train_shapes <<<"${BENCH_TRAIN_SHAPES:-192:2:8 256:2:4 256:8:4}"
+  local side=() amp=()
+  if [ -f "$ROOT/.gpu/ref/prl_main_train.py" ] && [ -f "$ROOT/.gpu/bench/ref_bench.py" ]; then
+    side=(--reference "$ROOT/.gpu/ref" --ref-bench "$ROOT/.gpu/bench/ref_bench.py")
+    amp=(--amp)
+    # The machine's own PyTorch runs the authors' code.
+    [ -x /opt/torch/.venv/bin/python ] && export FLASHMAT_PYTHON=/opt/torch/.venv/bin/python
+  else
+    echo "bench: the authors' code is not staged (.gpu/ref, .gpu/bench): flashmat's numbers only" >&2
+  fi
+  : >"$out/bench.md"
+  local n=0 shape crop batch outputs
+  for shape in "${train_shapes[@]}"; do
+    IFS=: read -r crop batch outputs <<<"$shape"
+    n=$((n + 1))
+    "$BIN" bench train --device "$DEVICE" --preset "$paper" --crop "$crop" --batch "$batch" --outputs "$outputs" \
+      --steps "$steps" "${side[@]}" "${amp[@]}" --report "$WORK/bench-$n.md" >>"$out/bench.log" 2>&1 \
+      || echo "bench train $paper crop $crop $batch x $outputs failed: $(tail -n 1 "$out/bench.log")" >>"$out/bench.md"
+    [ -f "$WORK/bench-$n.md" ] && { cat "$WORK/bench-$n.md"; echo; } >>"$out/bench.md"
+  done
+  read -r preset crop batch outputs <<<"$compact"
+  "$BIN" bench train --device "$DEVICE" --preset "$preset" --crop "$crop" --batch "$batch" --outputs "$outputs" \
+    --steps "$steps" --report "$WORK/bench-compact.md" >>"$out/bench.log" 2>&1 \
+    || echo "bench train $preset failed: $(tail -n 1 "$out/bench.log")" >>"$out/bench.md"
+  [ -f "$WORK/bench-compact.md" ] && { cat "$WORK/bench-compact.md"; echo; } >>"$out/bench.md"
+  "$BIN" bench infer --device "$DEVICE" --preset "$paper" --size "$sizes" --max-memory 32G --runs 3 \
+    "${side[@]}" "${amp[@]}" --report "$WORK/bench-infer.md" >>"$out/bench.log" 2>&1 \
+    || echo "bench infer failed: $(tail -n 1 "$out/bench.log")" >>"$out/bench.md"
+  [ -f "$WORK/bench-infer.md" ] && cat "$WORK/bench-infer.md" >>"$out/bench.md"
+  cat "$out/bench.md"
 }
 
 # The whole campaign on the CPU with the tiny preset, in a temporary folder.
@@ -534,6 +597,12 @@ cpu_dry_run() {
   done
   local n; n=$(find "$tmp/out3" -type f | wc -l)
   [ "$n" -le 8 ] || die "dry run: the final job brings back $n files (a job returns at most 8)"
+  echo "== side-by-side benchmark (flashmat's rows; the authors' where staged)"
+  BENCH_STEPS=1 BENCH_SIZES=64 BENCH_PAPER_PRESET=tiny BENCH_COMPACT="tiny 32 2 2" BENCH_TRAIN_SHAPES="32:2:2" \
+    OUT="$tmp/bench" bash "$self" bench >/dev/null
+  for row in "| training step, tiny, crop 32, 2 x 2 |" "| training step, tiny, crop 32, 2 x 2, flashmat's previous step |" "| M_est forward, tiny, 64x64 |" "| relit frame, tiny, 64x64 |"; do
+    grep -qF "$row" "$tmp/bench/bench.md" || die "dry run: bench.md has no row '$row'"
+  done
   echo "== frozen halves side by side, two jobs chained (from the final chunk's export)"
   cp "$tmp/out3/model.safetensors" "$tmp/resume.safetensors"
   FLASHMAT_GPU_HEMISPHERE=1 FLASHMAT_GPU_FROZEN_EVERY=2 FLASHMAT_GPU_FROZEN_THREADS=1 FLASHMAT_GPU_FROZEN_CONFIGS=1 \
@@ -573,6 +642,7 @@ fi
 
 case "${1:-}" in
   stage) stage ;;
+  bench) bench ;;
   chunk) shift; chunk "$@" ;;
   verdict) verdict yes ;;
   final) shift; CHUNK_LR="$FINAL_LR" chunk "$@"; verdict no ;;
