@@ -204,7 +204,7 @@ impl Trainer {
     fn alternating_step(&mut self, b: &TrainingBatch, lr: f64, weight_adv: f64) -> Result<StepLosses> {
         let cfg = self.config.clone();
         let truth_log = crate::spaces::to_log(&b.targets);
-        let mut out = StepLosses::default();
+        let mut readout = Readout::default();
 
         // The direction code does not depend on the neural map: encode once,
         // use it detached for the M_est half (the renderer is frozen there)
@@ -214,13 +214,14 @@ impl Trainer {
 
         if cfg.freeze_estimator {
             let neural = self.frozen_neural_map(b)?;
-            out.param_norm = losses::mean_param_norm(&neural);
-            return self.renderer_and_discriminator_updates(b, neural, &code, &truth_log, lr, weight_adv, out);
+            readout.push(|o, v| o.param_norm = v, losses::mean_param_norm_tensor(&neural));
+            return self.renderer_and_discriminator_updates(b, neural, &code, &truth_log, lr, weight_adv, readout);
         }
 
         let photo_log = b.est_input.narrow(1, 0, 3);
 
-        // 1. M_est update; the renderer takes part in the graph but is not stepped.
+        // 1. M_est update; the renderer takes part in the graph but is not
+        // stepped. Nothing is read back until the step's end (`Readout`).
         let (neural, shift_term) = self.estimate(b)?;
         let pred = self.model.renderer.render_code(&neural, &code.detach())?;
         let l1 = (&pred - &truth_log).abs().mean(tch::Kind::Float);
@@ -230,34 +231,30 @@ impl Trainer {
         let weight_code = cfg.code_weight_at(self.step);
         if let (Some(t), true) = (&self.teacher, weight_code > 0.0) {
             let code = losses::code_l1(&neural, &tch::no_grad(|| t.encoder.forward_maps(&b.maps)));
-            out.code = code.double_value(&[]);
+            readout.push(|o, v| o.code = v, code.detach());
             loss_est = loss_est + code * weight_code;
         }
         if let Some(t) = shift_term {
-            out.shift = t.double_value(&[]) / cfg.weight_shift;
+            readout.push(|o, v| o.shift = v, t.detach() / cfg.weight_shift);
             loss_est = loss_est + t;
         }
-        out.l1 = l1.double_value(&[]);
-        out.lpips = lp.double_value(&[]);
-        out.adv = adv.double_value(&[]);
-        out.loss_est = loss_est.double_value(&[]);
-        out.param_norm = losses::mean_param_norm(&neural);
-        if !out.loss_est.is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
-        }
+        readout.push(|o, v| o.l1 = v, l1.detach());
+        readout.push(|o, v| o.lpips = v, lp.detach());
+        readout.push(|o, v| o.adv = v, adv.detach());
+        readout.push(|o, v| o.loss_est = v, loss_est.detach());
+        readout.push(|o, v| o.param_norm = v, losses::mean_param_norm_tensor(&neural));
         loss_est.backward();
-        if !self.opt_est.grad_norm().is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
-        }
+        readout.check(self.opt_est.grad_norm_tensor());
         if cfg.freeze_renderer {
-            self.opt_est.step(lr, cfg.grad_clip);
+            let (out, finite) = readout.read();
+            if finite {
+                self.opt_est.step(lr, cfg.grad_clip);
+            }
             self.zero_all();
-            return Ok(out);
+            return Ok(StepLosses { skipped: !finite, ..out });
         }
 
-        self.renderer_and_discriminator_updates(b, neural.detach(), &code, &truth_log, lr, weight_adv, out)
+        self.renderer_and_discriminator_updates(b, neural.detach(), &code, &truth_log, lr, weight_adv, readout)
     }
 
     /// Whether the step's two alternating updates can share one forward
@@ -288,7 +285,6 @@ impl Trainer {
         let cfg = self.config.clone();
         let truth_log = crate::spaces::to_log(&b.targets);
         let photo_log = b.est_input.narrow(1, 0, 3);
-        let mut out = StepLosses::default();
         self.zero_all();
 
         // Forward, with the graph cut at the neural map and at the prediction.
@@ -319,10 +315,20 @@ impl Trainer {
             loss_est = loss_est + t;
         }
         let loss_render = &l1_r * cfg.weight_l1 + &shared;
-        let param_norm = losses::mean_param_norm_tensor(&neural);
-        let zero = || Tensor::zeros([], (Kind::Float, pred.device()));
-        let code_value = code_term.as_ref().map_or_else(zero, |c| c.detach() / weight_code);
-        let shift_value = shift_term.as_ref().map_or_else(zero, |t| t.detach() / cfg.weight_shift);
+        let mut readout = Readout::default();
+        if let Some(c) = &code_term {
+            readout.push(|o, v| o.code = v, c.detach() / weight_code);
+        }
+        if let Some(t) = &shift_term {
+            readout.push(|o, v| o.shift = v, t.detach() / cfg.weight_shift);
+        }
+        readout.push(|o, v| o.l1 = v, l1.detach());
+        readout.push(|o, v| o.lpips = v, lp.detach());
+        readout.push(|o, v| o.adv = v, adv.detach());
+        readout.push(|o, v| o.loss_est = v, loss_est.detach());
+        readout.push(|o, v| o.param_norm = v, losses::mean_param_norm_tensor(&neural));
+        readout.push(|o, v| o.l1_render = v, l1_r.detach());
+        readout.push(|o, v| o.loss_render = v, loss_render.detach());
 
         // d(loss)/d(prediction): the shared terms' once, each L1's on its own.
         // Nothing is read back before the step's end: a non-finite loss
@@ -364,10 +370,12 @@ impl Trainer {
             renderer.join().map_err(|_| anyhow::anyhow!("the renderer's backward pass panicked"))?;
             discriminator.join().map_err(|_| anyhow::anyhow!("the discriminator's update panicked"))?
         })?;
-        let norms = [self.opt_est.grad_norm_tensor(), self.opt_render.grad_norm_tensor(), self.opt_disc.grad_norm_tensor()];
-        let v = losses::read_scalars(&[&l1, &lp, &adv, &loss_est, &param_norm, &l1_r, &loss_render, &loss_disc, &code_value, &shift_value, &norms[0], &norms[1], &norms[2]]);
-        (out.l1, out.lpips, out.adv, out.loss_est, out.param_norm, out.l1_render, out.loss_render, out.loss_disc, out.code, out.shift) = (v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8], v[9]);
-        if !v.iter().all(|x| x.is_finite()) {
+        readout.push(|o, v| o.loss_disc = v, loss_disc);
+        for norm in [self.opt_est.grad_norm_tensor(), self.opt_render.grad_norm_tensor(), self.opt_disc.grad_norm_tensor()] {
+            readout.check(norm);
+        }
+        let (out, finite) = readout.read();
+        if !finite {
             self.zero_all();
             return Ok(StepLosses { skipped: true, ..out });
         }
@@ -401,8 +409,9 @@ impl Trainer {
 
     /// The alternating step's second half: the renderer's update on the
     /// (detached) neural map with pixel-sampled L1, the discriminator's,
-    /// then the optimizer steps (M_est's too unless it is frozen). `out`
-    /// carries the first half's losses.
+    /// then, when everything `readout` holds is finite, the optimizer steps
+    /// (M_est's too unless it is frozen). `readout` carries the first
+    /// half's losses and gradient norm.
     /// neural: `[B, C, H, W]` detached; code: the direction code of the
     /// outputs; truth_log: ln(1 + R) of `b.targets`.
     #[allow(clippy::too_many_arguments)]
@@ -414,7 +423,7 @@ impl Trainer {
         truth_log: &Tensor,
         lr: f64,
         weight_adv: f64,
-        mut out: StepLosses,
+        mut readout: Readout,
     ) -> Result<StepLosses> {
         let cfg = self.config.clone();
         let target_log = match &self.anchor {
@@ -431,45 +440,30 @@ impl Trainer {
         let l1_r = losses::masked_l1(&pred_r, &target_log, &mask);
         if cfg.freeze_estimator {
             // No M_est half ran: log the full-image L1 against the truth it would have seen.
-            out.l1 = tch::no_grad(|| (&pred_r - truth_log).abs().mean(tch::Kind::Float).double_value(&[]));
+            readout.push(|o, v| o.l1 = v, tch::no_grad(|| (&pred_r - truth_log).abs().mean(tch::Kind::Float)));
         }
         let lp_r = losses::perceptual(self.lpips.as_ref(), &pred_r, &target_log)?;
         let adv_r = losses::adversarial(&self.disc, &pred_r, &photo_log, weight_adv)?;
         let loss_render = &l1_r * cfg.weight_l1 + &lp_r * cfg.weight_lpips + &adv_r * weight_adv + chroma_term(&cfg, &pred_r, &target_log);
-        out.l1_render = l1_r.double_value(&[]);
-        out.loss_render = loss_render.double_value(&[]);
-        if !out.loss_render.is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
-        }
+        readout.push(|o, v| o.l1_render = v, l1_r.detach());
+        readout.push(|o, v| o.loss_render = v, loss_render.detach());
         loss_render.backward();
-        if !self.opt_render.grad_norm().is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
-        }
+        readout.check(self.opt_render.grad_norm_tensor());
 
-        self.discriminator_update_and_steps(&pred_r.detach(), truth_log, &photo_log, lr, weight_adv, out)
-    }
-
-    /// The discriminator's update on the detached prediction, then, when
-    /// every loss and gradient is finite, the optimizer steps (M_est's too
-    /// unless it is frozen). pred, truth_log: `[B, K, 3, H, W]` log
-    /// renders; photo_log: `[B, 3, H, W]`.
-    fn discriminator_update_and_steps(&mut self, pred: &Tensor, truth_log: &Tensor, photo_log: &Tensor, lr: f64, weight_adv: f64, mut out: StepLosses) -> Result<StepLosses> {
+        // 3. The discriminator on the detached prediction.
         self.opt_disc.zero_grad();
-        let loss_disc = losses::discriminator_loss(&self.disc, pred, truth_log, photo_log, weight_adv)?;
-        out.loss_disc = loss_disc.double_value(&[]);
-        let disc_ok = out.loss_disc.is_finite() && {
-            if weight_adv > 0.0 {
-                loss_disc.backward();
-            }
-            self.opt_disc.grad_norm().is_finite()
-        };
-        if !disc_ok {
+        let loss_disc = losses::discriminator_loss(&self.disc, &pred_r.detach(), truth_log, &photo_log, weight_adv)?;
+        if weight_adv > 0.0 {
+            loss_disc.backward();
+        }
+        readout.push(|o, v| o.loss_disc = v, loss_disc.detach());
+        readout.check(self.opt_disc.grad_norm_tensor());
+
+        let (out, finite) = readout.read();
+        if !finite {
             self.zero_all();
             return Ok(StepLosses { skipped: true, ..out });
         }
-
         self.apply_steps(lr, weight_adv);
         Ok(out)
     }
@@ -526,6 +520,43 @@ impl<'a, T> OneThread<'a, T> {
     /// The borrow (a method, so a closure captures the whole wrapper).
     fn get(self) -> &'a T {
         self.0
+    }
+}
+
+/// A step's loss values and gradient norms, kept on the device and read
+/// back together at the step's end ([`losses::read_scalars`]): on a GPU
+/// every read waits for the queue to drain. A non-finite loss makes
+/// non-finite gradients, so deciding at the end skips the same steps as
+/// deciding at each term.
+#[derive(Default)]
+struct Readout {
+    fields: Vec<Option<fn(&mut StepLosses, f64)>>,
+    values: Vec<Tensor>,
+}
+
+impl Readout {
+    /// A 0-dim value for a field of the step's losses (and the finite check).
+    fn push(&mut self, field: fn(&mut StepLosses, f64), value: Tensor) {
+        self.fields.push(Some(field));
+        self.values.push(value);
+    }
+
+    /// A 0-dim value for the finite check only (a gradient norm).
+    fn check(&mut self, value: Tensor) {
+        self.fields.push(None);
+        self.values.push(value);
+    }
+
+    /// One read-back: the losses, and whether every value was finite.
+    fn read(self) -> (StepLosses, bool) {
+        let values = losses::read_scalars(&self.values.iter().collect::<Vec<_>>());
+        let mut out = StepLosses::default();
+        for (field, v) in self.fields.iter().zip(&values) {
+            if let Some(set) = field {
+                set(&mut out, *v);
+            }
+        }
+        (out, values.iter().all(|v| v.is_finite()))
     }
 }
 
