@@ -15,6 +15,7 @@ pub mod limits;
 pub mod lpips;
 pub mod model;
 pub mod optim;
+pub mod precision;
 pub mod reference_paths;
 pub mod spaces;
 pub mod svbrdf;

@@ -146,8 +146,10 @@ impl Lpips {
             let features = |x: &Tensor| {
                 // AlexNet: max-pool (3, stride 2) before conv2 and conv3.
                 let x = if l == 1 || l == 2 { x.max_pool2d([3, 3], [2, 2], [0, 0], [1, 1], false) } else { x.shallow_clone() };
-                x.conv2d(w, Some(bias), [stride, stride], [pad, pad], [1, 1], 1).relu()
+                crate::precision::forward(x.device(), || x.conv2d(w, Some(bias), [stride, stride], [pad, pad], [1, 1], 1).relu())
             };
+            // The distance itself in f32 (a loss), from features autocast may have made bf16.
+            let unit_normalise = |f: &Tensor| unit_normalise(&crate::precision::to_f32(f.shallow_clone()));
             xa = features(&xa);
             xb = xb.map(|x| tch::no_grad(|| features(&x)));
             let (fa, fb) = match &xb {

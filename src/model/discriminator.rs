@@ -73,16 +73,18 @@ impl Discriminator {
             !train || si[0] * (si[2] / 16 - 1) * (si[3] / 16 - 1) > 1,
             "training-mode BatchNorm needs more than one value per channel in the last layer: use a batch of 2 or inputs larger than 32x32 (got {si:?})"
         );
-        let x = Tensor::cat(&[image, photo], 1);
-        let mut x = leaky(&x.conv2d(&self.convs[0], Some(&self.c0_bias), [2, 2], [1, 1], [1, 1], 1), SLOPE);
-        for i in 1..5 {
-            let stride = if i < 4 { 2 } else { 1 };
-            x = x.conv2d(&self.convs[i], None::<&Tensor>, [stride, stride], [1, 1], [1, 1], 1);
-            x = leaky(&self.bns[i - 1].forward_t(&x, train), SLOPE);
-        }
-        let (pooled, _) = x.adaptive_max_pool2d([2, 2]);
-        let s = pooled.conv2d(&self.score, Some(&self.score_bias), [1, 1], [0, 0], [1, 1], 1);
-        Ok(s.flatten(1, -1))
+        let s = crate::precision::forward(image.device(), || {
+            let x = Tensor::cat(&[image, photo], 1);
+            let mut x = leaky(&x.conv2d(&self.convs[0], Some(&self.c0_bias), [2, 2], [1, 1], [1, 1], 1), SLOPE);
+            for i in 1..5 {
+                let stride = if i < 4 { 2 } else { 1 };
+                x = x.conv2d(&self.convs[i], None::<&Tensor>, [stride, stride], [1, 1], [1, 1], 1);
+                x = leaky(&self.bns[i - 1].forward_t(&x, train), SLOPE);
+            }
+            let (pooled, _) = x.adaptive_max_pool2d([2, 2]);
+            pooled.conv2d(&self.score, Some(&self.score_bias), [1, 1], [0, 0], [1, 1], 1)
+        });
+        Ok(crate::precision::to_f32(s).flatten(1, -1))
     }
 }
 

@@ -105,7 +105,8 @@ impl NeuralRenderer {
         ensure!(d.len() == 5 && d[2] == 3, "wi must be [N, K, 3, H, W], got {d:?}");
         ensure!(wo.size() == d, "wo {:?} must match wi {d:?}", wo.size());
         let rows = |t: &Tensor| t.permute([0, 1, 3, 4, 2]);
-        Ok(self.nd_enc.forward(&rows(wi), &rows(wo)).permute([0, 1, 4, 2, 3]))
+        // Left in the forward's dtype (bf16 under autocast): render_code reads it.
+        Ok(crate::precision::forward(wi.device(), || self.nd_enc.forward(&rows(wi), &rows(wo))).permute([0, 1, 4, 2, 3]))
     }
 
     /// M_render of a neural map under pre-encoded directions.
@@ -127,7 +128,7 @@ impl NeuralRenderer {
         // code [N, K, HW, E] in M_render's split first layer.
         let params = neural_map.permute([0, 2, 3, 1]).reshape([n, 1, h * w, c]);
         let code = code.permute([0, 1, 3, 4, 2]).reshape([n, k, h * w, e]);
-        let out = self.m_render.forward(&params, &code); // [N, K, HW, 3]
+        let out = crate::precision::to_f32(crate::precision::forward(params.device(), || self.m_render.forward(&params, &code))); // [N, K, HW, 3]
         Ok(out.view([n, k, h, w, 3]).permute([0, 1, 4, 2, 3]).contiguous())
     }
 

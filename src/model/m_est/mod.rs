@@ -345,28 +345,31 @@ impl MEst {
                 f(name, t)
             }
         };
-        let mut h = conv_rep(x, &self.stem, None, 1);
-        record("stem", &h);
-        let mut skips = Vec::with_capacity(4);
-        for (si, stage) in self.enc.iter().enumerate() {
-            for (bi, b) in stage.iter().enumerate() {
-                h = b.forward_t(&h, train);
-                record(&format!("enc{}.{bi}", si + 1), &h);
+        let out = crate::precision::forward(x.device(), || {
+            let mut h = conv_rep(x, &self.stem, None, 1);
+            record("stem", &h);
+            let mut skips = Vec::with_capacity(4);
+            for (si, stage) in self.enc.iter().enumerate() {
+                for (bi, b) in stage.iter().enumerate() {
+                    h = b.forward_t(&h, train);
+                    record(&format!("enc{}.{bi}", si + 1), &h);
+                }
+                skips.push(h.shallow_clone());
             }
-            skips.push(h.shallow_clone());
-        }
-        h = h.arctan();
-        for (i, st) in self.dec.iter().enumerate() {
-            if i > 0 {
-                // Before dec3/dec2/dec1: the encoder features of enc3/enc2/enc1.
-                h = Tensor::cat(&[&h, &skips[3 - i]], 1);
+            h = h.arctan();
+            for (i, st) in self.dec.iter().enumerate() {
+                if i > 0 {
+                    // Before dec3/dec2/dec1: the encoder features of enc3/enc2/enc1.
+                    h = Tensor::cat(&[&h, &skips[3 - i]], 1);
+                }
+                h = st.forward_t(&h, train);
+                record(&format!("dec{}", 4 - i), &h);
             }
-            h = st.forward_t(&h, train);
-            record(&format!("dec{}", 4 - i), &h);
-        }
-        let out = conv_rep(&h, &self.head, None, 1);
-        record("head", &out);
-        Ok(out)
+            let out = conv_rep(&h, &self.head, None, 1);
+            record("head", &out);
+            out
+        });
+        Ok(crate::precision::to_f32(out))
     }
 }
 
