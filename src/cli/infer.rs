@@ -302,11 +302,12 @@ pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMater
 /// reported as a damaged image, not as a damaged `.nmat`. (A regular file:
 /// see [`flashmat::io::check_input_file`].)
 fn looks_like_image(path: &Path) -> bool {
-    let mut head = [0u8; 8];
+    let mut head = [0u8; 12];
     let n = std::fs::File::open(path).and_then(|mut f| std::io::Read::read(&mut f, &mut head)).unwrap_or(0);
     let head = &head[..n];
     head.starts_with(b"\x89PNG") || head.starts_with(&[0xFF, 0xD8, 0xFF]) || head.starts_with(&[0x76, 0x2F, 0x31, 0x01])
-        || matches!(extension(path).as_deref(), Some("png" | "jpg" | "jpeg" | "exr"))
+        || head.get(4..8) == Some(b"ftyp") // HEIF: HEIC, AVIF
+        || matches!(extension(path).as_deref(), Some("png" | "jpg" | "jpeg" | "exr" | "heic" | "heif" | "avif"))
 }
 
 pub fn estimate(a: &EstimateArgs) -> Result<()> {
