@@ -139,6 +139,11 @@ fn a_heic_phone_photo_goes_through_estimate_with_its_fov_from_exif() {
     let (h, w) = m.size();
     assert!(h > w && w == 32, "{h}x{w}");
 
+    // Commands that open a material take the HEIC as a photo (not as a damaged .nmat).
+    let again = d.join("again.png");
+    assert_ok(&flashmat(&["relight", s(&photo), "--identity", "--model", s(&model), "--size", "32", "-o", s(&again)]));
+    assert_eq!(flashmat::io::read_image(&again).unwrap().width, 32);
+
     // A damaged HEIC: one line, exit code 1, no output.
     let bytes = std::fs::read(&photo).unwrap();
     let cut = d.join("cut.heic");

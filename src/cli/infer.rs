@@ -137,8 +137,9 @@ fn refine_with_progress(material: &mut NeuralMaterial, photo: &tch::Tensor, clip
 
 #[derive(Args, Debug)]
 pub struct EstimateArgs {
-    /// Flash photo: PNG/JPEG (8-bit, gamma-decoded, LDR) or EXR (linear HDR). Several photos or a folder (its
-    /// .png/.jpg/.jpeg/.exr files) make a batch: one OUTDIR/NAME.nmat each, a failed photo reported and skipped.
+    /// Flash photo: PNG/JPEG/HEIC/AVIF (gamma-decoded, LDR) or EXR (linear HDR). Several photos or a folder (its
+    /// .png/.jpg/.jpeg/.exr/.heic/.heif/.avif files) make a batch: one OUTDIR/NAME.nmat each, a failed photo reported
+    /// and skipped.
     #[arg(required = true, num_args = 1.., value_name = "PHOTO|DIR")]
     pub photo: Vec<PathBuf>,
     /// Output neural material (.nmat); for a batch, the output folder.
@@ -273,7 +274,7 @@ fn tile(material: &mut NeuralMaterial) -> Result<String> {
 }
 
 /// Opens a `.nmat`, or estimates a material from a photo (recognised by its
-/// PNG/JPEG/EXR signature or extension); see [`estimate_photo`] for the
+/// PNG/JPEG/EXR/HEIF signature or extension); see [`estimate_photo`] for the
 /// returned line.
 pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMaterial, Option<String>)> {
     flashmat::io::check_input_file(path).with_context(|| format!("cannot read {}", path.display()))?;
