@@ -27,21 +27,37 @@ fn lib() -> &'static LibHeif {
     LIB.get_or_init(LibHeif::new)
 }
 
-/// What a HEIF file holds, by its `ftyp` major brand: AVIF (AV1) or HEIC
-/// (HEVC; `mif1` and the other generic brands are usually HEVC too).
+/// What a HEIF file holds, by the brands of its `ftyp` box (major, then
+/// compatible ones): AVIF (AV1) when one is `avif` or `avis`, else HEIC
+/// (HEVC; the generic `mif1` files phones write are HEVC).
 pub(super) fn kind(bytes: &[u8]) -> (&'static str, CompressionFormat) {
-    match bytes.get(8..12) {
-        Some(b"avif" | b"avis") => ("AVIF", CompressionFormat::Av1),
-        _ => ("HEIC", CompressionFormat::Hevc),
+    let size = bytes.get(..4).map_or(0, |b| u32::from_be_bytes([b[0], b[1], b[2], b[3]]) as usize);
+    let ftyp = &bytes[..size.min(bytes.len()).min(256)];
+    // Major brand at 8, minor version at 12, compatible brands from 16.
+    let brands = ftyp.get(8..12).into_iter().chain(ftyp.get(16..).unwrap_or(&[]).chunks_exact(4));
+    let av1 = brands.into_iter().any(|b| b == b"avif" || b == b"avis");
+    if av1 {
+        ("AVIF", CompressionFormat::Av1)
+    } else {
+        ("HEIC", CompressionFormat::Hevc)
     }
 }
 
 /// Whether this libheif can decode `format` (its AV1 decoder comes from
 /// libdav1d or libaom, its HEVC one from libde265, each optional).
 pub fn have_decoder(format: CompressionFormat) -> bool {
-    // SAFETY: a query of libheif's plugin table, initialised by `lib()`.
     lib();
+    // SAFETY: a query of libheif's plugin table, initialised by `lib()`.
     unsafe { libheif_sys::heif_have_decoder_for_format(format as libheif_sys::heif_compression_format) != 0 }
+}
+
+/// The one line for a file whose codec this libheif cannot decode.
+fn no_decoder(name: &str, format: CompressionFormat) -> String {
+    let (codec, from) = match format {
+        CompressionFormat::Av1 => ("AV1", "libdav1d or libaom; Debian 13 on: libheif-plugin-dav1d"),
+        _ => ("HEVC", "libde265; Debian 13 on: libheif-plugin-libde265"),
+    };
+    format!("this system's libheif has no {codec} decoder, which {name} photos need (a libheif with {from}; or convert it to JPEG first: `heif-convert IN OUT.jpg`)")
 }
 
 fn corrupt(e: libheif_rs::HeifError) -> DecodeError {
@@ -79,13 +95,7 @@ pub(super) fn decode(bytes: &[u8]) -> Result<(Image, FileFormat), DecodeError> {
     let handle = ctx.primary_image_handle().map_err(corrupt)?;
     check_dimensions(handle.width() as u64, handle.height() as u64)?;
     if !have_decoder(format) {
-        let (codec, from) = match format {
-            CompressionFormat::Av1 => ("AV1", "libdav1d or libaom"),
-            _ => ("HEVC", "libde265"),
-        };
-        return Err(DecodeError::Unsupported(format!(
-            "this build's libheif has no {codec} decoder, which {name} photos need (libheif built with {from}, as Debian's libheif1 is; or convert it to JPEG first: `heif-convert IN OUT.jpg`)"
-        )));
+        return Err(DecodeError::Unsupported(no_decoder(name, format)));
     }
     let alpha = handle.has_alpha_channel();
     let high = handle.luma_bits_per_pixel() > 8;
@@ -324,6 +334,24 @@ pub(crate) mod tests {
             }
         }
         worst
+    }
+
+    #[test]
+    fn the_codec_comes_from_the_ftyp_brands() {
+        let ftyp = |major: &[u8; 4], compatible: &[&[u8; 4]]| {
+            let size = 16 + 4 * compatible.len() as u32;
+            [&size.to_be_bytes()[..], b"ftyp", major, &[0; 4], &compatible.iter().flat_map(|b| b.iter().copied()).collect::<Vec<u8>>()].concat()
+        };
+        assert_eq!(kind(&ftyp(b"heic", &[b"mif1", b"heic"])).0, "HEIC");
+        assert_eq!(kind(&ftyp(b"avif", &[b"mif1"])).0, "AVIF");
+        assert_eq!(kind(&ftyp(b"mif1", &[b"mif1", b"avif", b"miaf"])).0, "AVIF");
+        assert_eq!(kind(&ftyp(b"mif1", &[b"mif1"])).0, "HEIC");
+        // Our own files say what they are.
+        assert_eq!(kind(&encode(&quadrants(), CompressionFormat::Av1, 8, 1, None, None)).1, CompressionFormat::Av1);
+        let m = no_decoder("AVIF", CompressionFormat::Av1);
+        assert!(m.contains("no AV1 decoder") && m.contains("dav1d") && m.contains("heif-convert") && !m.contains('\n'), "{m}");
+        // A truncated or lying box size reads no further than the bytes.
+        assert_eq!(kind(&[0xFF, 0xFF, 0xFF, 0xFF, b'f', b't', b'y', b'p', b'a', b'v']).0, "HEIC");
     }
 
     #[test]
