@@ -14,7 +14,11 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
-cargo build --release --quiet
+# HEIC/AVIF photos (a phone's own) need libheif: installed once when
+# missing; without it they are refused with the way to convert them.
+features=()
+bash scripts/install-libheif.sh >/dev/null && features=(--features heif)
+cargo build --release --quiet ${features[@]+"${features[@]}"}
 FLASHMAT="$FLASHMAT_RELEASE_BIN"
 FRAMES=${FLASHMAT_ORBIT_FRAMES:-24}
 

@@ -16,11 +16,24 @@ export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # Debian's package, installed once when missing (the test skips, saying so,
 # only where it cannot be installed).
 bash scripts/install-chromium.sh >/dev/null || true
+# HEIC/HEIF and AVIF photos (the `heif` feature, src/io/heif.rs) link the
+# system libheif: Debian's libheif-dev, installed once when missing. Where
+# it cannot be installed the tests run without the feature, saying so; CI
+# (.ci/run sets FLASHMAT_REQUIRE_HEIF=1) fails instead.
+features=()
+if bash scripts/install-libheif.sh >/dev/null; then
+  features=(--features heif)
+elif [ "${FLASHMAT_REQUIRE_HEIF:-0}" = 1 ]; then
+  echo "test: libheif-dev is required here (FLASHMAT_REQUIRE_HEIF=1) and could not be installed" >&2
+  exit 1
+else
+  echo "test: no libheif-dev: testing without HEIC/AVIF support (the heif feature)" >&2
+fi
 rust_rc=0
 if cargo nextest --version >/dev/null 2>&1; then
-  cargo nextest run --all-targets --no-fail-fast 2>&1 || rust_rc=$?
+  cargo nextest run --all-targets ${features[@]+"${features[@]}"} --no-fail-fast 2>&1 || rust_rc=$?
 else
-  cargo test --all-targets -- --test-threads=1 2>&1 || rust_rc=$?
+  cargo test --all-targets ${features[@]+"${features[@]}"} -- --test-threads=1 2>&1 || rust_rc=$?
 fi
 # The Mitsuba 3 plugin (Python, pytest): installs mitsuba and libllvm19 once.
 python_rc=0

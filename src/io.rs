@@ -1,9 +1,13 @@
 //! Image files in and out, and atomic file replacement.
 //!
 //! Reading: PNG and JPEG (8 or 16 bit; values scaled to [0, 1] exactly as
-//! stored, *not* linearised) and OpenEXR (float, returned as-is). The
-//! decoder is chosen from the file's signature, so a misnamed file still
-//! reads; the extension only improves the error message for a bad file.
+//! stored, *not* linearised), OpenEXR (float, returned as-is) and, built
+//! with the `heif` feature, HEIC/HEIF and AVIF through libheif (`io::heif`:
+//! codes like PNG's at the file's precision, or linear floats for PQ/HLG
+//! HDR files; without the feature they are refused with a way to convert
+//! them). The decoder is chosen from the file's signature, so a misnamed
+//! file still reads; the extension only improves the error message for a
+//! bad file.
 //! Writing: PNG (8 or 16 bit, clamped to [0, 1]) and OpenEXR (float32).
 //! This layer never applies display transforms (gamma, log, tone mapping):
 //! callers decide the space (see `crate::spaces`).
@@ -18,6 +22,9 @@ use std::io::{BufWriter, Cursor, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
+#[cfg(feature = "heif")]
+pub mod heif;
+
 /// Sample depth of a written PNG.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BitDepth {
@@ -27,17 +34,29 @@ pub enum BitDepth {
 
 /// Container format of an image file, as found from its signature.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum FileFormat {
+pub enum FileFormat {
     Png,
     Jpeg,
     Exr,
+    /// HEIC/HEIF or AVIF with integer codes (SDR transfer).
+    Heif,
+    /// HEIC/HEIF or AVIF whose PQ, HLG or linear transfer was taken out:
+    /// linear floats, 1.0 at SDR reference white.
+    HeifLinear,
 }
 
 impl FileFormat {
-    /// Whether the samples are floats in a linear space (EXR) rather than
-    /// integer codes in whatever encoding the producer used (PNG, JPEG).
-    pub(crate) fn is_float(self) -> bool {
-        self == FileFormat::Exr
+    /// Whether the samples are floats in a linear space (EXR, HDR HEIF)
+    /// rather than integer codes in whatever encoding the producer used
+    /// (PNG, JPEG, HEIF).
+    pub fn is_float(self) -> bool {
+        matches!(self, FileFormat::Exr | FileFormat::HeifLinear)
+    }
+
+    /// Whether the file is HEIF (HEIC, AVIF): decoded with its own
+    /// rotation and mirroring applied, so its EXIF orientation is not.
+    pub fn is_heif(self) -> bool {
+        matches!(self, FileFormat::Heif | FileFormat::HeifLinear)
     }
 }
 
@@ -64,7 +83,8 @@ fn extension_lowercase(path: &Path) -> Option<String> {
     path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase())
 }
 
-/// Reads a PNG, JPEG or OpenEXR image as `[C, H, W]`.
+/// Reads a PNG, JPEG, OpenEXR or (with the `heif` feature) HEIC/HEIF or
+/// AVIF image as `[C, H, W]`.
 ///
 /// - PNG/JPEG: 8- or 16-bit codes divided by 255 or 65535, so values are in
 ///   [0, 1] and still in the file's encoding (typically gamma/sRGB).
@@ -73,6 +93,9 @@ fn extension_lowercase(path: &Path) -> Option<String> {
 /// - OpenEXR: the first layer's channels as float32, unchanged: C is 3
 ///   (R, G, B), 4 (R, G, B, A), 1 (Y, or a single channel of any name)
 ///   or 2 (Y, A).
+/// - HEIC/HEIF, AVIF: the primary image with the file's rotation and
+///   mirroring applied, RGB or RGBA: 8-, 10- or 12-bit codes divided by
+///   255, 1023 or 4095, or linear floats for PQ/HLG files (`io::heif`).
 ///
 /// Errors (one line, naming the file) for a missing, empty, truncated or
 /// corrupt file, an unsupported format or channel layout, and NaN/Inf
@@ -117,11 +140,13 @@ pub fn read_input(path: &Path) -> Result<Vec<u8>> {
     Ok(std::fs::read(path)?)
 }
 
-/// Why a decoder gave up: a damaged file, or one refused by a limit
-/// before its pixels were allocated.
+/// Why a decoder gave up: a damaged file, one refused by a limit before
+/// its pixels were allocated, or one this build cannot decode.
 enum DecodeError {
     Corrupt(String),
     TooLarge(String),
+    #[cfg_attr(not(feature = "heif"), allow(dead_code))]
+    Unsupported(String),
 }
 
 impl<E: std::fmt::Display> From<E> for DecodeError {
@@ -150,36 +175,47 @@ pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)>
         FileFormat::Jpeg
     } else if bytes.starts_with(EXR_SIGNATURE) {
         FileFormat::Exr
-    } else if is_heif(&bytes) || matches!(extension_lowercase(path).as_deref(), Some("heic" | "heif" | "avif")) {
+    } else if is_heif(&bytes) && cfg!(feature = "heif") {
+        FileFormat::Heif
+    } else if is_heif(&bytes) || (!cfg!(feature = "heif") && matches!(extension_lowercase(path).as_deref(), Some("heic" | "heif" | "avif"))) {
         return Err(read_error(
             path,
-            "HEIC/AVIF photos are not supported: convert it to JPEG first (`heif-convert IN.HEIC OUT.jpg` from Debian's libheif-examples, or set the phone's camera to \"Most Compatible\")",
+            "HEIC/AVIF photos are not supported by this build: convert it to JPEG first (`heif-convert IN.HEIC OUT.jpg` from Debian's libheif-examples, or set the phone's camera to \"Most Compatible\"), or build flashmat with `--features heif` (needs libheif-dev)",
         ));
     } else {
         return Err(match extension_lowercase(path).as_deref() {
-            Some(ext @ ("png" | "jpg" | "jpeg" | "exr")) => {
+            Some(ext @ ("png" | "jpg" | "jpeg" | "exr" | "heic" | "heif" | "avif")) => {
                 read_error(path, format!("not a valid .{ext} file (unrecognised signature)"))
             }
+            _ if cfg!(feature = "heif") => read_error(path, "unsupported format (expected PNG, JPEG, OpenEXR, HEIC/HEIF or AVIF)"),
             _ => read_error(path, "unsupported format (expected PNG, JPEG or OpenEXR)"),
         });
     };
     // The decoders are third-party code fed arbitrary bytes; turn any panic
     // on a hostile file into an ordinary error.
     let decoded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match format {
-        FileFormat::Png => decode_png(&bytes),
-        FileFormat::Jpeg => decode_jpeg(&bytes),
-        FileFormat::Exr => decode_exr(&bytes),
+        FileFormat::Png => decode_png(&bytes).map(|i| (i, format)),
+        FileFormat::Jpeg => decode_jpeg(&bytes).map(|i| (i, format)),
+        FileFormat::Exr => decode_exr(&bytes).map(|i| (i, format)),
+        #[cfg(feature = "heif")]
+        FileFormat::Heif | FileFormat::HeifLinear => heif::decode(&bytes),
+        #[cfg(not(feature = "heif"))]
+        FileFormat::Heif | FileFormat::HeifLinear => unreachable!("HEIF files are refused above without the heif feature"),
     }))
     .unwrap_or_else(|_| Err(DecodeError::Corrupt("the decoder crashed (corrupt file?)".to_string())));
-    let image = decoded.map_err(|e| {
+    let (image, format) = decoded.map_err(|e| {
         let kind = match format {
             FileFormat::Png => "PNG",
             FileFormat::Jpeg => "JPEG",
             FileFormat::Exr => "OpenEXR",
+            #[cfg(feature = "heif")]
+            FileFormat::Heif | FileFormat::HeifLinear => heif::kind(&bytes).0,
+            #[cfg(not(feature = "heif"))]
+            FileFormat::Heif | FileFormat::HeifLinear => "HEIF",
         };
         match e {
             DecodeError::Corrupt(reason) => read_error(path, format!("corrupt or truncated {kind} file: {reason}")),
-            DecodeError::TooLarge(reason) => read_error(path, reason),
+            DecodeError::TooLarge(reason) | DecodeError::Unsupported(reason) => read_error(path, reason),
         }
     })?;
     if image.height == 0 || image.width == 0 {
@@ -189,6 +225,22 @@ pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)>
         return Err(read_error(path, format!("NaN/Inf value at row {y}, column {x}, channel {c}")));
     }
     Ok((image, format))
+}
+
+/// The EXIF block of a HEIF (HEIC, AVIF) file as TIFF bytes, read by
+/// libheif; `None` for other files, files without one, unreadable files and
+/// builds without the `heif` feature.
+pub fn heif_exif(path: &Path) -> Option<Vec<u8>> {
+    #[cfg(feature = "heif")]
+    {
+        let bytes = read_input(path).ok()?;
+        is_heif(&bytes).then(|| heif::exif(&bytes)).flatten()
+    }
+    #[cfg(not(feature = "heif"))]
+    {
+        let _ = path;
+        None
+    }
 }
 
 /// Interleaved `[H, W, C]` samples to a planar image, scaling each sample.

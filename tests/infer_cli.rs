@@ -106,6 +106,82 @@ fn estimate_relight_orbit_show_from_a_phone_photo() {
     no_temp_files(&d.join("out"));
 }
 
+/// An iPhone-like HEIC: 8-bit sRGB, stored 160x120 with the rotation of
+/// EXIF orientation 6 in the file (and in its EXIF, as phones write it),
+/// and a 26 mm equivalent focal length.
+#[cfg(feature = "heif")]
+#[test]
+fn a_heic_phone_photo_goes_through_estimate_with_its_fov_from_exif() {
+    use exif::{Field, In, Tag, Value};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let model = tiny_model(&d.join("tiny-ldr.safetensors"), true, 3);
+    let field = |tag, value| Field { tag, ifd_num: In::PRIMARY, value };
+    let mut writer = exif::experimental::Writer::new();
+    let fields = [field(Tag::FocalLengthIn35mmFilm, Value::Short(vec![26])), field(Tag::Orientation, Value::Short(vec![6]))];
+    fields.iter().for_each(|f| writer.push_field(f));
+    let mut tiff = std::io::Cursor::new(Vec::new());
+    writer.write(&mut tiff, false).unwrap();
+    let photo = d.join("IMG_0001.HEIC");
+    let codes = flash_render(160, 120).map(flashmat::spaces::srgb_encode);
+    let spec = flashmat::io::heif::HeifEncoding { orientation: 6, exif: Some(tiff.into_inner()), ..Default::default() };
+    flashmat::io::heif::write_heif(&photo, &codes, &spec).unwrap();
+    let nmat = d.join("m.nmat");
+    let err = assert_ok(&flashmat(&["estimate", s(&photo), "--model", s(&model), "--size", "32", "-o", s(&nmat)]));
+    assert!(err.contains("FocalLengthIn35mmFilm 26 mm") && !err.contains("warning"), "{err}");
+    let m = NeuralMaterial::load(&nmat, Device::Cpu).unwrap();
+    // The shorter side of the 35 mm frame at 4:3 is 43.2666 x 3/5 = 25.96 mm: 2 atan(25.96 / 52) = 53.06 degrees.
+    let by_hand = 2.0 * (43.266_615 * 0.6 / 52.0f64).atan().to_degrees();
+    assert!((m.meta.fov_deg - by_hand).abs() < 1e-3, "{} vs {by_hand}", m.meta.fov_deg);
+    assert_eq!((m.meta.ldr_input, m.meta.source.as_str()), (true, "IMG_0001.HEIC"));
+    // Turned once: shown 120 wide, 160 high, so the material is portrait.
+    assert_eq!((m.meta.crop.source_width, m.meta.crop.source_height), (120, 160));
+    let (h, w) = m.size();
+    assert!(h > w && w == 32, "{h}x{w}");
+
+    // Commands that open a material take the HEIC as a photo (not as a damaged .nmat).
+    let again = d.join("again.png");
+    assert_ok(&flashmat(&["relight", s(&photo), "--identity", "--model", s(&model), "--size", "32", "-o", s(&again)]));
+    assert_eq!(flashmat::io::read_image(&again).unwrap().width, 32);
+
+    // A damaged HEIC: one line, exit code 1, no output.
+    let bytes = std::fs::read(&photo).unwrap();
+    let cut = d.join("cut.heic");
+    std::fs::write(&cut, &bytes[..bytes.len() / 3]).unwrap();
+    assert_error(&flashmat(&["estimate", s(&cut), "--model", s(&model), "-o", s(&d.join("c.nmat"))]), &["cut.heic", "corrupt or truncated HEIC"]);
+    assert!(!d.join("c.nmat").exists());
+
+    // A phone's folder: the HEIC, the same picture as AVIF, and the damaged one, in one run.
+    let phone = d.join("phone");
+    std::fs::create_dir(&phone).unwrap();
+    std::fs::copy(&photo, phone.join("IMG_0001.HEIC")).unwrap();
+    std::fs::copy(&cut, phone.join("IMG_0002.HEIC")).unwrap();
+    flashmat::io::heif::write_heif(&phone.join("IMG_0003.avif"), &codes, &flashmat::io::heif::HeifEncoding { av1: true, ..Default::default() }).unwrap();
+    let out = d.join("materials");
+    let run = flashmat(&["estimate", s(&phone), "--model", s(&model), "--size", "32", "--fov", "40", "-o", s(&out)]);
+    let err = stderr(&run);
+    assert_eq!(run.status.code(), Some(1), "{err}");
+    assert!(err.contains("2 of 3 inputs written") && err.contains("failed: ") && err.contains("IMG_0002.HEIC: cannot read image"), "{err}");
+    assert_eq!(files_in(&out), ["IMG_0001.nmat", "IMG_0003.nmat"]);
+    let avif = NeuralMaterial::load(&out.join("IMG_0003.nmat"), Device::Cpu).unwrap();
+    assert_eq!((avif.meta.fov_deg, avif.meta.crop.source_width, avif.meta.crop.source_height), (40.0, 160, 120));
+    no_temp_files(d);
+    no_temp_files(&out);
+}
+
+/// Built without libheif, a HEIC is refused in one line that says how to
+/// convert it.
+#[cfg(not(feature = "heif"))]
+#[test]
+fn without_libheif_a_heic_is_refused_with_a_way_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let photo = d.join("IMG_0001.HEIC");
+    std::fs::write(&photo, [&[0, 0, 0, 24][..], b"ftypheic", &[0; 12]].concat()).unwrap();
+    let model = tiny_model(&d.join("tiny.safetensors"), true, 3);
+    assert_error(&flashmat(&["estimate", s(&photo), "--model", s(&model), "-o", s(&d.join("m.nmat"))]), &["IMG_0001.HEIC", "heif-convert", "--features heif"]);
+}
+
 #[test]
 fn exr_photos_default_to_28_degrees_and_mismatched_models_warn() {
     let dir = tempfile::tempdir().unwrap();

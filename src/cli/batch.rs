@@ -8,8 +8,10 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 /// Extensions of the files a folder contributes: photos, and for commands
-/// that open materials, `.nmat` too.
-pub const PHOTO_EXTENSIONS: &[&str] = &["png", "jpg", "jpeg", "exr"];
+/// that open materials, `.nmat` too. HEIC/HEIF/AVIF photos are listed in
+/// every build: without the `heif` feature each is reported with the way to
+/// convert it.
+pub const PHOTO_EXTENSIONS: &[&str] = &["png", "jpg", "jpeg", "exr", "heic", "heif", "avif"];
 
 /// True when the inputs are a batch: several of them, or a folder.
 pub fn is_batch(inputs: &[PathBuf]) -> bool {
@@ -127,12 +129,12 @@ mod tests {
     #[test]
     fn folders_list_their_photos_sorted() {
         let d = tempfile::tempdir().unwrap();
-        for n in ["b.PNG", "a.exr", "notes.txt", ".hidden.png"] {
+        for n in ["b.PNG", "a.exr", "notes.txt", ".hidden.png", "IMG_0001.HEIC"] {
             std::fs::write(d.path().join(n), b"x").unwrap();
         }
         let got = list_inputs(&[d.path().to_path_buf()], PHOTO_EXTENSIONS).unwrap();
         let names: Vec<_> = got.iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect();
-        assert_eq!(names, ["a.exr", "b.PNG"]);
+        assert_eq!(names, ["IMG_0001.HEIC", "a.exr", "b.PNG"]);
         assert!(is_batch(&[d.path().to_path_buf()]));
         assert!(!is_batch(&[d.path().join("a.exr")]));
         let empty = tempfile::tempdir().unwrap();

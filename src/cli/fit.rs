@@ -13,7 +13,7 @@ use std::path::PathBuf;
 #[derive(Args, Debug)]
 pub struct FitArgs {
     /// A neural material (.nmat), or a flash photo (estimated first, as `relight` does, with the options below).
-    /// Several, or a folder (its .nmat/.png/.jpg/.jpeg/.exr files), make a batch: one OUTDIR/NAME/ each.
+    /// Several, or a folder (its .nmat/.png/.jpg/.jpeg/.exr/.heic/.avif files), make a batch: one OUTDIR/NAME/ each.
     #[arg(required = true, num_args = 1.., value_name = "MATERIAL|DIR")]
     pub material: Vec<PathBuf>,
     /// Output folder (written whole or not at all; an earlier fit's folder is replaced); for a batch, the folder

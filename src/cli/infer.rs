@@ -137,8 +137,9 @@ fn refine_with_progress(material: &mut NeuralMaterial, photo: &tch::Tensor, clip
 
 #[derive(Args, Debug)]
 pub struct EstimateArgs {
-    /// Flash photo: PNG/JPEG (8-bit, gamma-decoded, LDR) or EXR (linear HDR). Several photos or a folder (its
-    /// .png/.jpg/.jpeg/.exr files) make a batch: one OUTDIR/NAME.nmat each, a failed photo reported and skipped.
+    /// Flash photo: PNG/JPEG/HEIC/AVIF (gamma-decoded, LDR) or EXR (linear HDR). Several photos or a folder (its
+    /// .png/.jpg/.jpeg/.exr/.heic/.heif/.avif files) make a batch: one OUTDIR/NAME.nmat each, a failed photo reported
+    /// and skipped.
     #[arg(required = true, num_args = 1.., value_name = "PHOTO|DIR")]
     pub photo: Vec<PathBuf>,
     /// Output neural material (.nmat); for a batch, the output folder.
@@ -273,7 +274,7 @@ fn tile(material: &mut NeuralMaterial) -> Result<String> {
 }
 
 /// Opens a `.nmat`, or estimates a material from a photo (recognised by its
-/// PNG/JPEG/EXR signature or extension); see [`estimate_photo`] for the
+/// PNG/JPEG/EXR/HEIF signature or extension); see [`estimate_photo`] for the
 /// returned line.
 pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMaterial, Option<String>)> {
     flashmat::io::check_input_file(path).with_context(|| format!("cannot read {}", path.display()))?;
@@ -302,11 +303,12 @@ pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMater
 /// reported as a damaged image, not as a damaged `.nmat`. (A regular file:
 /// see [`flashmat::io::check_input_file`].)
 fn looks_like_image(path: &Path) -> bool {
-    let mut head = [0u8; 8];
+    let mut head = [0u8; 12];
     let n = std::fs::File::open(path).and_then(|mut f| std::io::Read::read(&mut f, &mut head)).unwrap_or(0);
     let head = &head[..n];
     head.starts_with(b"\x89PNG") || head.starts_with(&[0xFF, 0xD8, 0xFF]) || head.starts_with(&[0x76, 0x2F, 0x31, 0x01])
-        || matches!(extension(path).as_deref(), Some("png" | "jpg" | "jpeg" | "exr"))
+        || head.get(4..8) == Some(b"ftyp") // HEIF: HEIC, AVIF
+        || matches!(extension(path).as_deref(), Some("png" | "jpg" | "jpeg" | "exr" | "heic" | "heif" | "avif"))
 }
 
 pub fn estimate(a: &EstimateArgs) -> Result<()> {

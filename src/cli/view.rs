@@ -15,7 +15,7 @@ use std::path::PathBuf;
 #[derive(Args, Debug)]
 pub struct ViewArgs {
     /// A neural material (.nmat), or a photo (estimated first with the options below). Several, or a folder (its
-    /// .nmat/.png/.jpg/.jpeg/.exr files), make a batch: one OUTDIR/NAME.html each.
+    /// .nmat/.png/.jpg/.jpeg/.exr/.heic/.avif files), make a batch: one OUTDIR/NAME.html each.
     #[arg(required = true, num_args = 1.., value_name = "MATERIAL|DIR")]
     pub material: Vec<PathBuf>,
     /// Output page (.html): open it in a browser with WebGL2 (double-click; no server needed); for a batch, the

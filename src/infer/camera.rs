@@ -1,13 +1,18 @@
 //! What a photo's EXIF says about its camera: the field of view across the
 //! shorter side (from the 35 mm-equivalent focal length, or the focal
 //! length and the focal-plane resolution), the orientation tag, and the
-//! exposure (printed so a user can see what the camera did).
+//! exposure (printed so a user can see what the camera did). JPEG, PNG and
+//! TIFF EXIF is found by kamadak-exif; a HEIF (HEIC, AVIF) file's by libheif
+//! (`io::heif_exif`), whose decoder has already applied the file's own
+//! rotation and mirroring, so there the EXIF orientation is not applied
+//! again (ISO/IEC 23008-12 makes it informative; phones write both).
 //!
 //! 35 mm-equivalent focal lengths are defined on the 36 x 24 mm frame's
 //! diagonal (43.27 mm): a photo of aspect w:h has an equivalent shorter side
 //! of 43.27 * min(w, h) / hypot(w, h) mm (24 mm at 3:2, 25.96 mm at 4:3), and
 //! FOV = 2 atan(side / (2 f)).
 
+use crate::io::FileFormat;
 use anyhow::{bail, Result};
 use exif::{In, Tag, Value};
 use std::path::Path;
@@ -53,18 +58,27 @@ fn rational(field: &exif::Field) -> Option<f64> {
     .filter(|v| v.is_finite() && *v > 0.0)
 }
 
-/// Reads the EXIF of a photo of `width x height` pixels (as stored, before
-/// rotation). No EXIF, or a file format without it, gives the default
-/// (no FOV, orientation 1). EXIF whose two focal lengths disagree by more
-/// than [`FOV_AGREEMENT`] is an error that says how to override.
-pub fn read_camera(path: &Path, width: usize, height: usize) -> Result<CameraInfo> {
-    let Ok(file) = std::fs::File::open(path) else { return Ok(CameraInfo { orientation: 1, ..Default::default() }) };
-    let Ok(exif) = exif::Reader::new().read_from_container(&mut std::io::BufReader::new(file)) else {
-        return Ok(CameraInfo { orientation: 1, ..Default::default() });
+/// Reads the EXIF of a photo of `width x height` pixels (as decoded, before
+/// the EXIF rotation) stored as `format`. No EXIF, or a file format without
+/// it, gives the default (no FOV, orientation 1); HEIF files always have
+/// orientation 1 (see the module docs). EXIF whose two focal lengths
+/// disagree by more than [`FOV_AGREEMENT`] is an error that says how to
+/// override.
+pub fn read_camera(path: &Path, format: FileFormat, width: usize, height: usize) -> Result<CameraInfo> {
+    let none = CameraInfo { orientation: 1, ..Default::default() };
+    let exif = if format.is_heif() {
+        crate::io::heif_exif(path).and_then(|tiff| exif::Reader::new().read_raw(tiff).ok())
+    } else {
+        std::fs::File::open(path).ok().and_then(|file| exif::Reader::new().read_from_container(&mut std::io::BufReader::new(file)).ok())
     };
+    let Some(exif) = exif else { return Ok(none) };
     let get = |tag: Tag| exif.get_field(tag, In::PRIMARY);
     let num = |tag: Tag| get(tag).and_then(rational);
-    let orientation = get(Tag::Orientation).and_then(|f| f.value.get_uint(0)).filter(|o| (1..=8).contains(o)).unwrap_or(1) as u16;
+    let orientation = if format.is_heif() {
+        1
+    } else {
+        get(Tag::Orientation).and_then(|f| f.value.get_uint(0)).filter(|o| (1..=8).contains(o)).unwrap_or(1) as u16
+    };
 
     let from_35 = num(Tag::FocalLengthIn35mmFilm).map(|f35| (fov_from_35mm(f35, width, height), format!("EXIF FocalLengthIn35mmFilm {f35} mm")));
     let from_plane = (|| {
@@ -133,6 +147,6 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("plain.png");
         crate::io::write_png(&p, &crate::image::Image::filled(3, 8, 8, 0.5), crate::io::BitDepth::Eight).unwrap();
-        assert_eq!(read_camera(&p, 8, 8).unwrap(), CameraInfo { fov: None, orientation: 1, exposure: None });
+        assert_eq!(read_camera(&p, FileFormat::Png, 8, 8).unwrap(), CameraInfo { fov: None, orientation: 1, exposure: None });
     }
 }

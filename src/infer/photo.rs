@@ -243,10 +243,12 @@ pub fn prepare_image(linear: &Image, fov_deg: f64, size: usize) -> Result<(Image
     prepare_image_with(linear, fov_deg, size, false)
 }
 
-/// Reads and prepares a photo: PNG/JPEG are LDR and decoded to linear with
+/// Reads and prepares a photo: PNG/JPEG (and HEIC/AVIF with an SDR
+/// transfer, at their 8 to 12 bits) are LDR and decoded to linear with
 /// the exact sRGB curve ([`crate::spaces::photo_decode`]), EXR is linear HDR (NaN/Inf refused
-/// by the reader). The field of view comes from `fov_deg`, else the EXIF's
-/// focal length, else it is the model's own (no crop). Errors name the file.
+/// by the reader), and so are PQ/HLG HEIC/AVIF files (`io::heif`). The
+/// field of view comes from `fov_deg`, else the EXIF's focal length, else
+/// it is the model's own (no crop). Errors name the file.
 pub fn load_photo(path: &Path, fov_deg: Option<f64>, size: usize) -> Result<PreparedPhoto> {
     load_photo_with(path, &PhotoOptions { fov_deg, size, ..Default::default() })
 }
@@ -263,7 +265,12 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
     }
     let (image, format) = read_image_with_format(path)?;
     let ldr = !format.is_float();
-    let camera = if ldr { super::camera::read_camera(path, image.width, image.height)? } else { super::camera::CameraInfo { orientation: 1, ..Default::default() } };
+    // EXR has no EXIF; HEIF files have it whatever their transfer.
+    let camera = if format != crate::io::FileFormat::Exr {
+        super::camera::read_camera(path, format, image.width, image.height)?
+    } else {
+        super::camera::CameraInfo { orientation: 1, ..Default::default() }
+    };
     let mut rgb = crate::io::to_rgb(&image).oriented(camera.orientation);
     let alpha = (image.channels % 2 == 0).then(|| image.plane(image.channels - 1));
     let warnings = screen_photo(alpha, &mut rgb).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
@@ -519,6 +526,45 @@ mod tests {
         assert!(load_photo(&c, Some(40.0), 32).is_err(), "the EXIF is read (and refused) even with --fov");
     }
 
+    /// A phone's HEIC: the same FOV from its EXIF as the JPEG above, turned
+    /// once by the file's own rotation (not again by its EXIF orientation,
+    /// which phones also write), and the same linear photo as that JPEG.
+    #[cfg(feature = "heif")]
+    #[test]
+    fn heic_photos_read_like_jpeg_with_fov_from_exif_and_one_rotation() {
+        use exif::{Tag, Value};
+        let dir = tempfile::tempdir().unwrap();
+        let im = Image::from_fn(3, 96, 128, |c, y, x| 0.2 + 0.3 * (x as f32 / 128.0) + 0.1 * c as f32 + 0.001 * y as f32);
+        let fields = [
+            field(Tag::FocalLengthIn35mmFilm, Value::Short(vec![26])),
+            field(Tag::Orientation, Value::Short(vec![6])),
+            field(Tag::ExposureTime, rational(1, 60)),
+        ];
+        let h = dir.path().join("IMG_0001.HEIC");
+        let spec = crate::io::heif::HeifEncoding { orientation: 6, exif: Some(crate::io::heif::tests::exif_tiff(&fields)), ..Default::default() };
+        crate::io::heif::write_heif(&h, &im, &spec).unwrap();
+        assert!(std::fs::metadata(&h).unwrap().len() < 20_000);
+        let heic = load_photo(&h, None, 32).unwrap();
+        // 4:3 at 26 mm equivalent: the shorter side is 43.2666 x 3/5 = 25.96 mm, 2 atan(25.96 / 52) = 53.06 degrees.
+        let by_hand = 2.0 * (43.266_615 * 0.6 / 52.0f64).atan().to_degrees();
+        assert!((heic.fov_deg - by_hand).abs() < 1e-3 && (by_hand - 53.0595).abs() < 1e-3, "{} {by_hand}", heic.fov_deg);
+        assert!(heic.camera_note.contains("FocalLengthIn35mmFilm 26 mm") && heic.camera_note.contains("1/60 s"), "{}", heic.camera_note);
+        assert!(!heic.camera_note.contains("rotated by its EXIF"), "{}", heic.camera_note);
+        assert!(heic.ldr);
+        // Shown 128 high, 96 wide: the stored left column is the top row.
+        assert_eq!((heic.crop.source_width, heic.crop.source_height), (96, 128));
+        assert_eq!((heic.linear.height, heic.linear.width), (40, 32));
+        let (top, bottom) = (heic.linear.get(0, 0, 16), heic.linear.get(0, 39, 16));
+        assert!(bottom > top + 0.05, "{top} {bottom}");
+        // The JPEG of the same picture and EXIF gives the same linear photo.
+        let j = dir.path().join("IMG_0001.jpg");
+        jpeg_with_exif(&j, &im, &fields);
+        let jpeg = load_photo(&j, None, 32).unwrap();
+        assert_eq!((jpeg.fov_deg, jpeg.crop), (heic.fov_deg, heic.crop));
+        let worst = heic.linear.data.iter().zip(&jpeg.linear.data).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        assert!(worst < 0.01, "HEIC vs JPEG: worst linear difference {worst}");
+    }
+
     #[test]
     fn oriented_maps_every_tag() {
         // 2x3 image with values 10 r + c.
@@ -550,7 +596,12 @@ mod tests {
         let h = dir.path().join("IMG_0001.dat");
         std::fs::write(&h, [&[0, 0, 0, 24][..], b"ftypheic", &[0; 12]].concat()).unwrap();
         let e = format!("{:#}", load_photo(&h, None, 32).unwrap_err());
-        assert!(e.contains("HEIC/AVIF") && e.contains("heif-convert") && !e.contains('\n'), "{e}");
+        if cfg!(feature = "heif") {
+            // Read by libheif, which finds no image in it.
+            assert!(e.contains("IMG_0001.dat") && e.contains("corrupt or truncated HEIC") && !e.contains('\n'), "{e}");
+        } else {
+            assert!(e.contains("HEIC/AVIF") && e.contains("heif-convert") && e.contains("--features heif") && !e.contains('\n'), "{e}");
+        }
         // A 0-byte file.
         let z = dir.path().join("empty.jpg");
         std::fs::write(&z, b"").unwrap();
