@@ -54,7 +54,8 @@
 #   GPU:    bash scripts/gpu-train.sh bench
 #             issue 49's side-by-side benchmark, the first thing a GPU job
 #             does (docs/GPU.md): flashmat's training step (paper preset at
-#             both paper recipes and at 8 x 4; the compact GPU recipe) and
+#             both paper recipes and at 8 x 4; the compact GPU recipe; at
+#             --precision tf32 and bf16) and
 #             inference (256, 1024, 2048 within 32 GiB), each against the
 #             authors' PyTorch step in the same job where `stage` staged
 #             their code (FLASHMAT_REF_DIR: a copy of their repository ->
@@ -125,6 +126,9 @@ TEACHER_PIXELS="${FLASHMAT_GPU_TEACHER_PIXELS:-65536}"
 CODE_WEIGHT="${FLASHMAT_GPU_CODE_WEIGHT:-1}"
 CODE_UNTIL="${FLASHMAT_GPU_CODE_UNTIL:-20000}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
+# What the networks compute in (flashmat train --precision): tf32 until
+# the side-by-side benchmark (bench) has measured bf16 on the card.
+PRECISION="${FLASHMAT_GPU_PRECISION:-tf32}"
 # The machine's disk, where a chunk's run folder outlives the job while the
 # machine stays warm.
 WORK="${FLASHMAT_GPU_WORK:-/tmp/flashmat-gpu}"
@@ -198,7 +202,7 @@ chunk() {
   mkdir -p "$WORK" "$out"
   smoke
   local run="$WORK/run" how teacher=""
-  local args=(--minutes "$minutes" --export-dir "$out" --device "$DEVICE")
+  local args=(--minutes "$minutes" --export-dir "$out" --device "$DEVICE" --precision "$PRECISION")
   # CHUNK_LR (the final chunk): a new learning rate from this chunk's first step.
   local resume_lr=()
   [ -n "${CHUNK_LR:-}" ] && resume_lr=(--lr "$CHUNK_LR")
@@ -329,7 +333,7 @@ frozen() {
     --colocated-outputs "$FROZEN_COLOCATED" --hemisphere-outputs "$HEMISPHERE" --lr "$FROZEN_LR" --warmup-steps 50
     --straight-through-output --checkerboard-free --adv-weight 0 --lpips-weight 0.1 --chroma-weight 1
     --bank "$BANK" --steps 100000000 --minutes "$minutes" --checkpoint-every "$FROZEN_EVERY"
-    --preview-every 1000000 --keep-exports --device "$DEVICE" --threads "$FROZEN_THREADS")
+    --preview-every 1000000 --keep-exports --device "$DEVICE" --precision "$PRECISION" --threads "$FROZEN_THREADS")
   start_util_sampler "$dir/gpu-util.csv"
   local t0; t0=$(date +%s)
   "$BIN" train --out "$dir/estimator" "${common[@]}" --freeze-renderer --frozen-bn-from 0 --colour-augment 0.6 \
@@ -525,7 +529,7 @@ bench() {
   use_machine_libtorch
   mkdir -p "$out" "$WORK"
   rm -f "$WORK"/bench-*.md
-  local steps="${BENCH_STEPS:-10}" sizes="${BENCH_SIZES:-256,1024,2048}"
+  local steps="${BENCH_STEPS:-8}" sizes="${BENCH_SIZES:-256,1024,2048}"
   local paper="${BENCH_PAPER_PRESET:-paper}" compact="${BENCH_COMPACT:-$PRESET 128 8 8}"
   read -r -a train_shapes <<<"${BENCH_TRAIN_SHAPES:-192:2:8 256:2:4 256:8:4}"
   local side=() amp=()
@@ -538,20 +542,28 @@ bench() {
     echo "bench: the authors' code is not staged (.gpu/ref, .gpu/bench): flashmat's numbers only" >&2
   fi
   : >"$out/bench.md"
-  local n=0 shape crop batch outputs
-  for shape in "${train_shapes[@]}"; do
-    IFS=: read -r crop batch outputs <<<"$shape"
+  local n=0 shape crop batch outputs precision first=1
+  read -r -a precisions <<<"${BENCH_PRECISIONS:-tf32 bf16}"
+  for precision in "${precisions[@]}"; do
+    # The authors' step once, beside the first precision's rows.
+    local with=()
+    [ "$first" = 1 ] && with=("${side[@]}" "${amp[@]}")
+    for shape in "${train_shapes[@]}"; do
+      IFS=: read -r crop batch outputs <<<"$shape"
+      n=$((n + 1))
+      "$BIN" bench train --device "$DEVICE" --preset "$paper" --precision "$precision" --crop "$crop" --batch "$batch" \
+        --outputs "$outputs" --steps "$steps" "${with[@]}" --report "$WORK/bench-$n.md" >>"$out/bench.log" 2>&1 \
+        || echo "bench train $paper $precision crop $crop $batch x $outputs failed: $(tail -n 1 "$out/bench.log")" >>"$out/bench.md"
+      [ -f "$WORK/bench-$n.md" ] && { cat "$WORK/bench-$n.md"; echo; } >>"$out/bench.md"
+    done
+    read -r preset crop batch outputs <<<"$compact"
     n=$((n + 1))
-    "$BIN" bench train --device "$DEVICE" --preset "$paper" --crop "$crop" --batch "$batch" --outputs "$outputs" \
-      --steps "$steps" "${side[@]}" "${amp[@]}" --report "$WORK/bench-$n.md" >>"$out/bench.log" 2>&1 \
-      || echo "bench train $paper crop $crop $batch x $outputs failed: $(tail -n 1 "$out/bench.log")" >>"$out/bench.md"
+    "$BIN" bench train --device "$DEVICE" --preset "$preset" --precision "$precision" --crop "$crop" --batch "$batch" \
+      --outputs "$outputs" --steps "$steps" --report "$WORK/bench-$n.md" >>"$out/bench.log" 2>&1 \
+      || echo "bench train $preset $precision failed: $(tail -n 1 "$out/bench.log")" >>"$out/bench.md"
     [ -f "$WORK/bench-$n.md" ] && { cat "$WORK/bench-$n.md"; echo; } >>"$out/bench.md"
+    first=0
   done
-  read -r preset crop batch outputs <<<"$compact"
-  "$BIN" bench train --device "$DEVICE" --preset "$preset" --crop "$crop" --batch "$batch" --outputs "$outputs" \
-    --steps "$steps" --report "$WORK/bench-compact.md" >>"$out/bench.log" 2>&1 \
-    || echo "bench train $preset failed: $(tail -n 1 "$out/bench.log")" >>"$out/bench.md"
-  [ -f "$WORK/bench-compact.md" ] && { cat "$WORK/bench-compact.md"; echo; } >>"$out/bench.md"
   "$BIN" bench infer --device "$DEVICE" --preset "$paper" --size "$sizes" --max-memory 32G --runs 3 \
     "${side[@]}" "${amp[@]}" --report "$WORK/bench-infer.md" >>"$out/bench.log" 2>&1 \
     || echo "bench infer failed: $(tail -n 1 "$out/bench.log")" >>"$out/bench.md"
@@ -598,9 +610,9 @@ cpu_dry_run() {
   local n; n=$(find "$tmp/out3" -type f | wc -l)
   [ "$n" -le 8 ] || die "dry run: the final job brings back $n files (a job returns at most 8)"
   echo "== side-by-side benchmark (flashmat's rows; the authors' where staged)"
-  BENCH_STEPS=1 BENCH_SIZES=64 BENCH_PAPER_PRESET=tiny BENCH_COMPACT="tiny 32 2 2" BENCH_TRAIN_SHAPES="32:2:2" \
+  BENCH_STEPS=1 BENCH_SIZES=64 BENCH_PAPER_PRESET=tiny BENCH_COMPACT="tiny 32 2 2" BENCH_TRAIN_SHAPES="32:2:2" BENCH_PRECISIONS="bf16" \
     OUT="$tmp/bench" bash "$self" bench >/dev/null
-  for row in "| training step, tiny, crop 32, 2 x 2 |" "| training step, tiny, crop 32, 2 x 2, flashmat's previous step |" "| M_est forward, tiny, 64x64 |" "| relit frame, tiny, 64x64 |"; do
+  for row in "| training step, tiny, crop 32, 2 x 2, bf16 |" "| training step, tiny, crop 32, 2 x 2, bf16, flashmat's previous step |" "| M_est forward, tiny, 64x64 |" "| relit frame, tiny, 64x64 |"; do
     grep -qF "$row" "$tmp/bench/bench.md" || die "dry run: bench.md has no row '$row'"
   done
   echo "== frozen halves side by side, two jobs chained (from the final chunk's export)"

@@ -80,6 +80,9 @@ pub struct SideBySideArgs {
     /// Write the side-by-side table (Markdown) to this file too.
     #[arg(long, value_name = "FILE")]
     pub report: Option<std::path::PathBuf>,
+    /// What flashmat's networks compute in (f32, tf32, bf16), as `train --precision`.
+    #[arg(long, default_value = "tf32")]
+    pub precision: flashmat::precision::Precision,
 }
 
 #[derive(Args, Debug)]
@@ -147,8 +150,10 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
     }
 }
 
-/// The authors' benchmark of `side`, when asked for.
+/// The authors' benchmark of `side`, when asked for (and flashmat's
+/// precision set as `side` says).
 fn reference_of(side: &SideBySideArgs) -> Result<Option<ReferenceBench>> {
+    flashmat::precision::set(side.precision)?;
     side.reference.as_deref().map(|repo| ReferenceBench::new(repo, side.ref_bench.as_deref())).transpose()
 }
 
@@ -328,7 +333,15 @@ fn bench_train(args: &TrainBenchArgs) -> Result<()> {
     let model = flashmat::model::ModelConfig::preset(&args.preset)?;
     anyhow::ensure!(args.batch >= 1 && args.steps >= 1, "--batch and --steps must be at least 1");
     let reference = reference_of(&args.side)?;
-    println!("flashmat bench train: {} preset, crop {}, {} materials x (1 + {}) renders, {device:?}, {} torch threads", args.preset, args.crop, args.batch, args.outputs, tch::get_num_threads());
+    println!(
+        "flashmat bench train: {} preset, crop {}, {} materials x (1 + {}) renders, {device:?}, {} torch threads, precision {}",
+        args.preset,
+        args.crop,
+        args.batch,
+        args.outputs,
+        tch::get_num_threads(),
+        args.side.precision
+    );
     // The OpenMP wait is fixed for the whole process and changes every
     // variant's time (reports/training-speed.md): say which one ran.
     let env_or = |name: &str| std::env::var(name).unwrap_or_else(|_| "unset".into());
@@ -400,7 +413,7 @@ fn bench_train(args: &TrainBenchArgs) -> Result<()> {
     if let Some(gib) = peak_device_memory_gib(device) {
         println!("GPU memory held by the process: {gib:.2} GiB (the caching allocator keeps its peak)");
     }
-    let shape = format!("{}, crop {}, {} x {}", args.preset, args.crop, args.batch, args.outputs);
+    let shape = format!("{}, crop {}, {} x {}, {}", args.preset, args.crop, args.batch, args.outputs, args.side.precision);
     let mut rows = vec![
         Row { what: format!("training step, {shape}"), ours_ms: Some(ours), theirs_ms: None, ours_rate: Some(args.batch as f64 * 1e3 / ours), theirs_rate: None, busy, tflops: Some(flops / (ours * 1e9)) },
         Row { what: format!("training step, {shape}, flashmat's previous step"), ours_ms: Some(ms[0]), theirs_ms: None, ours_rate: Some(args.batch as f64 * 1e3 / ms[0]), theirs_rate: None, busy: None, tflops: Some(flops / (ms[0] * 1e9)) },

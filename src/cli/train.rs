@@ -30,6 +30,11 @@ pub struct TrainArgs {
     /// cpu or cuda (cuda:N for a given GPU).
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// What the networks compute in: f32, tf32 (TF32 matmuls and convolutions on a GPU; f32 on the CPU)
+    /// or bf16 (autocast in every network's forward; losses, gradients and weights stay f32). A speed
+    /// switch, not part of the run: a resume takes it anew (docs/GPU.md).
+    #[arg(long, default_value = "tf32")]
+    pub precision: flashmat::precision::Precision,
     /// Train on LDR input photos (clamped to [0,1]); outputs stay HDR.
     #[arg(long)]
     pub ldr: bool,
@@ -282,6 +287,7 @@ fn training_setup(threads: Option<i32>, device: &str, minutes: Option<f64>) -> R
 
 pub fn train(a: &TrainArgs) -> Result<()> {
     let device = training_setup(a.threads, &a.device, a.minutes)?;
+    flashmat::precision::set(a.precision)?;
     let options = |dir: &PathBuf| RunOptions {
         max_steps_this_run: a.max_steps_now,
         max_minutes: a.minutes,
