@@ -281,7 +281,7 @@ pub fn memory_hint(command: &Command) -> &'static str {
         Command::Estimate(_) | Command::Relight(_) | Command::Show(_) | Command::View(_) | Command::Fit(_) => {
             "lower --max-memory (M_est then runs in tiles) or --size"
         }
-        Command::Bench(_) => "lower --size, --crop or --batch",
+        Command::Bench(_) => "lower --max-memory (bench infer: M_est then runs in tiles), --size, --crop or --batch",
         Command::Render(_) | Command::Svbrdf(_) | Command::Eval(_) | Command::ShadowEval(_) => "lower --size",
         Command::Export(_) | Command::Average(_) | Command::NmatRows(_) => "free memory or use a machine with more",
     }
