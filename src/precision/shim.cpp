@@ -55,10 +55,13 @@ int flashmat_autocast_exit(int cuda, int prev_enabled, int prev_dtype, char* err
 }
 
 // TF32 for float32 matmuls (cuBLAS) and convolutions (cuDNN): on = 1,
-// off = 0 (full float32 everywhere).
+// off = 0 (full float32). The CUDA switches only: the generic
+// setFloat32MatmulPrecision("high") also lets oneDNN run the CPU's f32
+// matmuls in reduced precision, which a CPU without bf16 units emulates
+// (a CPU training step went 4x slower).
 int flashmat_set_tf32(int on, char* err, size_t n) {
   try {
-    at::globalContext().setFloat32MatmulPrecision(on ? "high" : "highest");
+    at::globalContext().setAllowTF32CuBLAS(on != 0);
     at::globalContext().setAllowTF32CuDNN(on != 0);
     return 0;
   } catch (const std::exception& e) {
