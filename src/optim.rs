@@ -112,6 +112,11 @@ impl Adam {
         Self { params, exp_avg, exp_avg_sq, beta1: 0.9, beta2: 0.999, eps: 1e-8, steps: 0, fused: true }
     }
 
+    /// The trainable parameters, in the update's (name) order.
+    pub fn params(&self) -> impl Iterator<Item = &Tensor> {
+        self.params.values()
+    }
+
     pub fn zero_grad(&mut self) {
         for p in self.params.values() {
             let mut g = p.grad();

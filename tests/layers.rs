@@ -30,6 +30,7 @@ const LAYERS: &[(&str, u32)] = &[
     ("lpips", 2),
     ("limits", 1),
     ("device", 1),
+    ("dist", 1),
     ("reference_paths", 1),
 ];
 

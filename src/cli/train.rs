@@ -280,9 +280,21 @@ fn training_setup(threads: Option<i32>, device: &str, minutes: Option<f64>) -> R
     flashmat::device::parse_device(device)
 }
 
+/// A process started by torchrun joins its process group (Gloo on the
+/// CPU, NCCL on this node's GPU `LOCAL_RANK`); a plain one trains alone.
+fn join_process_group(device: Device) -> Result<(Device, Option<std::sync::Arc<flashmat::dist::Group>>)> {
+    use flashmat::dist::{Config, Group, Launch};
+    let Some(launch) = Launch::from_env()? else { return Ok((device, None)) };
+    let device = launch.device_for(device)?;
+    let group = Group::join(&launch, device, Config::from_env()?)?;
+    Ok((device, Some(std::sync::Arc::new(group))))
+}
+
 pub fn train(a: &TrainArgs) -> Result<()> {
     let device = training_setup(a.threads, &a.device, a.minutes)?;
+    let (device, group) = join_process_group(device)?;
     let options = |dir: &PathBuf| RunOptions {
+        group: group.clone(),
         max_steps_this_run: a.max_steps_now,
         max_minutes: a.minutes,
         export_dir: a.export_dir.clone(),
@@ -296,7 +308,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     if let Some(dir) = &a.resume {
         let opts = options(dir);
         let t = run::resume_any(&opts, a.steps)?;
-        eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
+        if opts.leader() {
+            eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
+        }
         return Ok(());
     }
     if !a.method.is_flashmat() {
@@ -358,7 +372,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     let dir = a.out.clone().context("--out DIR is required for a new run")?;
     let opts = options(&dir);
     let t = run::start_any(config, &opts)?;
-    eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
+    if opts.leader() {
+        eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
+    }
     Ok(())
 }
 

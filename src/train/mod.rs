@@ -14,9 +14,10 @@ pub mod smoke;
 pub mod teacher;
 
 pub use baseline::BaselineTrainer;
-pub use config::{PixelSampling, TrainConfig, UpdateScheme};
+pub use config::{PixelSampling, Shard, TrainConfig, UpdateScheme};
 
 use crate::data::samples::TrainingBatch;
+use crate::dist::Group;
 use crate::lpips::Lpips;
 use crate::model::{Discriminator, Model};
 use crate::optim::Adam;
@@ -77,6 +78,8 @@ pub struct Trainer {
     /// forward that gives the same gradients: the reference for the
     /// equivalence test and `bench train` ([`Trainer::use_reference_step`]).
     two_pass: bool,
+    /// The process group of a data-parallel run ([`Trainer::join`]).
+    pub group: Option<std::sync::Arc<Group>>,
 }
 
 /// Trainable variables of a store, by name (what an optimizer updates).
@@ -87,6 +90,63 @@ pub(crate) fn trainable(vs: &nn::VarStore) -> std::collections::HashMap<String, 
 /// Non-trainable state (BatchNorm running statistics) of the stores.
 pub(crate) fn buffers_of(stores: &[&nn::VarStore]) -> Vec<Tensor> {
     stores.iter().flat_map(|vs| vs.variables().into_values().filter(|t| !t.requires_grad())).collect()
+}
+
+/// BatchNorm running statistics of the stores, by name within each store
+/// (one order on every rank: a VarStore's map is ordered per process).
+pub(crate) fn running_stats(stores: &[&nn::VarStore]) -> Vec<Tensor> {
+    stores
+        .iter()
+        .flat_map(|vs| {
+            let mut v: Vec<(String, Tensor)> = vs.variables().into_iter().filter(|(n, t)| !t.requires_grad() && n.contains("running_")).collect();
+            v.sort_by(|a, b| a.0.cmp(&b.0));
+            v.into_iter().map(|(_, t)| t)
+        })
+        .collect()
+}
+
+/// Every variable of the stores (weights and BatchNorm statistics) made
+/// rank 0's, in place.
+pub(crate) fn broadcast_stores(group: &Group, stores: &[&nn::VarStore]) -> Result<()> {
+    let mut all: Vec<Tensor> = Vec::new();
+    for vs in stores {
+        let mut v: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        all.extend(v.into_iter().map(|(_, t)| t));
+    }
+    tch::no_grad(|| group.broadcast(&mut all, 0))
+}
+
+/// Data-parallel training's one collective of a step: the gradients of
+/// `nets` and the BatchNorm statistics `buffers` averaged over the ranks,
+/// with each rank's verdict on its own step. Every rank calls it exactly
+/// once a step, before any optimizer steps (collectives match by order),
+/// with `ok` false where its step already failed (a NaN/Inf loss or
+/// gradient). Returns whether every rank's step is fine and the averaged
+/// gradients are finite: one answer on every rank, so all skip or step
+/// together, clip alike (the averaged gradients are the same everywhere)
+/// and count skipped steps alike. Without a group: `ok`.
+pub(crate) fn synchronise(group: Option<&Group>, nets: &[&Adam], buffers: &[Tensor], ok: bool) -> Result<bool> {
+    let Some(group) = group else { return Ok(ok) };
+    // A rank that failed before its backward pass may have no gradients:
+    // zeros stand in (every rank skips that step).
+    let mut all: Vec<Tensor> = nets
+        .iter()
+        .flat_map(|o| o.params())
+        .map(|p| {
+            let g = p.grad();
+            if g.defined() { g } else { p.zeros_like() }
+        })
+        .collect();
+    all.extend(buffers.iter().map(|b| b.shallow_clone()));
+    if std::env::var_os("FLASHMAT_DEBUG_SYNC").is_some() {
+        eprintln!("DEBUG rank {} before: {:?}", group.rank, nets.iter().map(|o| o.grad_norm()).collect::<Vec<_>>());
+    }
+    let failed = group.average(&all, &[if ok { 0.0 } else { 1.0 }])?;
+    if std::env::var_os("FLASHMAT_DEBUG_SYNC").is_some() {
+        eprintln!("DEBUG rank {} after: {:?}", group.rank, nets.iter().map(|o| o.grad_norm()).collect::<Vec<_>>());
+    }
+    Ok(failed[0] == 0.0 && nets.iter().all(|o| o.grad_norm().is_finite()))
 }
 
 /// Runs one update. Forward passes in training mode update BatchNorm
@@ -137,7 +197,34 @@ impl Trainer {
             }
             None => None,
         };
-        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, anchor, step: 0, two_pass: false })
+        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, anchor, step: 0, two_pass: false, group: None })
+    }
+
+    /// Joins a data-parallel run: every network's weights and BatchNorm
+    /// statistics become rank 0's (a fresh start seeds them alike, a
+    /// resume reads one checkpoint; this makes sure), and from now on each
+    /// step averages the gradients over the ranks before it steps.
+    pub fn join(&mut self, group: std::sync::Arc<Group>) -> Result<()> {
+        broadcast_stores(&group, &[&self.model.est_vs, &self.model.renderer_vs, &self.disc_vs])?;
+        self.group = Some(group);
+        Ok(())
+    }
+
+    /// [`synchronise`] of this step: all three networks' gradients and
+    /// BatchNorm statistics.
+    fn synchronise(&self, ok: bool) -> Result<bool> {
+        let buffers = running_stats(&[&self.model.est_vs, &self.model.renderer_vs, &self.disc_vs]);
+        synchronise(self.group.as_deref(), &[&self.opt_est, &self.opt_render, &self.opt_disc], &buffers, ok)
+    }
+
+    /// A step that failed on this rank before [`Trainer::synchronise`]:
+    /// gradients cleared, the step's collective joined (so every rank
+    /// skips it), `out` marked skipped.
+    fn skip_unsynced(&mut self, out: StepLosses) -> Result<StepLosses> {
+        self.zero_all();
+        self.synchronise(false)?;
+        self.zero_all();
+        Ok(StepLosses { skipped: true, ..out })
     }
 
     pub fn device(&self) -> Device {
@@ -233,15 +320,17 @@ impl Trainer {
         out.loss_est = loss_est.double_value(&[]);
         out.param_norm = losses::mean_param_norm(&neural);
         if !out.loss_est.is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
+            return self.skip_unsynced(out);
         }
         loss_est.backward();
         if !self.opt_est.grad_norm().is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
+            return self.skip_unsynced(out);
         }
         if cfg.freeze_renderer {
+            if !self.synchronise(true)? {
+                self.zero_all();
+                return Ok(StepLosses { skipped: true, ..out });
+            }
             self.opt_est.step(lr, cfg.grad_clip);
             self.zero_all();
             return Ok(out);
@@ -290,7 +379,7 @@ impl Trainer {
 
         // Both halves' losses on the one prediction.
         let l1 = (&pred - &truth_log).abs().mean(Kind::Float);
-        let mut rng = batches::step_rng(cfg.seed, self.step, 3);
+        let mut rng = batches::step_rng(cfg.seed, self.step, cfg.shard.stream(3));
         let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling, &mut rng);
         let l1_r = losses::masked_l1(&pred, &truth_log, &mask);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &truth_log)?;
@@ -319,8 +408,7 @@ impl Trainer {
         out.l1_render = l1_r.double_value(&[]);
         out.loss_render = loss_render.double_value(&[]);
         if !(out.loss_est.is_finite() && out.loss_render.is_finite()) {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
+            return self.skip_unsynced(out);
         }
 
         // d(loss)/d(prediction): the shared terms' once, each L1's on its own.
@@ -363,7 +451,8 @@ impl Trainer {
             discriminator.join().map_err(|_| anyhow::anyhow!("the discriminator's update panicked"))?
         })?;
         out.loss_disc = loss_disc;
-        let finite = self.opt_est.grad_norm().is_finite() && self.opt_render.grad_norm().is_finite() && loss_disc.is_finite() && self.opt_disc.grad_norm().is_finite();
+        let finite = self.synchronise(loss_disc.is_finite())?
+            && self.opt_est.grad_norm().is_finite() && self.opt_render.grad_norm().is_finite() && loss_disc.is_finite() && self.opt_disc.grad_norm().is_finite();
         if !finite {
             self.zero_all();
             return Ok(StepLosses { skipped: true, ..out });
@@ -423,7 +512,7 @@ impl Trainer {
         self.opt_render.zero_grad();
         self.opt_disc.zero_grad();
         let pred_r = self.model.renderer.render_code(&neural, code)?;
-        let mut rng = batches::step_rng(cfg.seed, self.step, 3);
+        let mut rng = batches::step_rng(cfg.seed, self.step, cfg.shard.stream(3));
         let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling, &mut rng);
         let l1_r = losses::masked_l1(&pred_r, &target_log, &mask);
         if cfg.freeze_estimator {
@@ -436,13 +525,11 @@ impl Trainer {
         out.l1_render = l1_r.double_value(&[]);
         out.loss_render = loss_render.double_value(&[]);
         if !out.loss_render.is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
+            return self.skip_unsynced(out);
         }
         loss_render.backward();
         if !self.opt_render.grad_norm().is_finite() {
-            self.zero_all();
-            return Ok(StepLosses { skipped: true, ..out });
+            return self.skip_unsynced(out);
         }
 
         self.discriminator_update_and_steps(&pred_r.detach(), truth_log, &photo_log, lr, weight_adv, out)
@@ -462,7 +549,7 @@ impl Trainer {
             }
             self.opt_disc.grad_norm().is_finite()
         };
-        if !disc_ok {
+        if !self.synchronise(disc_ok)? {
             self.zero_all();
             return Ok(StepLosses { skipped: true, ..out });
         }
@@ -503,7 +590,8 @@ impl Trainer {
             (_, true) => vec![&mut self.opt_est],
             _ => vec![&mut self.opt_est, &mut self.opt_render],
         };
-        let out = combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv)?;
+        let buffers = running_stats(&[&self.model.est_vs, &self.model.renderer_vs, &self.disc_vs]);
+        let out = combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv, (self.group.as_deref(), &buffers))?;
         Ok(StepLosses { param_norm, ..out })
     }
 }
@@ -571,6 +659,7 @@ pub(crate) fn combined_update(
     photo_log: &Tensor,
     lr: f64,
     weight_adv: f64,
+    (group, buffers): (Option<&Group>, &[Tensor]),
 ) -> Result<StepLosses> {
     let mut out = StepLosses::default();
     let l1 = (pred - target_log).abs().mean(tch::Kind::Float);
@@ -583,9 +672,12 @@ pub(crate) fn combined_update(
     out.adv = adv.double_value(&[]);
     out.loss_est = loss.double_value(&[]);
     out.loss_render = out.loss_est;
+    // Before the step's collective: join it with a failed verdict (every rank skips).
     let skip = |nets: &mut [&mut Adam], opt_disc: &mut Adam, out: StepLosses| {
         nets.iter_mut().for_each(|o| o.zero_grad());
         opt_disc.zero_grad();
+        let all: Vec<&Adam> = nets.iter().map(|o| &**o).chain([&*opt_disc]).collect();
+        synchronise(group, &all, buffers, false)?;
         Ok(StepLosses { skipped: true, ..out })
     };
     if !out.loss_est.is_finite() {
@@ -603,6 +695,12 @@ pub(crate) fn combined_update(
         if !(out.loss_disc.is_finite() && opt_disc.grad_norm().is_finite()) {
             return skip(nets, opt_disc, out);
         }
+    }
+    let all: Vec<&Adam> = nets.iter().map(|o| &**o).chain([&*opt_disc]).collect();
+    if !synchronise(group, &all, buffers, true)? {
+        nets.iter_mut().for_each(|o| o.zero_grad());
+        opt_disc.zero_grad();
+        return Ok(StepLosses { skipped: true, ..out });
     }
     nets.iter_mut().for_each(|o| o.step(lr, cfg.grad_clip));
     if weight_adv > 0.0 {
