@@ -282,17 +282,18 @@ fn training_setup(threads: Option<i32>, device: &str, minutes: Option<f64>) -> R
 
 /// A process started by torchrun joins its process group (Gloo on the
 /// CPU, NCCL on this node's GPU `LOCAL_RANK`); a plain one trains alone.
-fn join_process_group(device: Device) -> Result<(Device, Option<std::sync::Arc<flashmat::dist::Group>>)> {
+/// Also returns torchrun's restart count (0 for a plain process).
+fn join_process_group(device: Device) -> Result<(Device, Option<std::sync::Arc<flashmat::dist::Group>>, u64)> {
     use flashmat::dist::{Config, Group, Launch};
-    let Some(launch) = Launch::from_env()? else { return Ok((device, None)) };
+    let Some(launch) = Launch::from_env()? else { return Ok((device, None, 0)) };
     let device = launch.device_for(device)?;
     let group = Group::join(&launch, device, Config::from_env()?)?;
-    Ok((device, Some(std::sync::Arc::new(group))))
+    Ok((device, Some(std::sync::Arc::new(group)), launch.restart))
 }
 
 pub fn train(a: &TrainArgs) -> Result<()> {
     let device = training_setup(a.threads, &a.device, a.minutes)?;
-    let (device, group) = join_process_group(device)?;
+    let (device, group, restart) = join_process_group(device)?;
     let options = |dir: &PathBuf| RunOptions {
         group: group.clone(),
         max_steps_this_run: a.max_steps_now,
@@ -305,8 +306,14 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         new_colocated_outputs: a.resume.as_ref().and(a.colocated_outputs),
         ..RunOptions::new(dir.clone(), device, true)
     };
-    if let Some(dir) = &a.resume {
+    // torchrun restarted the job (--max-restarts) after a rank died: the
+    // same command line continues the run from its last checkpoint.
+    let restarted = a.out.as_ref().filter(|dir| restart > 0 && run::checkpoint_path(dir).exists());
+    if let Some(dir) = a.resume.as_ref().or(restarted) {
         let opts = options(dir);
+        if restarted.is_some() && opts.leader() {
+            eprintln!("torchrun restart {restart}: {} continues from its last checkpoint", dir.display());
+        }
         let t = run::resume_any(&opts, a.steps)?;
         if opts.leader() {
             eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);

@@ -139,13 +139,7 @@ pub(crate) fn synchronise(group: Option<&Group>, nets: &[&Adam], buffers: &[Tens
         })
         .collect();
     all.extend(buffers.iter().map(|b| b.shallow_clone()));
-    if std::env::var_os("FLASHMAT_DEBUG_SYNC").is_some() {
-        eprintln!("DEBUG rank {} before: {:?}", group.rank, nets.iter().map(|o| o.grad_norm()).collect::<Vec<_>>());
-    }
     let failed = group.average(&all, &[if ok { 0.0 } else { 1.0 }])?;
-    if std::env::var_os("FLASHMAT_DEBUG_SYNC").is_some() {
-        eprintln!("DEBUG rank {} after: {:?}", group.rank, nets.iter().map(|o| o.grad_norm()).collect::<Vec<_>>());
-    }
     Ok(failed[0] == 0.0 && nets.iter().all(|o| o.grad_norm().is_finite()))
 }
 
