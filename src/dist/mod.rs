@@ -144,6 +144,8 @@ pub struct Group {
     /// Where the collectives' tensors live (CPU for Gloo, the rank's GPU for NCCL).
     pub device: Device,
     config: Config,
+    /// Nanoseconds spent in collectives since [`Group::take_seconds`].
+    spent: std::sync::atomic::AtomicU64,
 }
 
 // SAFETY: the c10d backend is used from one thread at a time (the training
@@ -204,11 +206,21 @@ impl Group {
                 error_text(&err)
             );
         }
-        Ok(Self { handle, rank: launch.rank, world: launch.world, device, config })
+        Ok(Self { handle, rank: launch.rank, world: launch.world, device, config, spent: Default::default() })
     }
 
     pub fn is_leader(&self) -> bool {
         self.rank == 0
+    }
+
+    /// Seconds this rank spent in collectives (waiting for the others
+    /// included) since the last call.
+    pub fn take_seconds(&self) -> f64 {
+        self.spent.swap(0, std::sync::atomic::Ordering::Relaxed) as f64 * 1e-9
+    }
+
+    fn count(&self, since: std::time::Instant) {
+        self.spent.fetch_add(since.elapsed().as_nanos() as u64, std::sync::atomic::Ordering::Relaxed);
     }
 
     fn fail(&self, what: &str, err: &[u8]) -> anyhow::Error {
@@ -233,8 +245,10 @@ impl Group {
         }
         let ptrs = Self::pointers(tensors);
         let mut err = vec![0u8; ERR_LEN];
+        let t0 = std::time::Instant::now();
         // SAFETY: live at::Tensor pointers (tch's representation), an error buffer of its length.
         let rc = unsafe { flashmat_dist_all_reduce_sum(self.handle, ptrs.as_ptr(), ptrs.len(), err.as_mut_ptr() as *mut c_char, err.len()) };
+        self.count(t0);
         if rc != 0 {
             return Err(self.fail("all-reduce", &err));
         }
@@ -248,8 +262,10 @@ impl Group {
         }
         let ptrs = Self::pointers(tensors);
         let mut err = vec![0u8; ERR_LEN];
+        let t0 = std::time::Instant::now();
         // SAFETY: as in all_reduce_sum.
         let rc = unsafe { flashmat_dist_broadcast(self.handle, ptrs.as_ptr(), ptrs.len(), root as c_int, err.as_mut_ptr() as *mut c_char, err.len()) };
+        self.count(t0);
         if rc != 0 {
             return Err(self.fail("broadcast", &err));
         }

@@ -54,6 +54,14 @@ pub struct StepLosses {
     /// True when the step was skipped because a loss or gradient was NaN/Inf.
     pub skipped: bool,
     pub seconds: f64,
+    /// Of `seconds`, those spent in a data-parallel run's collectives
+    /// (rank 0's, waiting for the slowest rank included; 0 alone).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub sync_seconds: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 /// All trainable state: networks, their optimizers, the perceptual metric.

@@ -642,6 +642,9 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
         true => Some(std::fs::OpenOptions::new().create(true).append(true).open(log_path(run)).with_context(|| format!("cannot write {}", log_path(run).display()))?),
         false => None,
     };
+    if let Some(group) = &opts.group {
+        group.take_seconds(); // joining's broadcast is no step's
+    }
     let mut skipped = 0u64;
     let mut skipped_in_a_row = 0u64;
     while trainer.steps_done() < last {
@@ -650,12 +653,15 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
         let materials = prefetch.next(step)?;
         let batch = batch_for_step(&cfg, &materials, step, opts.device)?;
         let mut losses = trainer.train_step(&batch)?;
-        losses.seconds = t0.elapsed().as_secs_f64();
         // Rank 0 decides the time box, any rank's stop signal stops all.
         let (stop, timed_out) = match &opts.group {
             Some(group) => agree_on_step(group, &mut losses, stop_requested(), leader && out_of_time())?,
             None => (stop_requested(), out_of_time()),
         };
+        losses.seconds = t0.elapsed().as_secs_f64();
+        if let Some(group) = &opts.group {
+            losses.sync_seconds = group.take_seconds();
+        }
         if losses.skipped {
             skipped += 1;
             skipped_in_a_row += 1;

@@ -778,3 +778,39 @@ fn shift_weight_adds_the_consistency_of_two_photos() {
         assert!(err.contains(why), "{err}");
     }
 }
+
+/// Per-material random streams make a step's global batch the same at
+/// every world size: 2 ranks x 1 material draw exactly the materials,
+/// photos, directions and targets of 1 rank x 2 (the data half of
+/// `tests/distributed.rs`'s proof, without processes).
+#[test]
+fn a_global_batch_is_the_same_at_every_world_size() {
+    let cfg = TrainConfig { material_streams: true, colour_augment: 0.5, ..tiny_config() };
+    let stream = batches::MaterialStream::open(&cfg).unwrap();
+    for step in [0, 7] {
+        let whole = batches::batch_for_step(&cfg, &stream.materials(&cfg, step).unwrap(), step, tch::Device::Cpu).unwrap();
+        let shares: Vec<_> = (0..2)
+            .map(|rank| {
+                let c = TrainConfig { materials_per_batch: 1, shard: Shard { rank, world: 2 }, ..cfg.clone() };
+                batches::batch_for_step(&c, &stream.materials(&c, step).unwrap(), step, tch::Device::Cpu).unwrap()
+            })
+            .collect();
+        let joined = crate::data::samples::TrainingBatch::concat(shares).unwrap();
+        for (a, b) in [(&whole.maps, &joined.maps), (&whole.est_input, &joined.est_input), (&whole.out_wi, &joined.out_wi), (&whole.out_wo, &joined.out_wo), (&whole.targets, &joined.targets)] {
+            assert_eq!(a.size(), b.size());
+            assert_eq!((a - b).abs().max().double_value(&[]), 0.0);
+        }
+        assert_eq!(whole.configs, joined.configs);
+        // The two materials differ (each its own stream, not one drawn twice).
+        assert!((whole.maps.get(0) - whole.maps.get(1)).abs().max().double_value(&[]) > 0.01);
+    }
+}
+
+/// Without a process group the step's verdict is the rank's own.
+#[test]
+fn synchronise_alone_is_the_local_verdict() {
+    let t = Trainer::new(tiny_config(), tch::Device::Cpu).unwrap();
+    for ok in [true, false] {
+        assert_eq!(synchronise(None, &[&t.opt_est], &[], ok).unwrap(), ok);
+    }
+}
