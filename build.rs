@@ -15,6 +15,7 @@ fn main() {
     println!("cargo:rerun-if-env-changed=LIBTORCH");
     println!("cargo:rerun-if-env-changed=FLASHMAT_NO_NCCL");
     println!("cargo:rerun-if-env-changed=CUDA_HOME");
+    println!("cargo:rerun-if-env-changed=FLASHMAT_CUDA_HEADERS");
     println!("cargo:rerun-if-changed=src/dist/shim.cpp");
     println!("cargo:rerun-if-changed=src/dist/gloo_decl");
     println!("cargo::rustc-check-cfg=cfg(flashmat_nccl)");
@@ -75,7 +76,7 @@ fn compile_shim(lib: &Path, has_cuda: bool) {
         build.define("FLASHMAT_NCCL", None).define("USE_C10D_NCCL", None).define("USE_CUDA", None);
         println!("cargo:rustc-cfg=flashmat_nccl");
     } else if has_cuda {
-        println!("cargo:warning=libtorch_cuda found, but not nccl.h and the CUDA toolkit headers (set CUDA_HOME): distributed training is built for Gloo (CPU) only");
+        println!("cargo:warning=libtorch_cuda found, but not nccl.h and the CUDA toolkit headers (source scripts/env.sh, or set CUDA_HOME): distributed training is built for Gloo (CPU) only");
     }
     build.compile("flashmat_dist");
     // After the static library, so that the linker resolves its c10d
@@ -89,13 +90,19 @@ fn compile_shim(lib: &Path, has_cuda: bool) {
     }
 }
 
-/// The folders holding `nccl.h` and `cuda_runtime_api.h`: CUDA_HOME's, or the
-/// nvidia-* wheels beside the torch package.
+/// The folders holding `nccl.h`, `cuda_runtime_api.h` and the headers
+/// those include: CUDA_HOME's, or the nvidia-* wheels beside the torch
+/// package and the crt and CCCL headers scripts/env.sh fetches
+/// (FLASHMAT_CUDA_HEADERS).
 fn nccl_include_dirs(lib: &Path) -> Option<Vec<PathBuf>> {
     let site = lib.parent()?.parent()?.join("nvidia");
     let mut candidates = vec![site.join("nccl/include")];
     if let Ok(home) = std::env::var("CUDA_HOME") {
         candidates.push(Path::new(&home).join("include"));
+    }
+    if let Ok(dir) = std::env::var("FLASHMAT_CUDA_HEADERS") {
+        candidates.push(Path::new(&dir).join("cccl"));
+        candidates.push(PathBuf::from(dir));
     }
     for sub in ["cu13/include", "cuda_runtime/include", "cuda_nvcc/include", "cublas/include", "cusparse/include", "cusolver/include", "cuda_nvrtc/include", "curand/include", "cufft/include"] {
         candidates.push(site.join(sub));
