@@ -120,9 +120,7 @@ impl MaterialStream {
         };
         full.iter().map(|m| random_crop(m, cfg.material_crop(), &mut rng)).collect()
     }
-}
 
-impl MaterialStream {
     /// The cropped material at `index` of step `step`'s global batch, from
     /// its own random stream (`TrainConfig::material_streams`): procedural
     /// materials are the plain run's of a batch of the global size.
@@ -190,10 +188,9 @@ fn batch_of(cfg: &TrainConfig, sample_cfg: &SampleConfig, materials: &[Svbrdf], 
         Some(g) => material_rng(cfg.seed, step, g, stream),
         None => step_rng(cfg.seed, step, stream),
     };
-    let sample_cfg = sample_cfg.clone();
     let mut rng = rng_of(2);
     if cfg.weight_shift <= 0.0 {
-        return tch::no_grad(|| make_batch(materials, &sample_cfg, &mut rng, device));
+        return tch::no_grad(|| make_batch(materials, sample_cfg, &mut rng, device));
     }
     // Its own random stream, as the recolouring's.
     let mut shift_rng = rng_of(4);
@@ -207,8 +204,8 @@ fn batch_of(cfg: &TrainConfig, sample_cfg: &SampleConfig, materials: &[Svbrdf], 
         offsets.push((b.0 as i64 - a.0 as i64, b.1 as i64 - a.1 as i64));
     }
     tch::no_grad(|| {
-        let mut batch = make_batch(&first, &sample_cfg, &mut rng, device)?;
-        batch.shifted = Some(ShiftedPhotos { est_input: input_only(&second, &sample_cfg, device)?, offsets });
+        let mut batch = make_batch(&first, sample_cfg, &mut rng, device)?;
+        batch.shifted = Some(ShiftedPhotos { est_input: input_only(&second, sample_cfg, device)?, offsets });
         Ok(batch)
     })
 }

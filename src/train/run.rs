@@ -352,7 +352,8 @@ fn enter_group<T: RunTrainer>(trainer: &mut T, opts: &RunOptions) -> Result<()> 
     trainer.join(group.clone())?;
     if group.is_leader() {
         let backend = if group.device.is_cuda() { "NCCL" } else { "Gloo" };
-        eprintln!("data-parallel training: {} ranks ({backend}) x --batch {batch} = a global batch of {} materials a step", group.world, group.world * batch);
+        let ranks = if group.world == 1 { "1 rank".to_string() } else { format!("{} ranks", group.world) };
+        eprintln!("data-parallel training: {ranks} ({backend}) x --batch {batch} = a global batch of {} materials a step", group.world * batch);
     }
     Ok(())
 }
