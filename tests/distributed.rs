@@ -179,3 +179,28 @@ fn a_killed_rank_stops_the_other_in_one_line_and_the_run_resumes_at_any_world_si
     let config = flashmat::train::Trainer::checkpoint_config(&run.join("checkpoint.safetensors")).unwrap();
     assert!(config.material_streams && config.steps == at + 2);
 }
+
+/// torchrun itself (PyTorch's launcher, beside the libtorch flashmat
+/// links): its agent serves the store (`TORCHELASTIC_USE_AGENT_STORE`),
+/// every rank joins as a client. Skipped, saying so, where torchrun is
+/// not on PATH (scripts/env.sh puts it there).
+#[test]
+fn torchrun_launches_two_ranks() {
+    let Some(torchrun) = std::env::var_os("PATH").and_then(|p| std::env::split_paths(&p).map(|d| d.join("torchrun")).find(|t| t.is_file())) else {
+        eprintln!("skipped: no torchrun on PATH (source scripts/env.sh)");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let out = Command::new(torchrun)
+        .args(["--standalone", "--nproc-per-node", "2", "--no-python", BIN])
+        .args(["train", "--preset", "tiny", "--crop", "32", "--outputs", "2", "--steps", "2", "--checkpoint-every", "100", "--preview-every", "0", "--threads", "1", "--out", s(&run)])
+        .env("OMP_NUM_THREADS", "1")
+        .output()
+        .unwrap();
+    let err = stderr(&out);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("data-parallel training: 2 ranks (Gloo) x --batch 2 = a global batch of 4 materials a step"), "{err}");
+    assert_eq!(log_lines(&run).len(), 2);
+    assert!(run.join("checkpoint.safetensors").is_file());
+}
