@@ -204,3 +204,28 @@ fn torchrun_launches_two_ranks() {
     assert_eq!(log_lines(&run).len(), 2);
     assert!(run.join("checkpoint.safetensors").is_file());
 }
+
+/// Every rank takes rank 0's decisions: given different `--minutes`, rank
+/// 0's (0: stop after the first step) stops both ranks at that step, with
+/// rank 0's checkpoint, both exiting 0; rank 1's own time box (1000
+/// minutes) does not keep it waiting for a step that never comes.
+#[test]
+fn the_time_box_is_rank_0s_and_every_rank_stops_with_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let port = free_port();
+    let args = |minutes: &'static str| -> Vec<String> {
+        ["train", "--preset", "tiny", "--crop", "32", "--outputs", "2", "--steps", "1000", "--checkpoint-every", "100", "--preview-every", "0", "--threads", "1", "--minutes", minutes, "--out", s(&run)]
+            .iter()
+            .map(|a| a.to_string())
+            .collect()
+    };
+    let ranks: Vec<Child> = [("0", 0), ("1000", 1)].into_iter().map(|(m, r)| rank_command(&args(m).iter().map(String::as_str).collect::<Vec<_>>(), r, 2, port).spawn().unwrap()).collect();
+    let outs: Vec<Output> = ranks.into_iter().map(|c| c.wait_with_output().unwrap()).collect();
+    for o in &outs {
+        assert_ok(o);
+    }
+    assert_eq!(log_lines(&run).len(), 1);
+    let at = flashmat::train::Trainer::resume(&run.join("checkpoint.safetensors"), tch::Device::Cpu, None).unwrap().step;
+    assert_eq!(at, 1);
+}
