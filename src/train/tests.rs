@@ -814,3 +814,47 @@ fn synchronise_alone_is_the_local_verdict() {
         assert_eq!(synchronise(None, &[&t.opt_est], &[], ok).unwrap(), ok);
     }
 }
+
+/// The step's verdict with two real Gloo ranks (threads): the gradients
+/// and BatchNorm statistics come back averaged; one rank's failed step,
+/// or a NaN gradient on one rank that thinks its step fine, makes both
+/// skip.
+#[test]
+fn synchronise_averages_and_agrees_on_the_verdict_across_ranks() {
+    use crate::dist::{Config, Group, Launch};
+    use crate::optim::Adam;
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let results: Vec<Vec<(bool, Vec<f32>, Vec<f32>)>> = std::thread::scope(|s| {
+        let ranks: Vec<_> = (0..2usize)
+            .map(|rank| {
+                s.spawn(move || {
+                    let launch = Launch { rank, world: 2, local_rank: rank, master_addr: "127.0.0.1".into(), master_port: port, agent_store: false, restart: 0 };
+                    let group = Group::join(&launch, tch::Device::Cpu, Config { timeout: std::time::Duration::from_secs(30), ..Config::default() }).unwrap();
+                    let w = tch::Tensor::ones([3], (tch::Kind::Float, tch::Device::Cpu)).set_requires_grad(true);
+                    let adam = Adam::new([("w".to_string(), w.shallow_clone())].into_iter().collect());
+                    let stats = tch::Tensor::from_slice(&[rank as f32 * 4.0]);
+                    // (ok, this rank's gradient) of three steps.
+                    let cases = [(true, [1.0 + rank as f32, 2.0, 3.0]), (rank == 1, [1.0, 1.0, 1.0]), (true, [if rank == 0 { f32::NAN } else { 1.0 }, 1.0, 1.0])];
+                    cases
+                        .iter()
+                        .map(|(ok, g)| {
+                            let mut grad = w.grad();
+                            if grad.defined() {
+                                let _ = grad.zero_();
+                            }
+                            (&w * tch::Tensor::from_slice(g)).sum(tch::Kind::Float).backward();
+                            let verdict = synchronise(Some(&group), &[&adam], &[stats.shallow_clone()], *ok).unwrap();
+                            (verdict, Vec::<f32>::try_from(w.grad()).unwrap(), Vec::<f32>::try_from(&stats).unwrap())
+                        })
+                        .collect()
+                })
+            })
+            .collect();
+        ranks.into_iter().map(|r| r.join().unwrap()).collect()
+    });
+    for r in &results {
+        assert_eq!((r[0].0, r[0].1.as_slice(), r[0].2.as_slice()), (true, [1.5f32, 2.0, 3.0].as_slice(), [2.0f32].as_slice()));
+        assert!(!r[1].0, "rank 0's failed step is every rank's");
+        assert!(!r[2].0, "a NaN gradient on one rank is every rank's");
+    }
+}
