@@ -27,6 +27,25 @@ FLASHMAT_TORCH_LIB="$("$FLASHMAT_VENV/bin/python" -c 'import torch,os; print(os.
 export FLASHMAT_TORCH_LIB
 export LD_LIBRARY_PATH="$FLASHMAT_TORCH_LIB${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 
+# The CUDA toolkit headers that the PyTorch wheels leave out (crt/, CCCL),
+# for build.rs to compile the NCCL half of src/dist/shim.cpp (distributed
+# training on GPUs, docs/DISTRIBUTED.md): a one-time 19 MB download beside
+# the environment, only where torch is a CUDA build. Without them flashmat
+# builds distributed training for the CPU (Gloo) only.
+FLASHMAT_CUDA_MM="$("$FLASHMAT_VENV/bin/python" -c 'import torch; print(torch.version.cuda or "")')"
+FLASHMAT_CUDA_HEADERS="$FLASHMAT_CACHE/cuda-headers-$FLASHMAT_CUDA_MM/nvidia/cu${FLASHMAT_CUDA_MM%%.*}/include"
+if [ -n "$FLASHMAT_CUDA_MM" ] && [ ! -e "$FLASHMAT_CUDA_HEADERS/crt/host_config.h" ]; then
+  echo "flashmat: fetching the CUDA $FLASHMAT_CUDA_MM crt and CCCL headers into $FLASHMAT_CACHE (one-time, 19 MB)" >&2
+  "$FLASHMAT_VENV/bin/pip" install --quiet --no-deps --target "$FLASHMAT_CACHE/cuda-headers-$FLASHMAT_CUDA_MM" \
+    "nvidia-cuda-crt==$FLASHMAT_CUDA_MM.*" "nvidia-cuda-cccl==$FLASHMAT_CUDA_MM.*" >&2 \
+    || echo "flashmat: could not fetch them; distributed training builds for the CPU (Gloo) only" >&2
+fi
+if [ -e "$FLASHMAT_CUDA_HEADERS/crt/host_config.h" ]; then
+  export FLASHMAT_CUDA_HEADERS
+else
+  unset FLASHMAT_CUDA_HEADERS
+fi
+
 # The checkout whose models/ and assets/ flashmat reads (`bundled_root`):
 # this one, whichever checkout built the binary. Clones that share one
 # CARGO_TARGET_DIR share their binaries (cargo does not rebuild for another

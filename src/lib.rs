@@ -5,6 +5,7 @@ pub mod archive;
 pub mod baselines;
 pub mod data;
 pub mod device;
+pub mod dist;
 pub mod eval;
 pub mod fit;
 pub mod geometry;

@@ -200,6 +200,11 @@ impl Adam {
         }
     }
 
+    /// The trainable parameters, in the update's (name) order.
+    pub fn params(&self) -> impl Iterator<Item = &Tensor> {
+        self.params.values()
+    }
+
     pub fn zero_grad(&mut self) {
         for p in self.params.values() {
             let mut g = p.grad();

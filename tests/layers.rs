@@ -31,6 +31,7 @@ const LAYERS: &[(&str, u32)] = &[
     ("limits", 1),
     ("device", 1),
     ("precision", 1),
+    ("dist", 1),
     ("reference_paths", 1),
 ];
 

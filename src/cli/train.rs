@@ -285,10 +285,23 @@ fn training_setup(threads: Option<i32>, device: &str, minutes: Option<f64>) -> R
     flashmat::device::parse_device(device)
 }
 
+/// A process started by torchrun joins its process group (Gloo on the
+/// CPU, NCCL on this node's GPU `LOCAL_RANK`); a plain one trains alone.
+/// Also returns torchrun's restart count (0 for a plain process).
+fn join_process_group(device: Device) -> Result<(Device, Option<std::sync::Arc<flashmat::dist::Group>>, u64)> {
+    use flashmat::dist::{Config, Group, Launch};
+    let Some(launch) = Launch::from_env()? else { return Ok((device, None, 0)) };
+    let device = launch.device_for(device)?;
+    let group = Group::join(&launch, device, Config::from_env()?)?;
+    Ok((device, Some(std::sync::Arc::new(group)), launch.restart))
+}
+
 pub fn train(a: &TrainArgs) -> Result<()> {
     let device = training_setup(a.threads, &a.device, a.minutes)?;
     flashmat::precision::set(a.precision)?;
+    let (device, group, restart) = join_process_group(device)?;
     let options = |dir: &PathBuf| RunOptions {
+        group: group.clone(),
         max_steps_this_run: a.max_steps_now,
         max_minutes: a.minutes,
         export_dir: a.export_dir.clone(),
@@ -299,10 +312,18 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         new_colocated_outputs: a.resume.as_ref().and(a.colocated_outputs),
         ..RunOptions::new(dir.clone(), device, true)
     };
-    if let Some(dir) = &a.resume {
+    // torchrun restarted the job (--max-restarts) after a rank died: the
+    // same command line continues the run from its last checkpoint.
+    let restarted = a.out.as_ref().filter(|dir| restart > 0 && run::checkpoint_path(dir).exists());
+    if let Some(dir) = a.resume.as_ref().or(restarted) {
         let opts = options(dir);
+        if restarted.is_some() && opts.leader() {
+            eprintln!("torchrun restart {restart}: {} continues from its last checkpoint", dir.display());
+        }
         let t = run::resume_any(&opts, a.steps)?;
-        eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
+        if opts.leader() {
+            eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
+        }
         return Ok(());
     }
     if !a.method.is_flashmat() {
@@ -364,7 +385,9 @@ pub fn train(a: &TrainArgs) -> Result<()> {
     let dir = a.out.clone().context("--out DIR is required for a new run")?;
     let opts = options(&dir);
     let t = run::start_any(config, &opts)?;
-    eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
+    if opts.leader() {
+        eprintln!("run {} at step {} of {}", dir.display(), t.steps_done(), t.config().steps);
+    }
     Ok(())
 }
 

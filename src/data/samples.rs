@@ -90,6 +90,31 @@ pub struct TrainingBatch {
     pub shifted: Option<ShiftedPhotos>,
 }
 
+impl TrainingBatch {
+    /// The batches' materials in one batch, in order: every tensor joined
+    /// along its first (material) axis.
+    pub fn concat(parts: Vec<TrainingBatch>) -> Result<TrainingBatch> {
+        ensure!(!parts.is_empty(), "empty material batch");
+        let cat = |f: fn(&TrainingBatch) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0);
+        let shifted = if parts.iter().all(|p| p.shifted.is_some()) {
+            let s: Vec<&ShiftedPhotos> = parts.iter().filter_map(|p| p.shifted.as_ref()).collect();
+            Some(ShiftedPhotos { est_input: Tensor::cat(&s.iter().map(|s| &s.est_input).collect::<Vec<_>>(), 0), offsets: s.iter().flat_map(|s| s.offsets.clone()).collect() })
+        } else {
+            None
+        };
+        Ok(TrainingBatch {
+            maps: cat(|b| &b.maps),
+            input_linear: cat(|b| &b.input_linear),
+            est_input: cat(|b| &b.est_input),
+            out_wi: cat(|b| &b.out_wi),
+            out_wo: cat(|b| &b.out_wo),
+            targets: cat(|b| &b.targets),
+            configs: parts.iter().flat_map(|b| b.configs.clone()).collect(),
+            shifted,
+        })
+    }
+}
+
 /// Second photos of a batch's materials, each of the window `offsets[i]`
 /// = (rows, columns) away from the first photo's (positive: down, right).
 pub struct ShiftedPhotos {

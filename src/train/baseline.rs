@@ -31,6 +31,8 @@ pub struct BaselineTrainer {
     pub lpips: Option<Lpips>,
     /// Steps completed.
     pub step: u64,
+    /// The process group of a data-parallel run ([`BaselineTrainer::join`]).
+    pub group: Option<std::sync::Arc<crate::dist::Group>>,
 }
 
 impl BaselineTrainer {
@@ -44,7 +46,14 @@ impl BaselineTrainer {
         let opt_net = Adam::new(trainable(&net.vs));
         let opt_disc = Adam::new(trainable(&disc_vs));
         let lpips = if config.weight_lpips > 0.0 { Some(Lpips::new(device)?) } else { None };
-        Ok(Self { config, net, disc_vs, disc, opt_net, opt_disc, lpips, step: 0 })
+        Ok(Self { config, net, disc_vs, disc, opt_net, opt_disc, lpips, step: 0, group: None })
+    }
+
+    /// Joins a data-parallel run (as [`super::Trainer::join`]).
+    pub fn join(&mut self, group: std::sync::Arc<crate::dist::Group>) -> Result<()> {
+        super::broadcast_stores(&group, &[&self.net.vs, &self.disc_vs])?;
+        self.group = Some(group);
+        Ok(())
     }
 
     pub fn device(&self) -> Device {
@@ -77,8 +86,9 @@ impl BaselineTrainer {
         let photo_log = b.est_input.narrow(1, 0, 3);
         self.zero_all();
         let pred = self.net.forward_t(&b.est_input, &b.out_wi, &b.out_wo, true)?;
+        let buffers = super::running_stats(&[&self.net.vs, &self.disc_vs]);
         let mut nets = [&mut self.opt_net];
-        super::combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv)
+        super::combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv, (self.group.as_deref(), &buffers))
     }
 
     /// Writes a checkpoint (same archive format as flashmat's, with the

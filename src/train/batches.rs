@@ -20,6 +20,20 @@ pub fn step_rng(seed: u64, step: u64, stream: u64) -> Pcg64 {
     Pcg64::seed_from_u64(seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ stream.wrapping_mul(0xD1B5_4A32_D192_ED03))
 }
 
+/// The random stream `stream` (1 crops, 2 light/view, 3 recolouring, 4
+/// shift) of the material at `index` of a step's global batch, for runs
+/// with `TrainConfig::material_streams` (above the plain run's streams).
+pub fn material_rng(seed: u64, step: u64, index: u64, stream: u64) -> Pcg64 {
+    step_rng(seed, step, 16 + index * 8 + stream)
+}
+
+/// Global-batch indices of this process's materials of a step.
+fn global_indices(cfg: &TrainConfig) -> std::ops::Range<u64> {
+    let n = cfg.materials_per_batch as u64;
+    let first = cfg.shard.rank as u64 * n;
+    first..first + n
+}
+
 /// A source of training materials.
 #[derive(Clone)]
 pub enum MaterialStream {
@@ -55,9 +69,14 @@ impl MaterialStream {
         }
         // Its own random stream: the crops and renders of a step stay those of a run without it.
         let mut rng = step_rng(cfg.seed, step, 3);
+        let indices = global_indices(cfg);
         Ok(crops
             .into_iter()
-            .map(|m| {
+            .zip(indices)
+            .map(|(m, g)| {
+                if cfg.material_streams {
+                    rng = material_rng(cfg.seed, step, g, 3);
+                }
                 let (recolour, hue_turns, log_saturation) = (rng.random::<f64>() < cfg.colour_augment, rng.random::<f32>(), rng.random_range(-0.5f32..0.6));
                 if recolour {
                     m.recolour(hue_turns, log_saturation.exp())
@@ -69,6 +88,9 @@ impl MaterialStream {
     }
 
     fn crops(&self, cfg: &TrainConfig, step: u64) -> Result<Vec<Svbrdf>> {
+        if cfg.material_streams {
+            return global_indices(cfg).map(|g| self.material_of(cfg, step, g)).collect();
+        }
         let mut rng = step_rng(cfg.seed, step, 1);
         let n = cfg.materials_per_batch as u64;
         let full: Vec<Svbrdf> = match self {
@@ -97,6 +119,28 @@ impl MaterialStream {
             full
         };
         full.iter().map(|m| random_crop(m, cfg.material_crop(), &mut rng)).collect()
+    }
+
+    /// The cropped material at `index` of step `step`'s global batch, from
+    /// its own random stream (`TrainConfig::material_streams`): procedural
+    /// materials are the plain run's of a batch of the global size.
+    fn material_of(&self, cfg: &TrainConfig, step: u64, index: u64) -> Result<Svbrdf> {
+        let mut rng = material_rng(cfg.seed, step, index, 1);
+        let global = (cfg.materials_per_batch * cfg.shard.world) as u64;
+        let mut full = match self {
+            Self::Procedural { config } => procedural::generate_many_with(&[procedural::training_seed(step * global + index)], config).remove(0),
+            Self::Single(m) => m.as_ref().clone(),
+            Self::Bank(bank) => {
+                let m = &bank[rng.random_range(0..bank.len())];
+                let code = rng.random_range(0..8u8);
+                return random_crop(m, cfg.material_crop(), &mut rng).map(|c| c.dihedral(code));
+            }
+            Self::Dataset(ds) => ds.load(rng.random_range(0..ds.len()))?,
+        };
+        if cfg.shadows {
+            ensure_height_field(&mut full)?;
+        }
+        random_crop(&full, cfg.material_crop(), &mut rng)
     }
 }
 
@@ -128,12 +172,28 @@ pub fn batch_for_step(cfg: &TrainConfig, materials: &[Svbrdf], step: u64, device
         height_scale: cfg.height_scale,
         ..Default::default()
     };
-    let mut rng = step_rng(cfg.seed, step, 2);
+    if cfg.material_streams && materials.len() > 1 {
+        // One material at a time, each from its own streams, joined.
+        let parts = materials.iter().zip(global_indices(cfg)).map(|(m, g)| batch_of(cfg, &sample_cfg, std::slice::from_ref(m), step, Some(g), device)).collect::<Result<Vec<_>>>()?;
+        return TrainingBatch::concat(parts);
+    }
+    let index = cfg.material_streams.then(|| global_indices(cfg).start);
+    batch_of(cfg, &sample_cfg, materials, step, index, device)
+}
+
+/// [`batch_for_step`] of `materials` drawing from the plain run's streams,
+/// or (with `index`) from those of the one material at that index of the global batch.
+fn batch_of(cfg: &TrainConfig, sample_cfg: &SampleConfig, materials: &[Svbrdf], step: u64, index: Option<u64>, device: Device) -> Result<TrainingBatch> {
+    let rng_of = |stream| match index {
+        Some(g) => material_rng(cfg.seed, step, g, stream),
+        None => step_rng(cfg.seed, step, stream),
+    };
+    let mut rng = rng_of(2);
     if cfg.weight_shift <= 0.0 {
-        return tch::no_grad(|| make_batch(materials, &sample_cfg, &mut rng, device));
+        return tch::no_grad(|| make_batch(materials, sample_cfg, &mut rng, device));
     }
     // Its own random stream, as the recolouring's.
-    let mut shift_rng = step_rng(cfg.seed, step, 4);
+    let mut shift_rng = rng_of(4);
     let (mut first, mut second, mut offsets) = (vec![], vec![], vec![]);
     for m in materials {
         let margin = m.height().min(m.width()).saturating_sub(cfg.crop);
@@ -144,8 +204,8 @@ pub fn batch_for_step(cfg: &TrainConfig, materials: &[Svbrdf], step: u64, device
         offsets.push((b.0 as i64 - a.0 as i64, b.1 as i64 - a.1 as i64));
     }
     tch::no_grad(|| {
-        let mut batch = make_batch(&first, &sample_cfg, &mut rng, device)?;
-        batch.shifted = Some(ShiftedPhotos { est_input: input_only(&second, &sample_cfg, device)?, offsets });
+        let mut batch = make_batch(&first, sample_cfg, &mut rng, device)?;
+        batch.shifted = Some(ShiftedPhotos { est_input: input_only(&second, sample_cfg, device)?, offsets });
         Ok(batch)
     })
 }

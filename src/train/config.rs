@@ -196,6 +196,39 @@ pub struct TrainConfig {
     pub checkpoint_every: u64,
     pub preview_every: u64,
     pub seed: u64,
+    /// Every material of a step draws its crop, recolouring and light/view
+    /// configurations from its own random stream, keyed by (seed, step, its
+    /// index in the global batch), so a global batch is the same at every
+    /// world size (`Shard`). Set for runs launched by torchrun and kept by
+    /// their resumes; plain runs draw a step's materials from one stream.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub material_streams: bool,
+    /// This process's share of the global batch in a data-parallel run
+    /// (not saved: a run resumes at any world size).
+    #[serde(skip)]
+    pub shard: Shard,
+}
+
+/// Which part of a step's global batch this process trains on: materials
+/// `rank * B .. (rank + 1) * B` of `world * B`, B = `materials_per_batch`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Shard {
+    pub rank: usize,
+    pub world: usize,
+}
+
+impl Default for Shard {
+    fn default() -> Self {
+        Self { rank: 0, world: 1 }
+    }
+}
+
+impl Shard {
+    /// A random stream of the trainer's own (`batches::step_rng`'s
+    /// `stream`), distinct on every rank; rank 0 keeps the plain run's.
+    pub fn stream(&self, stream: u64) -> u64 {
+        stream ^ ((self.rank as u64) << 32)
+    }
 }
 
 fn is_zero_count(v: &usize) -> bool {
@@ -263,6 +296,8 @@ impl Default for TrainConfig {
             checkpoint_every: 250,
             preview_every: 250,
             seed: 1,
+            material_streams: false,
+            shard: Shard::default(),
         }
     }
 }

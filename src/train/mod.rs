@@ -14,9 +14,10 @@ pub mod smoke;
 pub mod teacher;
 
 pub use baseline::BaselineTrainer;
-pub use config::{PixelSampling, TrainConfig, UpdateScheme};
+pub use config::{PixelSampling, Shard, TrainConfig, UpdateScheme};
 
 use crate::data::samples::TrainingBatch;
+use crate::dist::Group;
 use crate::lpips::Lpips;
 use crate::model::{Discriminator, Model};
 use crate::optim::Adam;
@@ -53,6 +54,14 @@ pub struct StepLosses {
     /// True when the step was skipped because a loss or gradient was NaN/Inf.
     pub skipped: bool,
     pub seconds: f64,
+    /// Of `seconds`, those spent in a data-parallel run's collectives
+    /// (rank 0's, waiting for the slowest rank included; 0 alone).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub sync_seconds: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 /// All trainable state: networks, their optimizers, the perceptual metric.
@@ -77,6 +86,8 @@ pub struct Trainer {
     /// forward that gives the same gradients: the reference for the
     /// equivalence test and `bench train` ([`Trainer::use_reference_step`]).
     two_pass: bool,
+    /// The process group of a data-parallel run ([`Trainer::join`]).
+    pub group: Option<std::sync::Arc<Group>>,
 }
 
 /// Trainable variables of a store, by name (what an optimizer updates).
@@ -87,6 +98,57 @@ pub(crate) fn trainable(vs: &nn::VarStore) -> std::collections::HashMap<String, 
 /// Non-trainable state (BatchNorm running statistics) of the stores.
 pub(crate) fn buffers_of(stores: &[&nn::VarStore]) -> Vec<Tensor> {
     stores.iter().flat_map(|vs| vs.variables().into_values().filter(|t| !t.requires_grad())).collect()
+}
+
+/// BatchNorm running statistics of the stores, by name within each store
+/// (one order on every rank: a VarStore's map is ordered per process).
+pub(crate) fn running_stats(stores: &[&nn::VarStore]) -> Vec<Tensor> {
+    stores
+        .iter()
+        .flat_map(|vs| {
+            let mut v: Vec<(String, Tensor)> = vs.variables().into_iter().filter(|(n, t)| !t.requires_grad() && n.contains("running_")).collect();
+            v.sort_by(|a, b| a.0.cmp(&b.0));
+            v.into_iter().map(|(_, t)| t)
+        })
+        .collect()
+}
+
+/// Every variable of the stores (weights and BatchNorm statistics) made
+/// rank 0's, in place.
+pub(crate) fn broadcast_stores(group: &Group, stores: &[&nn::VarStore]) -> Result<()> {
+    let mut all: Vec<Tensor> = Vec::new();
+    for vs in stores {
+        let mut v: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        all.extend(v.into_iter().map(|(_, t)| t));
+    }
+    tch::no_grad(|| group.broadcast(&mut all, 0))
+}
+
+/// Data-parallel training's one collective of a step: the gradients of
+/// `nets` and the BatchNorm statistics `buffers` averaged over the ranks,
+/// with each rank's verdict on its own step. Every rank calls it exactly
+/// once a step, before any optimizer steps (collectives match by order),
+/// with `ok` false where its step already failed (a NaN/Inf loss or
+/// gradient). Returns whether every rank's step is fine and the averaged
+/// gradients are finite: one answer on every rank, so all skip or step
+/// together, clip alike (the averaged gradients are the same everywhere)
+/// and count skipped steps alike. Without a group: `ok`.
+pub(crate) fn synchronise(group: Option<&Group>, nets: &[&Adam], buffers: &[Tensor], ok: bool) -> Result<bool> {
+    let Some(group) = group else { return Ok(ok) };
+    // A rank that failed before its backward pass may have no gradients:
+    // zeros stand in (every rank skips that step).
+    let mut all: Vec<Tensor> = nets
+        .iter()
+        .flat_map(|o| o.params())
+        .map(|p| {
+            let g = p.grad();
+            if g.defined() { g } else { p.zeros_like() }
+        })
+        .collect();
+    all.extend(buffers.iter().map(|b| b.shallow_clone()));
+    let failed = group.average(&all, &[if ok { 0.0 } else { 1.0 }])?;
+    Ok(failed[0] == 0.0 && nets.iter().all(|o| o.grad_norm().is_finite()))
 }
 
 /// Runs one update. Forward passes in training mode update BatchNorm
@@ -137,7 +199,24 @@ impl Trainer {
             }
             None => None,
         };
-        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, anchor, step: 0, two_pass: false })
+        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, anchor, step: 0, two_pass: false, group: None })
+    }
+
+    /// Joins a data-parallel run: every network's weights and BatchNorm
+    /// statistics become rank 0's (a fresh start seeds them alike, a
+    /// resume reads one checkpoint; this makes sure), and from now on each
+    /// step averages the gradients over the ranks before it steps.
+    pub fn join(&mut self, group: std::sync::Arc<Group>) -> Result<()> {
+        broadcast_stores(&group, &[&self.model.est_vs, &self.model.renderer_vs, &self.disc_vs])?;
+        self.group = Some(group);
+        Ok(())
+    }
+
+    /// [`synchronise`] of this step: all three networks' gradients and
+    /// BatchNorm statistics.
+    fn synchronise(&self, ok: bool) -> Result<bool> {
+        let buffers = running_stats(&[&self.model.est_vs, &self.model.renderer_vs, &self.disc_vs]);
+        synchronise(self.group.as_deref(), &[&self.opt_est, &self.opt_render, &self.opt_disc], &buffers, ok)
     }
 
     pub fn device(&self) -> Device {
@@ -247,6 +326,8 @@ impl Trainer {
         readout.check(self.opt_est.grad_norm_tensor());
         if cfg.freeze_renderer {
             let (out, finite) = readout.read();
+            // Every rank's verdict and gradients averaged (one process: as it is).
+            let finite = self.synchronise(finite)?;
             if finite {
                 self.opt_est.step(lr, cfg.grad_clip);
             }
@@ -296,7 +377,7 @@ impl Trainer {
 
         // Both halves' losses on the one prediction.
         let l1 = (&pred - &truth_log).abs().mean(Kind::Float);
-        let mut rng = batches::step_rng(cfg.seed, self.step, 3);
+        let mut rng = batches::step_rng(cfg.seed, self.step, cfg.shard.stream(3));
         let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling, &mut rng);
         let l1_r = losses::masked_l1(&pred, &truth_log, &mask);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &truth_log)?;
@@ -375,6 +456,8 @@ impl Trainer {
             readout.check(norm);
         }
         let (out, finite) = readout.read();
+        // Every rank's verdict and gradients averaged (one process: as it is).
+        let finite = self.synchronise(finite)?;
         if !finite {
             self.zero_all();
             return Ok(StepLosses { skipped: true, ..out });
@@ -435,7 +518,7 @@ impl Trainer {
         self.opt_render.zero_grad();
         self.opt_disc.zero_grad();
         let pred_r = self.model.renderer.render_code(&neural, code)?;
-        let mut rng = batches::step_rng(cfg.seed, self.step, 3);
+        let mut rng = batches::step_rng(cfg.seed, self.step, cfg.shard.stream(3));
         let mask = losses::pixel_mask(&neural, &b.targets, cfg.pixel_fraction, cfg.pixel_sampling, &mut rng);
         let l1_r = losses::masked_l1(&pred_r, &target_log, &mask);
         if cfg.freeze_estimator {
@@ -460,6 +543,8 @@ impl Trainer {
         readout.check(self.opt_disc.grad_norm_tensor());
 
         let (out, finite) = readout.read();
+        // Every rank's verdict and gradients averaged (one process: as it is).
+        let finite = self.synchronise(finite)?;
         if !finite {
             self.zero_all();
             return Ok(StepLosses { skipped: true, ..out });
@@ -500,7 +585,8 @@ impl Trainer {
             (_, true) => vec![&mut self.opt_est],
             _ => vec![&mut self.opt_est, &mut self.opt_render],
         };
-        let out = combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv)?;
+        let buffers = running_stats(&[&self.model.est_vs, &self.model.renderer_vs, &self.disc_vs]);
+        let out = combined_update(&cfg, self.lpips.as_ref(), &self.disc, &mut nets, &mut self.opt_disc, &pred, &target_log, &photo_log, lr, weight_adv, (self.group.as_deref(), &buffers))?;
         Ok(StepLosses { param_norm, ..out })
     }
 }
@@ -605,6 +691,7 @@ pub(crate) fn combined_update(
     photo_log: &Tensor,
     lr: f64,
     weight_adv: f64,
+    (group, buffers): (Option<&Group>, &[Tensor]),
 ) -> Result<StepLosses> {
     let mut out = StepLosses::default();
     let l1 = (pred - target_log).abs().mean(tch::Kind::Float);
@@ -617,9 +704,12 @@ pub(crate) fn combined_update(
     out.adv = adv.double_value(&[]);
     out.loss_est = loss.double_value(&[]);
     out.loss_render = out.loss_est;
+    // Before the step's collective: join it with a failed verdict (every rank skips).
     let skip = |nets: &mut [&mut Adam], opt_disc: &mut Adam, out: StepLosses| {
         nets.iter_mut().for_each(|o| o.zero_grad());
         opt_disc.zero_grad();
+        let all: Vec<&Adam> = nets.iter().map(|o| &**o).chain([&*opt_disc]).collect();
+        synchronise(group, &all, buffers, false)?;
         Ok(StepLosses { skipped: true, ..out })
     };
     if !out.loss_est.is_finite() {
@@ -637,6 +727,12 @@ pub(crate) fn combined_update(
         if !(out.loss_disc.is_finite() && opt_disc.grad_norm().is_finite()) {
             return skip(nets, opt_disc, out);
         }
+    }
+    let all: Vec<&Adam> = nets.iter().map(|o| &**o).chain([&*opt_disc]).collect();
+    if !synchronise(group, &all, buffers, true)? {
+        nets.iter_mut().for_each(|o| o.zero_grad());
+        opt_disc.zero_grad();
+        return Ok(StepLosses { skipped: true, ..out });
     }
     nets.iter_mut().for_each(|o| o.step(lr, cfg.grad_clip));
     if weight_adv > 0.0 {

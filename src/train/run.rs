@@ -8,7 +8,8 @@
 //! configuration's (or the checkpoint's) method.
 
 use super::batches::{batch_for_step, MaterialStream, Prefetcher};
-use super::{BaselineTrainer, StepLosses, TrainConfig, Trainer};
+use super::{BaselineTrainer, Shard, StepLosses, TrainConfig, Trainer};
+use crate::dist::Group;
 use crate::data::samples::TrainingBatch;
 use crate::image::{all_finite, Image};
 use crate::viz::{self, Series};
@@ -17,6 +18,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Instant;
 use tch::{Device, Kind};
 
@@ -148,6 +150,9 @@ pub trait RunTrainer: Sized {
     fn create(config: TrainConfig, device: Device) -> Result<Self>;
     /// Rebuilds the trainer from a checkpoint.
     fn resume_from(path: &Path, device: Device) -> Result<Self>;
+    /// Joins a data-parallel run: rank 0's weights everywhere, gradients
+    /// averaged over the ranks at every step.
+    fn join(&mut self, group: Arc<Group>) -> Result<()>;
 }
 
 impl RunTrainer for Trainer {
@@ -212,6 +217,9 @@ impl RunTrainer for Trainer {
     fn resume_from(path: &Path, device: Device) -> Result<Self> {
         Trainer::resume(path, device, None)
     }
+    fn join(&mut self, group: Arc<Group>) -> Result<()> {
+        Trainer::join(self, group)
+    }
 }
 
 impl RunTrainer for BaselineTrainer {
@@ -250,6 +258,9 @@ impl RunTrainer for BaselineTrainer {
     }
     fn resume_from(path: &Path, device: Device) -> Result<Self> {
         BaselineTrainer::resume(path, device)
+    }
+    fn join(&mut self, group: Arc<Group>) -> Result<()> {
+        BaselineTrainer::join(self, group)
     }
 }
 
@@ -309,13 +320,42 @@ pub struct RunOptions {
     /// (`TrainConfig::colocated_outputs`) from the resumed step on, recorded likewise.
     pub new_colocated_outputs: Option<usize>,
     pub progress: bool,
+    /// The process group of a data-parallel run (torchrun): this process
+    /// trains its share of every step's global batch, rank 0 alone writes
+    /// the run folder and the exports (docs/DISTRIBUTED.md).
+    pub group: Option<Arc<Group>>,
 }
 
 impl RunOptions {
     /// Options of a plain run in `run_dir` (no step, time or export limits).
     pub fn new(run_dir: impl Into<PathBuf>, device: Device, progress: bool) -> Self {
-        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, keep_exports: false, new_lr: None, checkerboard_free: false, new_colour_augment: None, new_colocated_outputs: None, progress }
+        Self { run_dir: run_dir.into(), device, max_steps_this_run: None, max_minutes: None, export_dir: None, keep_exports: false, new_lr: None, checkerboard_free: false, new_colour_augment: None, new_colocated_outputs: None, progress, group: None }
     }
+}
+
+impl RunOptions {
+    /// Whether this process writes the run folder: a plain run, or rank 0.
+    pub fn leader(&self) -> bool {
+        self.group.as_ref().is_none_or(|g| g.is_leader())
+    }
+}
+
+/// A data-parallel run's trainer takes its share of the global batch
+/// (drawn per material, so the global batch is the same at every world
+/// size; recorded, so a later resume draws so too) and rank 0's weights.
+fn enter_group<T: RunTrainer>(trainer: &mut T, opts: &RunOptions) -> Result<()> {
+    let Some(group) = &opts.group else { return Ok(()) };
+    let cfg = trainer.config_mut();
+    cfg.shard = Shard { rank: group.rank, world: group.world };
+    cfg.material_streams = true;
+    let batch = cfg.materials_per_batch;
+    trainer.join(group.clone())?;
+    if group.is_leader() {
+        let backend = if group.device.is_cuda() { "NCCL" } else { "Gloo" };
+        let ranks = if group.world == 1 { "1 rank".to_string() } else { format!("{} ranks", group.world) };
+        eprintln!("data-parallel training: {ranks} ({backend}) x --batch {batch} = a global batch of {} materials a step", group.world * batch);
+    }
+    Ok(())
 }
 
 /// What an exported model (and the checks run on the live networks)
@@ -384,12 +424,19 @@ fn own_run_folder(run: &Path) -> Result<crate::io::FolderLock> {
 fn start_with<T: RunTrainer>(config: TrainConfig, opts: &RunOptions) -> Result<T> {
     let ckpt = checkpoint_path(&opts.run_dir);
     let holds_a_run = || anyhow::anyhow!("{} already holds a run; continue it with `flashmat train --resume {}`", opts.run_dir.display(), opts.run_dir.display());
+    if !opts.leader() {
+        // Rank 0 owns the run folder; the others train and write nothing.
+        let mut trainer = T::create(config, opts.device)?;
+        enter_group(&mut trainer, opts)?;
+        return train_loop(trainer, opts);
+    }
     if ckpt.exists() {
         return Err(holds_a_run());
     }
     // Networks first: a refused configuration (bad --init-from) leaves no run folder behind.
-    let config_json = serde_json::to_string_pretty(&config)?;
-    let trainer = T::create(config, opts.device)?;
+    let mut trainer = T::create(config, opts.device)?;
+    enter_group(&mut trainer, opts)?;
+    let config_json = serde_json::to_string_pretty(trainer.config())?;
     let created = !opts.run_dir.exists();
     let remove_created = || {
         if created && !ckpt.exists() {
@@ -445,7 +492,7 @@ pub fn resume_any(opts: &RunOptions, steps: Option<u64>) -> Result<AnyTrainer> {
 fn resume_with<T: RunTrainer>(opts: &RunOptions, steps: Option<u64>) -> Result<T> {
     let ckpt = checkpoint_path(&opts.run_dir);
     anyhow::ensure!(ckpt.exists(), "{} holds no checkpoint to resume", opts.run_dir.display());
-    let _lock = own_run_folder(&opts.run_dir)?;
+    let _lock = if opts.leader() { Some(own_run_folder(&opts.run_dir)?) } else { None };
     let mut trainer = T::resume_from(&ckpt, opts.device)?;
     if let Some(s) = steps {
         check_new_total(&opts.run_dir, trainer.steps_done(), s)?;
@@ -467,7 +514,10 @@ fn resume_with<T: RunTrainer>(opts: &RunOptions, steps: Option<u64>) -> Result<T
         trainer.config_mut().colocated_outputs = c;
         trainer.config().validate()?;
     }
-    truncate_log(&opts.run_dir, trainer.steps_done())?;
+    enter_group(&mut trainer, opts)?;
+    if opts.leader() {
+        truncate_log(&opts.run_dir, trainer.steps_done())?;
+    }
     train_loop(trainer, opts)
 }
 
@@ -537,6 +587,35 @@ fn diverged(step: u64, why: &str, run: &Path, last_good: Option<u64>) -> anyhow:
     }
 }
 
+fn flush(log: &mut Option<std::fs::File>) -> Result<()> {
+    if let Some(log) = log {
+        log.flush()?;
+    }
+    Ok(())
+}
+
+/// A data-parallel step's agreement, one small collective: the losses
+/// averaged over the ranks (what the log records: the global batch's, as
+/// every loss is a mean over equal shares), whether any rank was asked to
+/// stop, and rank 0's time box (`timed_out` is only ever true there).
+fn agree_on_step(group: &Group, losses: &mut StepLosses, stop: bool, timed_out: bool) -> Result<(bool, bool)> {
+    let l = &*losses;
+    let values = [l.l1, l.lpips, l.adv, l.loss_est, l.l1_render, l.loss_render, l.loss_disc, l.code, l.shift, l.param_norm, stop as u8 as f64, timed_out as u8 as f64];
+    let sum = group.sum_f64(&values)?;
+    let mean: Vec<f64> = sum.iter().map(|v| v / group.world as f64).collect();
+    let l = losses;
+    [l.l1, l.lpips, l.adv, l.loss_est, l.l1_render, l.loss_render, l.loss_disc, l.code, l.shift, l.param_norm] = mean[..10].try_into().expect("ten losses");
+    Ok((sum[10] > 0.0, sum[11] > 0.0))
+}
+
+/// Whether `ok` holds on every rank (a plain run: `ok`).
+fn all_ranks(group: &Option<Arc<Group>>, ok: bool) -> Result<bool> {
+    match group {
+        Some(g) => Ok(g.sum_f64(&[if ok { 0.0 } else { 1.0 }])?[0] == 0.0),
+        None => Ok(ok),
+    }
+}
+
 fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
     let started = Instant::now();
     let out_of_time = || opts.max_minutes.is_some_and(|m| started.elapsed().as_secs_f64() >= m * 60.0);
@@ -556,10 +635,17 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
     }
     let stream = MaterialStream::open(&cfg)?;
     let prefetch = Prefetcher::start(stream, cfg.clone(), first, 4);
-    let bar = if opts.progress { ProgressBar::new(cfg.steps) } else { ProgressBar::hidden() };
+    let leader = opts.leader();
+    let bar = if opts.progress && leader { ProgressBar::new(cfg.steps) } else { ProgressBar::hidden() };
     bar.set_style(ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {per_sec}  ETA {eta}  {msg}")?);
     bar.set_position(first);
-    let mut log = std::fs::OpenOptions::new().create(true).append(true).open(log_path(run)).with_context(|| format!("cannot write {}", log_path(run).display()))?;
+    let mut log = match leader {
+        true => Some(std::fs::OpenOptions::new().create(true).append(true).open(log_path(run)).with_context(|| format!("cannot write {}", log_path(run).display()))?),
+        false => None,
+    };
+    if let Some(group) = &opts.group {
+        group.take_seconds(); // joining's broadcast is no step's
+    }
     let mut skipped = 0u64;
     let mut skipped_in_a_row = 0u64;
     while trainer.steps_done() < last {
@@ -568,7 +654,15 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
         let materials = prefetch.next(step)?;
         let batch = batch_for_step(&cfg, &materials, step, opts.device)?;
         let mut losses = trainer.train_step(&batch)?;
+        // Rank 0 decides the time box, any rank's stop signal stops all.
+        let (stop, timed_out) = match &opts.group {
+            Some(group) => agree_on_step(group, &mut losses, stop_requested(), leader && out_of_time())?,
+            None => (stop_requested(), out_of_time()),
+        };
         losses.seconds = t0.elapsed().as_secs_f64();
+        if let Some(group) = &opts.group {
+            losses.sync_seconds = group.take_seconds();
+        }
         if losses.skipped {
             skipped += 1;
             skipped_in_a_row += 1;
@@ -576,29 +670,30 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
         } else {
             skipped_in_a_row = 0;
         }
-        writeln!(log, "{}", serde_json::to_string(&losses)?)?;
+        if let Some(log) = &mut log {
+            writeln!(log, "{}", serde_json::to_string(&losses)?)?;
+        }
         bar.set_message(format!("L1 {:.4}  LPIPS {:.3}  skipped {skipped}", losses.l1, losses.lpips));
         bar.set_position(trainer.steps_done());
         let done = trainer.steps_done();
         if skipped_in_a_row >= MAX_SKIPPED_IN_A_ROW {
-            log.flush()?;
+            flush(&mut log)?;
             bar.abandon();
             return Err(diverged(done, &format!("NaN/Inf losses or gradients for {skipped_in_a_row} steps in a row"), run, last_good));
         }
         let preview_due = cfg.preview_every > 0 && done % cfg.preview_every == 0;
-        let timed_out = out_of_time();
-        let checkpoint_due = done % cfg.checkpoint_every.max(1) == 0 || done == last || stop_requested() || timed_out;
-        if (preview_due || checkpoint_due) && !trainer.is_finite_on(&batch)? {
-            log.flush()?;
+        let checkpoint_due = done % cfg.checkpoint_every.max(1) == 0 || done == last || stop || timed_out;
+        if (preview_due || checkpoint_due) && !all_ranks(&opts.group, trainer.is_finite_on(&batch)?)? {
+            flush(&mut log)?;
             bar.abandon();
             return Err(diverged(done, "NaN/Inf weights or outputs", run, last_good));
         }
-        if preview_due {
+        if preview_due && leader {
             let grid = trainer.preview_grid(&batch, 4)?;
             crate::io::write_png(&run.join("previews").join(format!("step-{done:07}.png")), &grid, crate::io::BitDepth::Eight)?;
         }
-        if checkpoint_due {
-            log.flush()?;
+        if checkpoint_due && leader {
+            flush(&mut log)?;
             save_all(&trainer, opts)?;
             last_good = Some(done);
             if let Some(summary) = trainer.colour_summary() {
@@ -622,7 +717,7 @@ fn train_loop<T: RunTrainer>(mut trainer: T, opts: &RunOptions) -> Result<T> {
                 writeln!(f, "{line}")?;
             }
         }
-        if stop_requested() {
+        if stop {
             bar.abandon_with_message(format!("interrupted at step {done}; checkpoint saved, continue with --resume"));
             return Ok(trainer);
         }

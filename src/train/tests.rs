@@ -878,3 +878,83 @@ fn shift_weight_adds_the_consistency_of_two_photos() {
         assert!(err.contains(why), "{err}");
     }
 }
+
+/// Per-material random streams make a step's global batch the same at
+/// every world size: 2 ranks x 1 material draw exactly the materials,
+/// photos, directions and targets of 1 rank x 2 (the data half of
+/// `tests/distributed.rs`'s proof, without processes).
+#[test]
+fn a_global_batch_is_the_same_at_every_world_size() {
+    let cfg = TrainConfig { material_streams: true, colour_augment: 0.5, ..tiny_config() };
+    let stream = batches::MaterialStream::open(&cfg).unwrap();
+    for step in [0, 7] {
+        let whole = batches::batch_for_step(&cfg, &stream.materials(&cfg, step).unwrap(), step, tch::Device::Cpu).unwrap();
+        let shares: Vec<_> = (0..2)
+            .map(|rank| {
+                let c = TrainConfig { materials_per_batch: 1, shard: Shard { rank, world: 2 }, ..cfg.clone() };
+                batches::batch_for_step(&c, &stream.materials(&c, step).unwrap(), step, tch::Device::Cpu).unwrap()
+            })
+            .collect();
+        let joined = crate::data::samples::TrainingBatch::concat(shares).unwrap();
+        for (a, b) in [(&whole.maps, &joined.maps), (&whole.est_input, &joined.est_input), (&whole.out_wi, &joined.out_wi), (&whole.out_wo, &joined.out_wo), (&whole.targets, &joined.targets)] {
+            assert_eq!(a.size(), b.size());
+            assert_eq!((a - b).abs().max().double_value(&[]), 0.0);
+        }
+        assert_eq!(whole.configs, joined.configs);
+        // The two materials differ (each its own stream, not one drawn twice).
+        assert!((whole.maps.get(0) - whole.maps.get(1)).abs().max().double_value(&[]) > 0.01);
+    }
+}
+
+/// Without a process group the step's verdict is the rank's own.
+#[test]
+fn synchronise_alone_is_the_local_verdict() {
+    let t = Trainer::new(tiny_config(), tch::Device::Cpu).unwrap();
+    for ok in [true, false] {
+        assert_eq!(synchronise(None, &[&t.opt_est], &[], ok).unwrap(), ok);
+    }
+}
+
+/// The step's verdict with two real Gloo ranks (threads): the gradients
+/// and BatchNorm statistics come back averaged; one rank's failed step,
+/// or a NaN gradient on one rank that thinks its step fine, makes both
+/// skip.
+#[test]
+fn synchronise_averages_and_agrees_on_the_verdict_across_ranks() {
+    use crate::dist::{Config, Group, Launch};
+    use crate::optim::Adam;
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let results: Vec<Vec<(bool, Vec<f32>, Vec<f32>)>> = std::thread::scope(|s| {
+        let ranks: Vec<_> = (0..2usize)
+            .map(|rank| {
+                s.spawn(move || {
+                    let launch = Launch { rank, world: 2, local_rank: rank, master_addr: "127.0.0.1".into(), master_port: port, agent_store: false, restart: 0 };
+                    let group = Group::join(&launch, tch::Device::Cpu, Config { timeout: std::time::Duration::from_secs(30), ..Config::default() }).unwrap();
+                    let w = tch::Tensor::ones([3], (tch::Kind::Float, tch::Device::Cpu)).set_requires_grad(true);
+                    let adam = Adam::new([("w".to_string(), w.shallow_clone())].into_iter().collect());
+                    let stats = tch::Tensor::from_slice(&[rank as f32 * 4.0]);
+                    // (ok, this rank's gradient) of three steps.
+                    let cases = [(true, [1.0 + rank as f32, 2.0, 3.0]), (rank == 1, [1.0, 1.0, 1.0]), (true, [if rank == 0 { f32::NAN } else { 1.0 }, 1.0, 1.0])];
+                    cases
+                        .iter()
+                        .map(|(ok, g)| {
+                            let mut grad = w.grad();
+                            if grad.defined() {
+                                let _ = grad.zero_();
+                            }
+                            (&w * tch::Tensor::from_slice(g)).sum(tch::Kind::Float).backward();
+                            let verdict = synchronise(Some(&group), &[&adam], &[stats.shallow_clone()], *ok).unwrap();
+                            (verdict, Vec::<f32>::try_from(w.grad()).unwrap(), Vec::<f32>::try_from(&stats).unwrap())
+                        })
+                        .collect()
+                })
+            })
+            .collect();
+        ranks.into_iter().map(|r| r.join().unwrap()).collect()
+    });
+    for r in &results {
+        assert_eq!((r[0].0, r[0].1.as_slice(), r[0].2.as_slice()), (true, [1.5f32, 2.0, 3.0].as_slice(), [2.0f32].as_slice()));
+        assert!(!r[1].0, "rank 0's failed step is every rank's");
+        assert!(!r[2].0, "a NaN gradient on one rank is every rank's");
+    }
+}
