@@ -110,13 +110,13 @@ pub fn forward<T>(device: Device, f: impl FnOnce() -> T) -> T {
     out
 }
 
-/// A forward's output as f32 (what the losses read): a copy when autocast
-/// made it bf16, the tensor itself otherwise.
+/// A forward's output as the losses read it: an f32 copy when autocast
+/// made it bf16 (or f16), the tensor itself otherwise (an f64 model's
+/// output stays f64).
 pub fn to_f32(t: Tensor) -> Tensor {
-    if t.kind() == Kind::Float {
-        t
-    } else {
-        t.to_kind(Kind::Float)
+    match t.kind() {
+        Kind::BFloat16 | Kind::Half => t.to_kind(Kind::Float),
+        _ => t,
     }
 }
 
