@@ -195,7 +195,7 @@ fn bench_infer(a: &InferBenchArgs) -> Result<()> {
         let busy = sampler.and_then(BusySampler::finish);
         println!("{t}");
         if let Some(gib) = peak_device_memory_gib(device) {
-            println!("  GPU memory held by the process: {gib:.2} GiB (the caching allocator keeps its peak; --max-memory {})", a.max_memory);
+            println!("  GPU memory in use on the card: {gib:.2} GiB (the caching allocator keeps its peak; --max-memory {})", a.max_memory);
         }
         let how = tile_core.map_or(String::new(), |c| format!(", tiles of {c}"));
         rows.push(Row { what: format!("M_est forward, {}, {size}x{size}{how}", a.preset), ours_ms: Some(t.est_s * 1e3), theirs_ms: None, ours_rate: Some(1.0 / t.est_s), theirs_rate: None, busy, tflops: Some(t.est_gflop / t.est_s / 1e3) });
@@ -246,9 +246,10 @@ fn device_index(device: Device) -> Option<usize> {
     }
 }
 
-/// The CUDA caching allocator's peak so far, in GiB (None on the CPU).
+/// The card's memory in use, in GiB (None on the CPU): the caching
+/// allocator keeps what it reached, so after a benchmark about its peak.
 /// tch binds no `max_memory_allocated`; the NVML figure from `nvidia-smi`
-/// (memory.used, the whole process) is read instead.
+/// (memory.used: the whole card, this process alone on a GPU job) is read instead.
 fn peak_device_memory_gib(device: Device) -> Option<f64> {
     let i = device_index(device)?;
     let out = std::process::Command::new("nvidia-smi").args(["--query-gpu=memory.used", "--format=csv,noheader,nounits", "-i", &i.to_string()]).stderr(std::process::Stdio::null()).output().ok()?;
@@ -411,7 +412,7 @@ fn bench_train(args: &TrainBenchArgs) -> Result<()> {
         println!("peak resident memory: {gib:.2} GiB");
     }
     if let Some(gib) = peak_device_memory_gib(device) {
-        println!("GPU memory held by the process: {gib:.2} GiB (the caching allocator keeps its peak)");
+        println!("GPU memory in use on the card: {gib:.2} GiB (the caching allocator keeps its peak)");
     }
     let shape = format!("{}, crop {}, {} x {}, {}", args.preset, args.crop, args.batch, args.outputs, args.side.precision);
     let mut rows = vec![
