@@ -216,8 +216,8 @@ impl Adam {
 
     /// Global L2 norm of the current gradients (NaN/Inf if any gradient is).
     pub fn grad_norm(&self) -> f64 {
-        if self.flat_grad().is_some() {
-            return self.grad_norm_tensor().double_value(&[]);
+        if let Some(g) = self.flat_grad() {
+            return g.square().sum(tch::Kind::Double).sqrt().double_value(&[]);
         }
         let mut total = 0f64;
         for p in self.params.values() {

@@ -288,6 +288,17 @@ print("their own chatter", file=sys.stderr)
     let large = row("| M_est forward, tiny, 256x256, tiles of");
     assert!(large[1].contains("authors': OutOfMemoryError") && large[3] == "-", "{large:?}");
     assert!(large[2].parse::<f64>().unwrap() > 0.0);
+    // Their script dies (its own out of memory): a warning naming it, and
+    // flashmat's numbers still come (not read as flashmat's out of memory).
+    std::fs::write(&script, "raise RuntimeError('CUDA out of memory in their step')\n").unwrap();
+    let out = flashmat(&[
+        "bench", "infer", "--preset", "tiny", "--size", "64", "--runs", "1",
+        "--reference", repo.to_str().unwrap(), "--ref-bench", script.to_str().unwrap(), "--report", report.to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && stderr.contains("warning: the authors' benchmark failed"), "{stderr}");
+    let md = std::fs::read_to_string(&report).unwrap();
+    assert!(md.contains("| M_est forward, tiny, 64x64 (authors': not measured) |"), "{md}");
     // Not the authors' repository: one line.
     assert_error(&flashmat(&["bench", "infer", "--preset", "tiny", "--size", "64", "--reference", dir.path().to_str().unwrap()]), &["not a copy of the authors' repository"]);
 }

@@ -136,8 +136,7 @@ pub fn geo_min_max(values: &[f64]) -> (f64, f64, f64) {
     if v.is_empty() {
         return (f64::NAN, f64::NAN, f64::NAN);
     }
-    let geo = (v.iter().map(|x| x.ln()).sum::<f64>() / v.len() as f64).exp();
-    (geo, v.iter().copied().fold(f64::INFINITY, f64::min), v.iter().copied().fold(f64::NEG_INFINITY, f64::max))
+    (crate::eval::metrics::geometric_mean(&v), v.iter().copied().fold(f64::INFINITY, f64::min), v.iter().copied().fold(f64::NEG_INFINITY, f64::max))
 }
 
 /// CSV of every method's rows: `method,material,ev,clipped,ratio,ratio_r,

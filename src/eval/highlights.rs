@@ -283,7 +283,7 @@ pub fn ratio_stats(values: impl Iterator<Item = Option<f64>>) -> RatioStats {
     let median = if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) };
     RatioStats {
         n,
-        geo_mean: (v.iter().map(|x| x.ln()).sum::<f64>() / n as f64).exp(),
+        geo_mean: crate::eval::metrics::geometric_mean(&v),
         median,
         above_1_5: v.iter().filter(|&&x| x > GHOST_PAST).count(),
         below_0_67: v.iter().filter(|&&x| x < LOBE_BELOW).count(),

@@ -155,6 +155,14 @@ pub fn mean_scores(scores: &[Scores]) -> Scores {
     }
 }
 
+/// Geometric mean of positive values (NaN for none): how ratios average.
+pub fn geometric_mean(values: &[f64]) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    (values.iter().map(|x| x.ln()).sum::<f64>() / values.len() as f64).exp()
+}
+
 /// Mean and half-width of its 95% interval, 1.96 * std / sqrt(n) (sample
 /// std, n - 1; half-width 0 for a single value).
 pub fn mean_ci95(values: &[f64]) -> (f64, f64) {
@@ -174,6 +182,13 @@ pub fn mean_ci95(values: &[f64]) -> (f64, f64) {
 mod tests {
     use super::*;
     use tch::Device;
+
+    #[test]
+    fn geometric_mean_of_ratios() {
+        assert!((geometric_mean(&[0.5, 2.0]) - 1.0).abs() < 1e-12);
+        assert!((geometric_mean(&[1.0, 4.0, 16.0]) - 4.0).abs() < 1e-12);
+        assert!(geometric_mean(&[]).is_nan());
+    }
 
     #[test]
     fn checkerboard_amplitude_of_known_patterns() {
