@@ -34,6 +34,18 @@ pub struct EvalArgs {
     /// and re-rendered (identity, side light); writes uniform.md and uniform.json (flashmat models only).
     #[arg(long, conflicts_with_all = ["captures", "dataset", "cases", "seed", "limit", "configs", "ldr_input", "exposures"])]
     pub uniform: bool,
+    /// Measure the renderer's ceiling instead (issue 48): on the --ceiling-materials glossiest held-out materials at
+    /// --size, the model's estimate fitted (renderer frozen) to the true renders of the photo and K moved-highlight
+    /// lights, one fit per K (default 0,5), then scored by the moved-highlight test; writes ceiling.md and ceiling.csv.
+    #[arg(long, value_name = "K", num_args = 0..=1, value_delimiter = ',', default_missing_value = "0,5",
+          conflicts_with_all = ["summarize", "captures", "uniform", "dataset", "cases", "seed", "limit", "configs", "exposures", "refine"])]
+    pub ceiling: Option<Vec<usize>>,
+    /// Adam steps of each ceiling fit.
+    #[arg(long, value_name = "N", default_value_t = 300, value_parser = super::count)]
+    pub ceiling_steps: usize,
+    /// Glossiest held-out materials the ceiling scores.
+    #[arg(long, value_name = "N", default_value_t = flashmat::eval::highlights::CHECK_MATERIALS, value_parser = super::count)]
+    pub ceiling_materials: usize,
     /// Cases of the paper's table, comma-separated.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "reflect,identity,hemisphere")]
     pub cases: Vec<Sampling>,
@@ -96,6 +108,9 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     if args.uniform {
         return uniform_check(args);
     }
+    if let Some(fit_lights) = &args.ceiling {
+        return ceiling(args, fit_lights);
+    }
     if let Some(dir) = &args.captures {
         let opts = CaptureEvalOptions {
             models: args.models.clone(),
@@ -153,6 +168,26 @@ fn uniform_check(args: &EvalArgs) -> Result<()> {
     flashmat::io::atomic_write_bytes(&args.output.join("uniform.md"), text.as_bytes())?;
     flashmat::io::atomic_write_bytes(&args.output.join("uniform.json"), serde_json::to_string_pretty(&all)?.as_bytes())?;
     println!("{text}wrote {}", args.output.display());
+    Ok(())
+}
+
+/// `eval --ceiling`: the renderer's ceiling of one flashmat model.
+fn ceiling(args: &EvalArgs, fit_lights: &[usize]) -> Result<()> {
+    use flashmat::eval::ceiling::{CeilingConfig, CeilingOptions};
+    anyhow::ensure!(args.models.len() == 1 && args.models[0] != flashmat::eval::PRINTOUT, "--ceiling measures one flashmat model's renderer: give one --model FILE");
+    let mut fit_lights = fit_lights.to_vec();
+    fit_lights.dedup();
+    let opts = CeilingOptions {
+        model: PathBuf::from(&args.models[0]),
+        ldr_input: args.ldr_input,
+        out: args.output.clone(),
+        device: flashmat::device::parse_device(&args.device)?,
+        progress: true,
+        config: CeilingConfig { fit_lights, steps: args.ceiling_steps, materials: args.ceiling_materials, size: args.size, ..CeilingConfig::default() },
+    };
+    flashmat::eval::ceiling::run(&opts)?;
+    println!("{}", std::fs::read_to_string(args.output.join("ceiling.md"))?);
+    println!("wrote {}", args.output.display());
     Ok(())
 }
 

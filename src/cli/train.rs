@@ -137,6 +137,11 @@ pub struct TrainArgs {
     /// camera independently anywhere on the radius-4 hemisphere, mostly away from the highlight (default and paper: 0).
     #[arg(long, value_name = "N", conflicts_with = "resume")]
     pub hemisphere_outputs: Option<usize>,
+    /// Of each material's output renders, make N (before the hemisphere ones) keep the photo's camera with the
+    /// light moved so the mirror highlight lands on the material: the moved-highlight test's case (issue 48;
+    /// default and paper: 0).
+    #[arg(long, value_name = "N", conflicts_with = "resume")]
+    pub moved_highlight_outputs: Option<usize>,
     /// Keep M_est's upsampling kernels checkerboard-free (projected after every update: a flat photo
     /// gives a flat neural map; paper: free). With --resume: from the resumed step on.
     #[arg(long)]
@@ -365,6 +370,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         dark_share: a.dark_share.unwrap_or(0.0),
         colocated_outputs: a.colocated_outputs.unwrap_or(0),
         hemisphere_outputs: a.hemisphere_outputs.unwrap_or(0),
+        moved_highlight_outputs: a.moved_highlight_outputs.unwrap_or(0),
         checkerboard_free: a.checkerboard_free,
         freeze_estimator: a.freeze_estimator,
         freeze_renderer: a.freeze_renderer,

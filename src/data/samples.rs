@@ -41,6 +41,16 @@ pub struct SampleConfig {
     /// seen dark (the rings of a glossy material's flash highlight).
     #[serde(default)]
     pub hemisphere_outputs: usize,
+    /// Of each material's outputs, this many (just before the hemisphere
+    /// ones) keep the input photo's camera and move the light so that the
+    /// mirror highlight lands on the material ([`moved_highlight_config`]):
+    /// the moved-highlight test's situation (issue 48). "reflect" puts the
+    /// highlight's centre on the material about one draw in seven and
+    /// moves the camera with it, so a renderer and an M_est trained on it
+    /// rarely see the photographed highlight go and a new one come with the
+    /// view held.
+    #[serde(default)]
+    pub moved_highlight_outputs: usize,
     /// Hard shadows from the materials' height fields (integrated from the
     /// normals where missing) in the input and output renders.
     #[serde(default)]
@@ -63,6 +73,7 @@ impl Default for SampleConfig {
             output_sampling: Sampling::Reflect,
             colocated_outputs: 0,
             hemisphere_outputs: 0,
+            moved_highlight_outputs: 0,
             shadows: false,
             height_scale: 1.0,
         }
@@ -233,6 +244,40 @@ fn with_hemisphere_outputs<R: Rng>(configs: &mut [LightView], k: usize, hemisphe
     Ok(())
 }
 
+/// Half-width of the square the moved highlights' centres are drawn in:
+/// inside the material ([-1, 1]^2) with the highlight's core clear of the edge.
+pub const MOVED_HIGHLIGHT_EXTENT: f64 = 0.8;
+
+/// A moved-highlight configuration: the camera at the co-located photo's
+/// (`fov_deg`), the light on the mirror direction of the view about the
+/// normal at p = U[-0.8, 0.8]^2, at U[0.5, 1.5] x the camera's distance
+/// from p. Returns the configuration and p.
+pub fn moved_highlight_config<R: Rng>(rng: &mut R, fov_deg: f64) -> (LightView, [f64; 3]) {
+    let view = LightView::colocated(fov_deg).view;
+    let e = MOVED_HIGHLIGHT_EXTENT;
+    let p = [rng.random_range(-e..e), rng.random_range(-e..e), 0.0];
+    let to_view = [view[0] - p[0], view[1] - p[1], view[2]];
+    // Mirror about +z: flip the tangential components; same distance times U[0.5, 1.5].
+    let dist = rng.random_range(0.5..1.5);
+    let light = [p[0] - to_view[0] * dist, p[1] - to_view[1] * dist, to_view[2] * dist];
+    (LightView { light, view }, p)
+}
+
+/// Replaces the `moved` configurations before the last `hemisphere +
+/// colocated` of every `k` with moved-highlight ones
+/// (`SampleConfig::moved_highlight_outputs`), drawn after the others.
+fn with_moved_highlight_outputs<R: Rng>(configs: &mut [LightView], k: usize, moved: usize, after: usize, fov_deg: f64, rng: &mut R) -> Result<()> {
+    if moved + after > k {
+        bail!("{moved} moved-highlight outputs and {after} others asked of {k} outputs per material");
+    }
+    for material in configs.chunks_mut(k) {
+        for config in &mut material[k - after - moved..k - after] {
+            *config = moved_highlight_config(rng, fov_deg).0;
+        }
+    }
+    Ok(())
+}
+
 /// Builds one training batch: input renders plus K sampled output renders.
 pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R, device: Device) -> Result<TrainingBatch> {
     let maps = stack_maps(materials, device)?;
@@ -242,6 +287,7 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
     let mut configs = sample_configs(rng, cfg.output_sampling, (n * k) as usize, cfg.fov_deg);
     with_colocated_outputs(&mut configs, k as usize, cfg.colocated_outputs, cfg.fov_deg, rng)?;
     with_hemisphere_outputs(&mut configs, k as usize, cfg.hemisphere_outputs, cfg.colocated_outputs, rng)?;
+    with_moved_highlight_outputs(&mut configs, k as usize, cfg.moved_highlight_outputs, cfg.hemisphere_outputs + cfg.colocated_outputs, cfg.fov_deg, rng)?;
     // Input and outputs are rendered together by the f32 CPU renderer (much
     // faster than tensor ops on a CPU), then moved to the device.
     let shadows = ShadowOptions { height_scale: cfg.height_scale, ..Default::default() };
@@ -377,6 +423,42 @@ mod tests {
         let too_many = SampleConfig { hemisphere_outputs: 4, ..plain };
         let err = make_batch(&mats, &too_many, &mut Pcg64::seed_from_u64(7), Device::Cpu).err().unwrap();
         assert!(err.to_string().contains("4 hemisphere and 1 co-located outputs asked of 4"), "{err}");
+    }
+
+    /// Moved-highlight outputs keep the photo's camera and put the mirror
+    /// highlight (half vector = the normal) on the material; the other
+    /// outputs are those drawn without them.
+    #[test]
+    fn moved_highlight_outputs_keep_the_camera_and_land_the_highlight_on_the_material() {
+        let mats = vec![material(16, 16, 0.3), material(16, 16, 0.6)];
+        let plain = SampleConfig { outputs_per_material: 4, colocated_outputs: 1, hemisphere_outputs: 1, ..Default::default() };
+        let with = SampleConfig { moved_highlight_outputs: 1, ..plain.clone() };
+        let a = make_batch(&mats, &plain, &mut Pcg64::seed_from_u64(9), Device::Cpu).unwrap();
+        let b = make_batch(&mats, &with, &mut Pcg64::seed_from_u64(9), Device::Cpu).unwrap();
+        let camera = LightView::colocated(crate::geometry::MODEL_FOV_DEG).view;
+        for i in 0..2 {
+            assert_eq!(a.configs[i * 4], b.configs[i * 4]);
+            assert_eq!(&a.configs[i * 4 + 2..i * 4 + 4], &b.configs[i * 4 + 2..i * 4 + 4]);
+            assert_eq!(b.configs[i * 4 + 1].view, camera);
+            assert_ne!(a.configs[i * 4 + 1], b.configs[i * 4 + 1]);
+        }
+        let mut rng = Pcg64::seed_from_u64(3);
+        for _ in 0..200 {
+            let (c, p) = moved_highlight_config(&mut rng, crate::geometry::MODEL_FOV_DEG);
+            assert!(p[0].abs() <= MOVED_HIGHLIGHT_EXTENT && p[1].abs() <= MOVED_HIGHLIGHT_EXTENT && p[2] == 0.0);
+            let unit = |q: [f64; 3]| {
+                let v = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
+                let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                (v.map(|x| x / n), n)
+            };
+            let ((l, dl), (v, dv)) = (unit(c.light), unit(c.view));
+            // Mirror directions: the half vector at p is the normal.
+            assert!((l[0] + v[0]).abs() < 1e-12 && (l[1] + v[1]).abs() < 1e-12 && (l[2] - v[2]).abs() < 1e-12, "{c:?}");
+            assert!((0.5..1.5).contains(&(dl / dv)), "{dl} {dv}");
+        }
+        let too_many = SampleConfig { moved_highlight_outputs: 3, ..plain };
+        let err = make_batch(&mats, &too_many, &mut Pcg64::seed_from_u64(9), Device::Cpu).err().unwrap();
+        assert!(err.to_string().contains("3 moved-highlight outputs and 2 others asked of 4"), "{err}");
     }
 
     #[test]

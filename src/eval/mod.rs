@@ -15,6 +15,7 @@
 //! ([`exposure`]) on the same prepared materials.
 
 pub mod captures;
+pub mod ceiling;
 pub mod exposure;
 pub mod highlights;
 pub mod methods;

@@ -130,6 +130,11 @@ pub struct TrainConfig {
     /// case (`SampleConfig::hemisphere_outputs`); 0 is the paper's.
     #[serde(default, skip_serializing_if = "is_zero_count")]
     pub hemisphere_outputs: usize,
+    /// Outputs per material with the photo's camera and the light moved so
+    /// the mirror highlight lands on the material
+    /// (`SampleConfig::moved_highlight_outputs`); 0 is the paper's.
+    #[serde(default)]
+    pub moved_highlight_outputs: usize,
     /// Keep M_est's upsampling kernels checkerboard-free: projected
     /// (`MEst::project_checkerboard_free`) when the run starts or resumes
     /// and after every update, so a flat photo gives a flat neural map
@@ -277,6 +282,7 @@ impl Default for TrainConfig {
             dark_share: 0.0,
             colocated_outputs: 0,
             hemisphere_outputs: 0,
+            moved_highlight_outputs: 0,
             checkerboard_free: false,
             freeze_estimator: false,
             freeze_renderer: false,
@@ -406,6 +412,14 @@ impl TrainConfig {
             self.colocated_outputs,
             self.outputs_per_material
         );
+        anyhow::ensure!(
+            self.colocated_outputs + self.hemisphere_outputs + self.moved_highlight_outputs <= self.outputs_per_material,
+            "--moved-highlight-outputs {}, --hemisphere-outputs {} and --colocated-outputs {} are more than the {} outputs per material",
+            self.moved_highlight_outputs,
+            self.hemisphere_outputs,
+            self.colocated_outputs,
+            self.outputs_per_material
+        );
         anyhow::ensure!(self.pixel_fraction > 0.0 && self.pixel_fraction <= 1.0, "pixel fraction must be in (0, 1]");
         anyhow::ensure!(self.lr > 0.0 && self.lr.is_finite(), "learning rate must be positive");
         anyhow::ensure!(self.init_from.is_none() || self.warm_start.is_none(), "--init-from and --warm-start exclude each other");
@@ -479,6 +493,10 @@ mod tests {
         assert!(TrainConfig { hemisphere_outputs: 6, colocated_outputs: 2, ..Default::default() }.validate().is_ok());
         let e = TrainConfig { hemisphere_outputs: 7, colocated_outputs: 2, ..Default::default() }.validate().unwrap_err().to_string();
         assert!(e.contains("--hemisphere-outputs 7 and --colocated-outputs 2 are more than the 8 outputs"), "{e}");
+        // So do the moved-highlight outputs.
+        assert!(TrainConfig { moved_highlight_outputs: 2, hemisphere_outputs: 4, colocated_outputs: 2, ..Default::default() }.validate().is_ok());
+        let e = TrainConfig { moved_highlight_outputs: 3, hemisphere_outputs: 4, colocated_outputs: 2, ..Default::default() }.validate().unwrap_err().to_string();
+        assert!(e.contains("--moved-highlight-outputs 3, --hemisphere-outputs 4 and --colocated-outputs 2 are more than the 8 outputs"), "{e}");
     }
 
     #[test]

@@ -190,6 +190,46 @@ pub fn refine(material: &mut NeuralMaterial, photo: &Tensor, clipped_photo: bool
     Ok(report)
 }
 
+/// Fits `material.neural_map` to linear renders `targets` `[K, 3, H, W]`
+/// under `configs` (K of them) with ND_enc and M_render frozen: mean over
+/// configurations, pixels and channels of |ln(1 + R_k / g) - ln(1 + T_k / g)|
+/// (g the material's gain: the fit runs at the brightness M_est saw, as
+/// [`refine`]), no prior, Adam with step `learning_rate` x the map's RMS.
+/// The renderer's ceiling (issue 48) measures how well the best map a
+/// renderer can be given relights. Each configuration's direction code is
+/// computed once. Returns the data term before and after; a non-finite
+/// loss is an error and leaves the map as it was.
+pub fn fit_to_renders(material: &mut NeuralMaterial, configs: &[crate::geometry::LightView], targets: &Tensor, steps: usize, learning_rate: f64) -> Result<(f64, f64)> {
+    let (h, w) = material.size();
+    let k = configs.len() as i64;
+    ensure!(k > 0, "fit_to_renders needs at least one configuration");
+    ensure!(targets.size() == [k, 3, h as i64, w as i64], "the targets must be [{k}, 3, {h}, {w}], got {:?}", targets.size());
+    ensure!(learning_rate.is_finite() && learning_rate > 0.0, "the fit's learning rate must be a positive number, got {learning_rate}");
+    let device = material.device();
+    let target = crate::spaces::to_log(&(targets.to_device(device).to_kind(Kind::Float).clamp_min(0.0) / material.meta.gain)).unsqueeze(0); // [1, K, 3, H, W]
+    let (wi, wo) = material.direction_maps(configs);
+    let code = tch::no_grad(|| material.renderer.encode_maps(&wi, &wo))?; // [1, K, E, H, W]
+    let data = |map: &Tensor| -> Result<Tensor> { Ok((material.renderer.render_code(&map.unsqueeze(0), &code)? - &target).abs().mean(Kind::Float)) };
+    let initial = material.neural_map.detach().copy();
+    let scale = initial.square().mean(Kind::Float).sqrt().double_value(&[]).max(1e-6);
+    let before = tch::no_grad(|| data(&initial))?.double_value(&[]);
+    let map = initial.copy().set_requires_grad(true);
+    let mut adam = Adam::new(HashMap::from([("neural_map".to_string(), map.shallow_clone())]));
+    for step in 0..steps {
+        adam.zero_grad();
+        let loss = data(&map)?;
+        let value = loss.double_value(&[]);
+        ensure!(value.is_finite(), "the fit's loss became {value} at step {}", step + 1);
+        loss.backward();
+        adam.step(learning_rate * scale, None);
+    }
+    let fitted = map.detach();
+    let after = tch::no_grad(|| data(&fitted))?.double_value(&[]);
+    ensure!(after.is_finite(), "the fitted map renders non-finite values");
+    material.neural_map = fitted;
+    Ok((before, after))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
