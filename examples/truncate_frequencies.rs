@@ -8,8 +8,13 @@
 //! every cos(2^k pi v) of high k is 1 at once, so weights that cancel
 //! elsewhere add up: the spike and the rings (`reports/frequencies.md`).
 //!
+//! A configuration that adds the log half-angle feature (`compact-f8h`)
+//! also gets its ND_enc column, zero (`Model::with_half_angle_feature`):
+//! the renders stay the model's until training moves it.
+//!
 //! ```sh
 //! cargo run --release --example truncate_frequencies -- target/gpu-25650.safetensors compact-f8 target/gpu-25650-f8.safetensors
+//! cargo run --release --example truncate_frequencies -- models/flashmat.safetensors compact-f8h target/f8h-start.safetensors
 //! ```
 
 use anyhow::{ensure, Result};
@@ -32,7 +37,12 @@ fn run() -> Result<()> {
         Ok(preset) => preset,
         Err(_) => ModelConfig::from_toml_file(std::path::Path::new(&args[2]))?,
     };
-    let truncated = model.truncate_frequencies(&config)?;
+    let truncated = if config.half_angle_feature && !model.config.half_angle_feature {
+        let plain = ModelConfig { half_angle_feature: false, ..config.clone() };
+        model.truncate_frequencies(&plain)?.with_half_angle_feature(&config.name)?
+    } else {
+        model.truncate_frequencies(&config)?
+    };
     truncated.save(&args[3], &info, true)?;
     eprintln!("wrote {} ({} -> {} frequencies, model {})", args[3], model.config.enc_frequencies, config.enc_frequencies, truncated.model_id());
     Ok(())

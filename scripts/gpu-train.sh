@@ -112,6 +112,11 @@ CHECKERBOARD_FREE="${FLASHMAT_GPU_CHECKERBOARD_FREE:-1}"
 # Co-located outputs per material (docs/TRAINING.md, reports/frequencies.md;
 # 0: "reflect" only, as the first campaign trained).
 COLOCATED="${FLASHMAT_GPU_COLOCATED:-0}"
+# Moved-highlight outputs per material (--moved-highlight-outputs, issue 48:
+# the photo's camera, the light moved so the mirror highlight lands on the
+# material; reports/highlights-experiments.md; 0: as the campaigns before
+# 2026-11-27 trained).
+MOVED="${FLASHMAT_GPU_MOVED:-0}"
 # Share of dark procedural materials (--dark-share, issue 53: most real
 # materials are darker than the families' colours; 0: the paper's data, as
 # the campaigns before 2026-11-27 trained).
@@ -162,6 +167,7 @@ recipe() {
   [ "$CHECKERBOARD_FREE" = 1 ] && constraint=(--checkerboard-free)
   [ "$COLOCATED" != 0 ] && constraint+=(--colocated-outputs "$COLOCATED")
   [ "$DARK_SHARE" != 0 ] && constraint+=(--dark-share "$DARK_SHARE")
+  [ "$MOVED" != 0 ] && constraint+=(--moved-highlight-outputs "$MOVED")
   echo --preset "$PRESET" --ldr --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --lr "$LR" \
     --warmup-steps "$WARMUP" --straight-through-output --bank "$BANK" --seed "$SEED" \
     --steps 100000000 --checkpoint-every 500 --preview-every 1000 "${teacher[@]}" "${constraint[@]}"
@@ -579,7 +585,7 @@ cpu_dry_run() {
   source scripts/env.sh
   [ -x "$FLASHMAT_RELEASE_BIN" ] || cargo build --release --bin flashmat
   export FLASHMAT_GPU_DEVICE=cpu FLASHMAT_GPU_PRESET=tiny FLASHMAT_GPU_CROP=32 FLASHMAT_GPU_BATCH=2 \
-    FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_COLOCATED=1 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
+    FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_COLOCATED=1 FLASHMAT_GPU_MOVED=1 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
     FLASHMAT_GPU_WORK="$tmp/machine" FLASHMAT_GPU_BIN="$FLASHMAT_RELEASE_BIN" \
     FLASHMAT_GPU_RESUME="$tmp/resume.safetensors" FLASHMAT_TORCH_LIB="$FLASHMAT_TORCH_LIB" \
     FLASHMAT_GPU_TEACHER_STEPS=20 FLASHMAT_GPU_TEACHER_PIXELS=1024 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/teacher.safetensors"
@@ -603,6 +609,7 @@ cpu_dry_run() {
     "$tmp/out3/log.jsonl" "$FINAL_LR" || die "dry run: the final chunk did not train at FLASHMAT_GPU_FINAL_LR ($FINAL_LR)"
   grep -q '"checkerboard_free": true' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --checkerboard-free"
   grep -q '"dark_share": 0.25' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --dark-share 0.25"
+  grep -q '"moved_highlight_outputs": 1' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --moved-highlight-outputs 1"
   grep -q "^VERDICT: " "$tmp/out3/verdict/verdict.md" || die "dry run: no verdict"
   for f in model.safetensors log.jsonl losses.png chunk.md; do
     [ -f "$tmp/out2/$f" ] || die "dry run: chunk 2 brought back no $f"

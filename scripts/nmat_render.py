@@ -80,6 +80,8 @@ def render(tensors, meta, light, view):
     pos = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], np.zeros((h, w))), axis=-1).reshape(-1, 3)
     wi = normalize(np.asarray(light)[None, :] - pos)
     wo = normalize(np.asarray(view)[None, :] - pos)
+    if "half_angle_feature = true" in meta["config"]:
+        raise SystemExit("error: this material's renderer reads the log half-angle feature (compact-h / compact-f8h), which nmat_render.py does not implement")
     x = encode(wi, wo, int(config_value(meta, "enc_frequencies")))
     for i in range(3):  # ND_enc
         x = x @ tensors[f"renderer.nd_enc.{i}.weight"].T.astype(np.float64)

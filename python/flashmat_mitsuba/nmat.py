@@ -56,7 +56,10 @@ def parse_config(text):
         if not sep:
             continue
         v = v.strip()
-        out[k.strip()] = v.strip('"') if v.startswith('"') else int(v)
+        if v in ("true", "false"):
+            out[k.strip()] = v == "true"
+        else:
+            out[k.strip()] = v.strip('"') if v.startswith('"') else int(v)
     return out
 
 
@@ -138,6 +141,8 @@ def read_nmat(path):
     except (KeyError, ValueError) as e:
         fail(f"bad or missing `config` metadata ({e})")
     config.update(sizes)
+    if config.get("half_angle_feature"):
+        fail("its renderer reads the log half-angle feature (a compact-h / compact-f8h model, issue 48), which this plugin does not implement")
     c, f = sizes["neural_channels"], sizes["enc_frequencies"]
     eh, eo, rh, rn = sizes["enc_hidden"], sizes["enc_out"], sizes["render_hidden"], sizes["render_narrow"]
     expected = {

@@ -219,6 +219,10 @@ pub struct TeacherArgs {
     pub checkpoint_every: u64,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Share of the samples whose light is put inside the pixel's GGX lobe (the view mirrored about a half vector
+    /// near the normal; default 0, the committed teacher's recipe: glossy lobes are then almost never sampled).
+    #[arg(long, default_value_t = 0.0, value_parser = super::fraction)]
+    pub lobe_share: f64,
     /// cpu or cuda.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -236,6 +240,7 @@ pub fn train_teacher(a: &TeacherArgs) -> Result<()> {
         steps: a.steps,
         checkpoint_every: a.checkpoint_every,
         seed: a.seed,
+        lobe_share: a.lobe_share,
     };
     let t = flashmat::train::teacher::run(config, &a.out, device, a.minutes, true)?;
     eprintln!(

@@ -32,6 +32,14 @@ pub struct ModelConfig {
     pub render_narrow: i64,
     /// Discriminator width of its first layer (doubles three times).
     pub disc_width: i64,
+    /// ND_enc also reads [`crate::model::nd_enc::half_angle_feature`] of
+    /// each direction pair: -ln(1 - h_z + eps) / ln(1 / eps), the half
+    /// angle on a log scale (issue 48). A GGX lobe of width alpha is a
+    /// spike in h but, in log D, a soft bend at ln(alpha^2) of ln(1 - h_z):
+    /// a shape an MLP of LeakyReLUs draws with a few units. Not the paper's.
+    /// Written only when set, so files without it read as before everywhere.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub half_angle_feature: bool,
 }
 
 impl Default for ModelConfig {
@@ -41,7 +49,7 @@ impl Default for ModelConfig {
 }
 
 /// Names accepted by [`ModelConfig::preset`].
-pub const PRESETS: [&str; 4] = ["paper", "compact", "compact-f8", "tiny"];
+pub const PRESETS: [&str; 6] = ["paper", "compact", "compact-f8", "compact-h", "compact-f8h", "tiny"];
 
 impl ModelConfig {
     /// The sizes of the paper and the authors' code: M_est 84,008,960
@@ -58,6 +66,7 @@ impl ModelConfig {
             render_hidden: 128,
             render_narrow: 64,
             disc_width: 64,
+            half_angle_feature: false,
         }
     }
 
@@ -114,6 +123,18 @@ impl ModelConfig {
         Self { name: "compact-f8".into(), enc_frequencies: 8, ..Self::compact() }
     }
 
+    /// `compact` whose ND_enc also reads the log half angle
+    /// ([`ModelConfig::half_angle_feature`]; issue 48's experiment).
+    pub fn compact_h() -> Self {
+        Self { name: "compact-h".into(), half_angle_feature: true, ..Self::compact() }
+    }
+
+    /// `compact-f8` whose ND_enc also reads the log half angle (the bundled
+    /// model's layout plus one input column).
+    pub fn compact_f8h() -> Self {
+        Self { name: "compact-f8h".into(), half_angle_feature: true, ..Self::compact_f8() }
+    }
+
     /// For tests: the same architecture at toy widths (M_est W = 8,
     /// 1,338,176 parameters).
     pub fn tiny() -> Self {
@@ -127,15 +148,18 @@ impl ModelConfig {
             render_hidden: 16,
             render_narrow: 8,
             disc_width: 8,
+            half_angle_feature: false,
         }
     }
 
-    /// A preset by name (`paper`, `compact`, `compact-f8`, `tiny`).
+    /// A preset by name ([`PRESETS`]).
     pub fn preset(name: &str) -> Result<Self> {
         match name {
             "paper" => Ok(Self::paper()),
             "compact" => Ok(Self::compact()),
-            "compact-f8" => Ok(Self::compact_f8()),
+"compact-f8" => Ok(Self::compact_f8()),
+            "compact-h" => Ok(Self::compact_h()),
+            "compact-f8h" => Ok(Self::compact_f8h()),
             "tiny" => Ok(Self::tiny()),
             other => bail!("unknown model preset '{other}'; available presets: {}", PRESETS.join(", ")),
         }
@@ -191,10 +215,11 @@ impl ModelConfig {
         Ok(())
     }
 
-    /// Width of the sinusoidal direction encoding: 9 + 2 * 9 * frequencies
-    /// (297 for the paper).
+    /// Width of ND_enc's input: the sinusoidal direction encoding, 9 + 2 *
+    /// 9 * frequencies (297 for the paper), and the half-angle feature's
+    /// column where the model has it.
     pub fn encoding_width(&self) -> i64 {
-        9 + 18 * self.enc_frequencies
+        9 + 18 * self.enc_frequencies + self.half_angle_feature as i64
     }
 
     /// Stable identifier: the name and a 64-bit FNV-1a hash of every size.
@@ -212,6 +237,8 @@ impl ModelConfig {
             self.render_narrow,
             self.disc_width
         );
+        // Models without the feature keep the identifiers they always had.
+        let canonical = if self.half_angle_feature { canonical + ";half_angle_feature=1" } else { canonical };
         format!("{}-{:016x}", self.name, fnv1a64(canonical.as_bytes()))
     }
 }
@@ -239,7 +266,8 @@ mod tests {
         }
         assert_eq!(ModelConfig::paper().encoding_width(), 297);
         let err = ModelConfig::preset("huge").unwrap_err().to_string();
-        assert!(err.contains("paper, compact, compact-f8, tiny"), "{err}");
+        assert!(err.contains("paper, compact, compact-f8, compact-h, compact-f8h, tiny"), "{err}");
+        assert_eq!(ModelConfig::compact_f8h().encoding_width(), 154);
         assert_eq!(ModelConfig::compact_f8().encoding_width(), 153);
     }
 

@@ -288,11 +288,31 @@ impl Model {
         let mut truncated = Self::new(config, self.device())?;
         let mut named: HashMap<String, Tensor> = self.named_variables().into_iter().collect();
         let first = named.get(FIRST_ENCODING_LAYER).with_context(|| format!("{FIRST_ENCODING_LAYER} is missing"))?;
-        // Columns: [v (9) | sin, k-major (n x 9) | cos (n x 9)] (`nd_enc::encode_directions`).
-        let kept = Tensor::cat(&[first.narrow(1, 0, 9 + 9 * keep), first.narrow(1, 9 + 9 * n, 9 * keep)], 1);
+        // Columns: [v (9) | sin, k-major (n x 9) | cos (n x 9) | half angle (0 or 1)] (`NdEnc::forward`).
+        let mut columns = vec![first.narrow(1, 0, 9 + 9 * keep), first.narrow(1, 9 + 9 * n, 9 * keep)];
+        if config.half_angle_feature {
+            columns.push(first.narrow(1, 9 + 18 * n, 1));
+        }
+        let kept = Tensor::cat(&columns, 1);
         named.insert(FIRST_ENCODING_LAYER.into(), kept);
         truncated.load_named(&named)?;
         Ok(truncated)
+    }
+
+    /// The same model whose ND_enc also reads the log half angle
+    /// (`ModelConfig::half_angle_feature`), named `name`: the first ND_enc
+    /// layer gains a zero column for it, so every render is unchanged until
+    /// training moves it (the warm start of issue 48's experiment).
+    pub fn with_half_angle_feature(&self, name: &str) -> Result<Self> {
+        ensure!(!self.config.half_angle_feature, "the model already reads the half-angle feature");
+        let config = ModelConfig { name: name.into(), half_angle_feature: true, ..self.config.clone() };
+        let mut widened = Self::new(&config, self.device())?;
+        let mut named: HashMap<String, Tensor> = self.named_variables().into_iter().collect();
+        let first = named.get(FIRST_ENCODING_LAYER).with_context(|| format!("{FIRST_ENCODING_LAYER} is missing"))?;
+        let zero = Tensor::zeros([first.size()[0], 1], (first.kind(), first.device()));
+        named.insert(FIRST_ENCODING_LAYER.into(), Tensor::cat(&[first.shallow_clone(), zero], 1));
+        widened.load_named(&named)?;
+        Ok(widened)
     }
 
     /// Loads a model file and checks that it is the expected model id.

@@ -113,6 +113,20 @@ fn encode_directions_tensors(wi: &Tensor, wo: &Tensor, frequencies: i64) -> Tens
     Tensor::cat(&[v, sin, cos], -1)
 }
 
+/// Floor under 1 - h_z in [`half_angle_feature`]: a half angle of about
+/// 1.4 mrad, below a pixel's change of direction at 1024 pixels.
+pub const HALF_ANGLE_EPS: f64 = 1e-6;
+
+/// The log half angle of direction pairs: -ln(1 - h_z + eps) / ln(1 / eps),
+/// 0 where h lies in the surface, 1 where it is the normal (h the unit
+/// half vector of wi and wo in the surface frame; [`HALF_ANGLE_EPS`]).
+/// wi, wo: `[..., 3]` -> `[..., 1]`.
+pub fn half_angle_feature(wi: &Tensor, wo: &Tensor) -> Tensor {
+    let h = crate::geometry::half_vectors_along(wi, wo, -1);
+    let one_minus = (h.narrow(-1, 2, 1) * -1.0 + 1.0).clamp_min(0.0) + HALF_ANGLE_EPS;
+    one_minus.log() * (-1.0 / (1.0 / HALF_ANGLE_EPS).ln())
+}
+
 /// ND_enc: encoding -> Linear(297, 594) -> LeakyReLU -> Linear(594, 594) ->
 /// LeakyReLU -> Linear(594, 32), no biases, LeakyReLU slope 0.01.
 #[derive(Debug)]
@@ -120,6 +134,8 @@ pub struct NdEnc {
     /// Weights `[out, in]` of the three layers.
     pub layers: Vec<Tensor>,
     pub frequencies: i64,
+    /// The input ends with [`half_angle_feature`] (`ModelConfig::half_angle_feature`).
+    pub half_angle: bool,
 }
 
 /// LeakyReLU slope between ND_enc's layers (PyTorch's default).
@@ -131,12 +147,15 @@ impl NdEnc {
     pub fn new(p: &nn::Path, cfg: &ModelConfig) -> Self {
         let dims = [cfg.encoding_width(), cfg.enc_hidden, cfg.enc_hidden, cfg.enc_out];
         let layers = (0..3).map(|i| (p / i).var("weight", &[dims[i + 1], dims[i]], torch_default_init())).collect();
-        Self { layers, frequencies: cfg.enc_frequencies }
+        Self { layers, frequencies: cfg.enc_frequencies, half_angle: cfg.half_angle_feature }
     }
 
     /// wi, wo: `[..., 3]` unit vectors -> direction code `[..., enc_out]`.
     pub fn forward(&self, wi: &Tensor, wo: &Tensor) -> Tensor {
         let mut x = encode_directions(wi, wo, self.frequencies);
+        if self.half_angle {
+            x = Tensor::cat(&[x.shallow_clone(), half_angle_feature(wi, wo).to_kind(x.kind())], -1);
+        }
         for (i, w) in self.layers.iter().enumerate() {
             x = x.linear(w, None::<&Tensor>);
             if i + 1 < self.layers.len() {

@@ -501,3 +501,45 @@ fn truncating_frequencies_keeps_what_the_low_ones_compute() {
     let wider = ModelConfig { enc_hidden: 40, ..fewer };
     assert!(m.truncate_frequencies(&wider).unwrap_err().to_string().contains("more than its frequencies"));
 }
+
+/// The log half angle: 1 where h is the normal, 0 where it lies in the
+/// surface, -ln(1 - h_z + eps) / ln(1 / eps) between; a model widened with
+/// it renders exactly as before (zero column), and a widened model's
+/// identifier differs while the old ones stay as they were.
+#[test]
+fn half_angle_feature_values_and_a_widened_model_renders_the_same() {
+    use crate::model::nd_enc::{half_angle_feature, HALF_ANGLE_EPS};
+    let d = |v: [f64; 3]| Tensor::from_slice(&v).view([1, 3]);
+    let f = |wi: [f64; 3], wo: [f64; 3]| half_angle_feature(&d(wi), &d(wo)).double_value(&[0, 0]);
+    assert!((f([0.0, 0.0, 1.0], [0.0, 0.0, 1.0]) - 1.0).abs() < 1e-9);
+    assert!(f([1.0, 0.0, 0.0], [0.0, 1.0, 0.0]).abs() < 1e-6);
+    // wi = wo 0.2 rad off the normal: h_z = cos 0.2.
+    let (s, c) = 0.2f64.sin_cos();
+    let want = -(1.0 - c + HALF_ANGLE_EPS).ln() / (1.0 / HALF_ANGLE_EPS).ln();
+    assert!((f([s, 0.0, c], [s, 0.0, c]) - want).abs() < 1e-6, "{} vs {want}", f([s, 0.0, c], [s, 0.0, c]));
+    // Mirror pairs either side of the normal: h is the normal.
+    assert!((f([s, 0.0, c], [-s, 0.0, c]) - 1.0).abs() < 1e-6);
+
+    let cfg = ModelConfig::tiny();
+    let m = Model::new(&cfg, Device::Cpu).unwrap();
+    let widened = m.with_half_angle_feature("tiny-h").unwrap();
+    assert_eq!(widened.renderer.nd_enc.layers[0].size(), [cfg.enc_hidden, 9 + 18 * 16 + 1]);
+    assert_eq!(widened.config.encoding_width(), cfg.encoding_width() + 1);
+    assert_ne!(widened.model_id(), m.model_id());
+    assert_eq!(ModelConfig::compact_f8().model_id(), ModelConfig { half_angle_feature: false, ..ModelConfig::compact_f8() }.model_id());
+    let opts = (Kind::Float, Device::Cpu);
+    let unit = |t: Tensor| &t / t.square().sum_dim_intlist([1i64].as_slice(), true, Kind::Float).sqrt();
+    let (wi, wo) = (unit(Tensor::randn([50, 3], opts) + 0.5), unit(Tensor::randn([50, 3], opts) + 0.5));
+    let params = Tensor::randn([50, cfg.neural_channels], opts);
+    let render = |model: &Model| model.renderer.forward_rows(&params, &wi, &wo).unwrap();
+    assert!((render(&widened) - render(&m)).abs().max().double_value(&[]) < 1e-6);
+    // Its column is live: set it and the renders move.
+    tch::no_grad(|| {
+        let _ = widened.renderer.nd_enc.layers[0].narrow(1, 9 + 18 * 16, 1).fill_(0.5);
+    });
+    assert!((render(&widened) - render(&m)).abs().max().double_value(&[]) > 1e-4);
+    assert!(widened.with_half_angle_feature("again").is_err());
+    // Not written for a model without it (readers of older files see the same TOML).
+    assert!(!cfg.to_toml_string().unwrap().contains("half_angle"));
+    assert!(ModelConfig::compact_f8h().to_toml_string().unwrap().contains("half_angle_feature = true"));
+}

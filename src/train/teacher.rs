@@ -44,11 +44,16 @@ pub struct TeacherConfig {
     pub steps: u64,
     pub checkpoint_every: u64,
     pub seed: u64,
+    /// Share of the samples whose light is turned into the pixel's GGX lobe
+    /// ([`pixel_samples`]); 0 (the committed teacher's recipe): cosine-random
+    /// lights, which almost never meet a glossy pixel's mirror direction.
+    #[serde(default)]
+    pub lobe_share: f64,
 }
 
 impl Default for TeacherConfig {
     fn default() -> Self {
-        Self { model: ModelConfig::compact(), pixels: 16_384, lr: 1e-3, steps: 5_000, checkpoint_every: 250, seed: 1 }
+        Self { model: ModelConfig::compact(), pixels: 16_384, lr: 1e-3, steps: 5_000, checkpoint_every: 250, seed: 1, lobe_share: 0.0 }
     }
 }
 
@@ -118,8 +123,12 @@ impl Teacher {
 /// Diffuse ~ U(0,1)^2.2 per channel; specular 0.04 for 70% of pixels, else
 /// U(0,1)^2.2 per channel; roughness U(0.05, 1); normals tilted by N(0,
 /// 0.25); light and view cosine-distributed over the hemisphere, with a
-/// quarter of the views near the light (the flash configuration).
-pub fn pixel_samples(n: i64, device: Device) -> (Tensor, Tensor, Tensor, Tensor) {
+/// quarter of the views near the light (the flash configuration). A share
+/// `lobe_share` of the lights is then the view mirrored about a half vector
+/// drawn around the pixel's normal with a spread of 1.5 alpha per tangent
+/// axis (alpha = roughness^2): inside the GGX lobe, where a glossy pixel's
+/// radiance is (kept where the mirrored light stays above the surface).
+pub fn pixel_samples(n: i64, lobe_share: f64, device: Device) -> (Tensor, Tensor, Tensor, Tensor) {
     let opts = (Kind::Float, device);
     let kd = Tensor::rand([n, 3], opts).pow_tensor_scalar(2.2);
     let coloured = Tensor::rand([n, 1], opts).lt(0.3).to_kind(Kind::Float);
@@ -139,6 +148,16 @@ pub fn pixel_samples(n: i64, device: Device) -> (Tensor, Tensor, Tensor, Tensor)
     let near = normalize_rows(&near);
     let colocated = Tensor::rand([n, 1], opts).lt(0.25).to_kind(Kind::Float);
     let wo = normalize_rows(&(&colocated * near + (1.0 - &colocated) * cosine(n)));
+    let wi = if lobe_share > 0.0 {
+        let alpha = rough.square();
+        let offset = Tensor::cat(&[Tensor::randn([n, 2], opts) * (&alpha * 1.5), Tensor::zeros([n, 1], opts)], 1);
+        let h = normalize_rows(&(&normal + offset));
+        let mirrored = &h * (&wo * &h).sum_dim_intlist([1i64].as_slice(), true, Kind::Float) * 2.0 - &wo;
+        let lobe = Tensor::rand([n, 1], opts).lt(lobe_share).logical_and(&mirrored.narrow(1, 2, 1).gt(0.02)).to_kind(Kind::Float);
+        normalize_rows(&(&lobe * mirrored + (1.0 - &lobe) * &wi))
+    } else {
+        wi
+    };
     let maps = Tensor::cat(&[kd, ks, rough, normal], 1);
     let target = ggx_log_rows(&maps, &wi, &wo);
     (maps, wi, wo, target)
@@ -201,7 +220,7 @@ impl TeacherTrainer {
     pub fn train_step(&mut self) -> Result<f64> {
         let device = self.model.device();
         tch::manual_seed((self.config.seed ^ self.step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) as i64);
-        let (maps, wi, wo, target) = tch::no_grad(|| pixel_samples(self.config.pixels as i64, device));
+        let (maps, wi, wo, target) = tch::no_grad(|| pixel_samples(self.config.pixels as i64, self.config.lobe_share, device));
         self.opt.zero_grad();
         let pred = self.model.renderer.forward_rows(&self.encoder.forward_rows(&maps), &wi, &wo)?;
         let loss = (pred - target).abs().mean(Kind::Float);
@@ -219,7 +238,8 @@ impl TeacherTrainer {
         let device = self.model.device();
         tch::no_grad(|| {
             tch::manual_seed(HELD_OUT_SEED);
-            let (maps, wi, wo, target) = pixel_samples(HELD_OUT_PIXELS, device);
+            // The committed recipe's distribution, whatever the run trains on: comparable across runs.
+            let (maps, wi, wo, target) = pixel_samples(HELD_OUT_PIXELS, 0.0, device);
             let pred = self.model.renderer.forward_rows(&self.encoder.forward_rows(&maps), &wi, &wo)?;
             Ok((pred - target).abs().mean(Kind::Float).double_value(&[]))
         })
@@ -304,7 +324,7 @@ mod tests {
     #[test]
     fn samples_match_the_scalar_ggx_oracle() {
         tch::manual_seed(3);
-        let (maps, wi, wo, target) = pixel_samples(64, Device::Cpu);
+        let (maps, wi, wo, target) = pixel_samples(64, 0.5, Device::Cpu);
         assert_eq!(maps.size(), [64, 10]);
         for r in [0i64, 17, 63] {
             let v = |t: &Tensor, i: i64| t.double_value(&[r, i]);
@@ -326,15 +346,30 @@ mod tests {
         let z = |t: &Tensor| t.narrow(1, 2, 1).min().double_value(&[]);
         assert!(z(&wi) > 0.0 && z(&wo) > 0.0);
         tch::manual_seed(4);
-        let (_, wi, wo, _) = pixel_samples(20_000, Device::Cpu);
+        let (_, wi, wo, _) = pixel_samples(20_000, 0.0, Device::Cpu);
         let near = (&wi * &wo).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).gt(0.99).to_kind(Kind::Float).mean(Kind::Float).double_value(&[]);
         assert!((0.2..0.32).contains(&near), "fraction of near-co-located pairs {near}");
+        // With a lobe share, about that share of a glossy pixel's pairs (alpha
+        // below 0.05; less the mirrored lights that fall below the surface)
+        // has its half vector within 4 alpha of the normal; without, few.
+        let in_lobe = |share: f64| {
+            tch::manual_seed(5);
+            let (maps, wi, wo, _) = pixel_samples(50_000, share, Device::Cpu);
+            let h = normalize_rows(&(&wi + &wo));
+            let cos = (&h * maps.narrow(1, 7, 3)).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).clamp(-1.0, 1.0);
+            let alpha = maps.narrow(1, 6, 1).squeeze_dim(1).square();
+            let glossy = alpha.lt(0.05);
+            let inside = cos.acos().lt_tensor(&(&alpha * 4.0)).logical_and(&glossy);
+            inside.to_kind(Kind::Float).sum(Kind::Float).double_value(&[]) / glossy.to_kind(Kind::Float).sum(Kind::Float).double_value(&[])
+        };
+        let (none, half) = (in_lobe(0.0), in_lobe(0.5));
+        assert!(none < 0.05 && (0.35..0.55).contains(&half), "glossy pairs inside the lobe: {none} without, {half} with a share of 0.5");
     }
 
     #[test]
     fn teacher_learns_and_resumes_exactly() {
         let dir = tempfile::tempdir().unwrap();
-        let cfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 2048, steps: 60, checkpoint_every: 30, lr: 3e-3, seed: 2 };
+        let cfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 2048, steps: 60, checkpoint_every: 30, lr: 3e-3, seed: 2, lobe_share: 0.0 };
         let fresh = TeacherTrainer::new(cfg.clone(), Device::Cpu).unwrap();
         let before = fresh.held_out_l1().unwrap();
         let full = run(cfg.clone(), &dir.path().join("a"), Device::Cpu, None, false).unwrap();

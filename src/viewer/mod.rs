@@ -144,6 +144,7 @@ pub fn pack_weights(m: &NeuralMaterial) -> Result<PackedWeights> {
     let c = m.config.neural_channels as usize;
     let f = m.config.enc_frequencies as usize;
     ensure!(f <= MAX_FREQUENCIES, "the viewer supports up to {MAX_FREQUENCIES} encoding frequencies, this material has {f}");
+    ensure!(!m.config.half_angle_feature, "the viewer does not draw renderers that read the log half-angle feature (model {}, issue 48) yet", m.config.name);
     let mut layers = Vec::new();
     let mut mats = Vec::new();
     let mut offset = 0;
