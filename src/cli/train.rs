@@ -178,6 +178,14 @@ pub struct TrainArgs {
     /// describes the material, not where the flash was). Costs a second M_est pass; needs --scheme alternating.
     #[arg(long, default_value_t = 0.0, value_name = "W")]
     pub shift_weight: f64,
+    /// Weight of a lobe term (issue 48; paper: none): L1 of ln(1 + R) at --lobe-pixels random pixels under lights
+    /// inside each pixel's true GGX lobe, rendered from M_est's codes there, in both halves' losses. Trains the renderer
+    /// to draw a glossy highlight wherever the light puts it (the output renders show a lobe on a few pixels at best).
+    #[arg(long, default_value_t = 0.0, value_name = "W")]
+    pub lobe_weight: f64,
+    /// Pixels per step of the lobe term (over the whole batch).
+    #[arg(long, default_value_t = flashmat::train::config::DEFAULT_LOBE_PIXELS, value_name = "N", value_parser = super::count)]
+    pub lobe_pixels: usize,
     /// Largest shift of the second photo, in pixels per axis (with --shift-weight).
     #[arg(long, default_value_t = 16, value_name = "PIXELS")]
     pub shift_pixels: usize,
@@ -385,6 +393,8 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         weight_adv: a.adv_weight,
         weight_chroma: a.chroma_weight,
         weight_shift: a.shift_weight,
+        weight_lobe: a.lobe_weight,
+        lobe_pixels: a.lobe_pixels,
         shift_pixels: a.shift_pixels,
         shift_scale_free: a.shift_scale_free,
         steps: a.steps.unwrap_or(TrainConfig::default().steps),

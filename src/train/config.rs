@@ -183,6 +183,18 @@ pub struct TrainConfig {
     /// hole where the highlight was under any other light). 0: none, the paper.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub weight_shift: f64,
+    /// Weight of the lobe term (`losses::lobe_l1`, issue 48): L1 of ln(1 + R)
+    /// at `lobe_pixels` random pixels of the batch under lights inside each
+    /// pixel's true GGX lobe, rendered from M_est's codes there. The output
+    /// renders put a glossy pixel's mirror direction in view on a few
+    /// pixels at best; the renderer never learned to draw the lobe there,
+    /// even from the best map (`flashmat eval --ceiling`). Both halves
+    /// take it. 0: none, the paper.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub weight_lobe: f64,
+    /// Pixels a step of the lobe term samples (over the whole batch).
+    #[serde(default = "default_lobe_pixels")]
+    pub lobe_pixels: usize,
     /// Largest shift of the second photo in pixels (each axis).
     #[serde(default = "default_shift_pixels")]
     pub shift_pixels: usize,
@@ -244,6 +256,14 @@ fn default_shift_pixels() -> usize {
     16
 }
 
+/// Pixels of the lobe term per step: a quarter of the teacher's samples,
+/// a few hundredths of a step's output pixels at the CPU recipe.
+pub const DEFAULT_LOBE_PIXELS: usize = 4096;
+
+fn default_lobe_pixels() -> usize {
+    DEFAULT_LOBE_PIXELS
+}
+
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
@@ -292,6 +312,8 @@ impl Default for TrainConfig {
             weight_adv: 0.03,
             weight_chroma: 0.0,
             weight_shift: 0.0,
+            weight_lobe: 0.0,
+            lobe_pixels: DEFAULT_LOBE_PIXELS,
             shift_pixels: default_shift_pixels(),
             shift_scale_free: false,
             pixel_fraction: 0.6,
@@ -365,6 +387,8 @@ impl TrainConfig {
             format_args!("a training step (--batch {batch} x (--outputs {outputs} + 1) x --crop {crop} squared)"),
             &[batch, outputs.saturating_add(1), crop, crop],
         )?;
+        anyhow::ensure!(self.weight_lobe == 0.0 || self.lobe_pixels >= 1, "--lobe-pixels must be at least 1");
+        limits::STEP_PIXELS.check("--lobe-pixels", self.lobe_pixels as u64)?;
         limits::BANK_PIXELS.check_product(
             format_args!("the material bank (--bank {} x {} squared)", self.bank, self.material_size),
             &[self.bank as u64, self.material_size as u64, self.material_size as u64],
@@ -374,11 +398,15 @@ impl TrainConfig {
             anyhow::ensure!(c.is_finite() && c > 0.0, "--grad-clip must be a finite number > 0 (got {c})");
         }
         anyhow::ensure!(self.lr_decay.is_finite() && self.lr_decay > 0.0, "the learning-rate decay must be a finite number > 0 (got {})", self.lr_decay);
-        for (name, w) in [("L1", self.weight_l1), ("LPIPS", self.weight_lpips), ("adversarial", self.weight_adv), ("chromaticity", self.weight_chroma), ("shift-consistency", self.weight_shift)] {
+        for (name, w) in [("L1", self.weight_l1), ("LPIPS", self.weight_lpips), ("adversarial", self.weight_adv), ("chromaticity", self.weight_chroma), ("shift-consistency", self.weight_shift), ("lobe", self.weight_lobe)] {
             anyhow::ensure!(w.is_finite() && w >= 0.0, "the {name} weight must be a finite number >= 0 (got {w})");
         }
         anyhow::ensure!(self.material_size >= self.crop, "material size {} is smaller than the crop {}", self.material_size, self.crop);
         anyhow::ensure!(!self.shift_scale_free || self.weight_shift > 0.0, "--shift-scale-free changes the shift term: give --shift-weight too");
+        if self.weight_lobe > 0.0 {
+            anyhow::ensure!(self.method.is_flashmat(), "--lobe-weight applies to --method flashmat only");
+            anyhow::ensure!(self.scheme == UpdateScheme::Alternating, "--lobe-weight applies to --scheme alternating only");
+        }
         if self.weight_shift > 0.0 {
             anyhow::ensure!(self.method.is_flashmat(), "--shift-weight applies to --method flashmat only");
             anyhow::ensure!(!self.freeze_estimator, "--shift-weight trains M_est: not with --freeze-estimator");

@@ -165,6 +165,39 @@ pub fn pixel_mask<R: rand::Rng>(neural: &Tensor, targets: &Tensor, fraction: f64
     mask.view([n, rows / n, 1, h, w])
 }
 
+/// The lobe term (`TrainConfig::weight_lobe`, issue 48): at `pixels`
+/// random pixels of the batch (uniform, with replacement), a view
+/// cosine-distributed over the hemisphere and a light inside the pixel's
+/// true GGX lobe (`teacher::lobe_lights`); mean |ln(1 + R) - ln(1 + R_GGX)|
+/// over the pairs whose light stays above the surface, R rendered from the
+/// neural map's code at the pixel. Every draw comes from `rng`, so it
+/// replays on resume. neural: `[N, C, H, W]` (with its graph for M_est's
+/// half, detached for the renderer's); maps: `[N, 10, H, W]` -> scalar.
+pub fn lobe_l1<R: rand::Rng>(renderer: &crate::model::NeuralRenderer, neural: &Tensor, maps: &Tensor, pixels: usize, rng: &mut R) -> Result<Tensor> {
+    use rand_distr::{Distribution, StandardNormal};
+    let s = neural.size();
+    let (c, total) = (s[1], s[0] * s[2] * s[3]);
+    let device = neural.device();
+    let r = pixels as i64;
+    let index: Vec<i64> = (0..r).map(|_| rng.random_range(0..total)).collect();
+    let mut wo = Vec::with_capacity(3 * pixels);
+    for _ in 0..pixels {
+        // Cosine-distributed over the hemisphere.
+        let (u, phi) = (rng.random::<f32>(), rng.random::<f32>() * std::f32::consts::TAU);
+        wo.extend_from_slice(&[u.sqrt() * phi.cos(), u.sqrt() * phi.sin(), (1.0 - u).max(1e-4).sqrt()]);
+    }
+    let offsets: Vec<f32> = (0..2 * pixels).map(|_| StandardNormal.sample(rng)).collect();
+    let index = Tensor::from_slice(&index).to_device(device);
+    let rows = |t: &Tensor| t.permute([0, 2, 3, 1]).reshape([-1, t.size()[1]]).index_select(0, &index);
+    let (codes, maps) = (rows(neural), rows(&maps.to_kind(Kind::Float)));
+    let wo = Tensor::from_slice(&wo).view([r, 3]).to_device(device);
+    let (wi, above) = super::teacher::lobe_lights(&maps, &wo, &Tensor::from_slice(&offsets).view([r, 2]).to_device(device));
+    let target = tch::no_grad(|| super::teacher::ggx_log_rows(&maps, &wi, &wo));
+    let pred = renderer.forward_rows(&codes.view([r, c]), &wi, &wo)?;
+    let weight = above.to_kind(Kind::Float);
+    Ok(((pred - target).abs() * &weight).sum(Kind::Float) / (weight.sum(Kind::Float) * 3.0).clamp_min(1.0))
+}
+
 /// L1 over the masked pixels only. pred, target: `[N, K, 3, H, W]`; mask broadcastable.
 pub fn masked_l1(pred: &Tensor, target: &Tensor, mask: &Tensor) -> Tensor {
     let diff = (pred - target).abs() * mask;

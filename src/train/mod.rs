@@ -25,6 +25,10 @@ use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Tensor};
 
+/// The lobe term's random stream (`batches::step_rng`; 1-4 are the batch's
+/// and the pixel mask's).
+const LOBE_STREAM: u64 = 5;
+
 /// Loss terms of one step (what the JSONL log records).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct StepLosses {
@@ -49,6 +53,9 @@ pub struct StepLosses {
     /// Shift-consistency term, unweighted (0 without it).
     #[serde(default)]
     pub shift: f64,
+    /// Lobe term of the renderer's half, unweighted (0 without it).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub lobe: f64,
     /// Mean L2 norm of the neural parameters (watch for "garbage" vectors).
     pub param_norm: f64,
     /// True when the step was skipped because a loss or gradient was NaN/Inf.
@@ -317,6 +324,9 @@ impl Trainer {
             readout.push(|o, v| o.shift = v, t.detach() / cfg.weight_shift);
             loss_est = loss_est + t;
         }
+        if cfg.weight_lobe > 0.0 {
+            loss_est = loss_est + self.lobe_term(b, &neural)? * cfg.weight_lobe;
+        }
         readout.push(|o, v| o.l1 = v, l1.detach());
         readout.push(|o, v| o.lpips = v, lp.detach());
         readout.push(|o, v| o.adv = v, adv.detach());
@@ -343,7 +353,14 @@ impl Trainer {
     /// targets (no anchor), so the two halves' losses differ only in their
     /// L1 term.
     fn shares_one_forward(&self) -> bool {
-        !self.two_pass && !self.config.freeze_estimator && !self.config.freeze_renderer && self.anchor.is_none()
+        !self.two_pass && !self.config.freeze_estimator && !self.config.freeze_renderer && self.anchor.is_none() && self.config.weight_lobe == 0.0
+    }
+
+    /// The lobe term (`losses::lobe_l1`) of this step on `neural` `[N, C, H, W]`:
+    /// the same pixels and directions in both halves (one stream per step).
+    fn lobe_term(&self, b: &TrainingBatch, neural: &Tensor) -> Result<Tensor> {
+        let mut rng = batches::step_rng(self.config.seed, self.step, self.config.shard.stream(LOBE_STREAM));
+        losses::lobe_l1(&self.model.renderer, neural, &b.maps, self.config.lobe_pixels, &mut rng)
     }
 
     /// The alternating scheme's step from one forward pass. The two-pass
@@ -527,7 +544,12 @@ impl Trainer {
         }
         let lp_r = losses::perceptual(self.lpips.as_ref(), &pred_r, &target_log)?;
         let adv_r = losses::adversarial(&self.disc, &pred_r, &photo_log, weight_adv)?;
-        let loss_render = &l1_r * cfg.weight_l1 + &lp_r * cfg.weight_lpips + &adv_r * weight_adv + chroma_term(&cfg, &pred_r, &target_log);
+        let mut loss_render = &l1_r * cfg.weight_l1 + &lp_r * cfg.weight_lpips + &adv_r * weight_adv + chroma_term(&cfg, &pred_r, &target_log);
+        if cfg.weight_lobe > 0.0 {
+            let lobe = self.lobe_term(b, &neural)?;
+            readout.push(|o, v| o.lobe = v, lobe.detach());
+            loss_render = loss_render + lobe * cfg.weight_lobe;
+        }
         readout.push(|o, v| o.l1_render = v, l1_r.detach());
         readout.push(|o, v| o.loss_render = v, loss_render.detach());
         loss_render.backward();

@@ -148,22 +148,34 @@ pub fn pixel_samples(n: i64, lobe_share: f64, device: Device) -> (Tensor, Tensor
     let near = normalize_rows(&near);
     let colocated = Tensor::rand([n, 1], opts).lt(0.25).to_kind(Kind::Float);
     let wo = normalize_rows(&(&colocated * near + (1.0 - &colocated) * cosine(n)));
+    let maps = Tensor::cat(&[kd, ks, rough, normal], 1);
     let wi = if lobe_share > 0.0 {
-        let alpha = rough.square();
-        let offset = Tensor::cat(&[Tensor::randn([n, 2], opts) * (&alpha * 1.5), Tensor::zeros([n, 1], opts)], 1);
-        let h = normalize_rows(&(&normal + offset));
-        let mirrored = &h * (&wo * &h).sum_dim_intlist([1i64].as_slice(), true, Kind::Float) * 2.0 - &wo;
-        let lobe = Tensor::rand([n, 1], opts).lt(lobe_share).logical_and(&mirrored.narrow(1, 2, 1).gt(0.02)).to_kind(Kind::Float);
+        let (mirrored, above) = lobe_lights(&maps, &wo, &Tensor::randn([n, 2], opts));
+        let lobe = Tensor::rand([n, 1], opts).lt(lobe_share).logical_and(&above).to_kind(Kind::Float);
         normalize_rows(&(&lobe * mirrored + (1.0 - &lobe) * &wi))
     } else {
         wi
     };
-    let maps = Tensor::cat(&[kd, ks, rough, normal], 1);
     let target = ggx_log_rows(&maps, &wi, &wo);
     (maps, wi, wo, target)
 }
 
-fn normalize_rows(v: &Tensor) -> Tensor {
+/// Lights inside each row's GGX lobe: the view `wo` mirrored about a half
+/// vector drawn around the row's normal, `offsets` x 1.5 alpha along x and
+/// y (alpha = roughness^2). maps: `[R, 10]` (kd, ks, roughness, normal);
+/// wo: `[R, 3]` unit; offsets: `[R, 2]` standard normal draws -> (wi
+/// `[R, 3]`, `[R, 1]` bool: the light is above the surface, z > 0.02).
+pub fn lobe_lights(maps: &Tensor, wo: &Tensor, offsets: &Tensor) -> (Tensor, Tensor) {
+    let alpha = maps.narrow(1, 6, 1).square();
+    let n = maps.size()[0];
+    let shift = Tensor::cat(&[offsets * (&alpha * 1.5), Tensor::zeros([n, 1], (offsets.kind(), offsets.device()))], 1);
+    let h = normalize_rows(&(maps.narrow(1, 7, 3) + shift));
+    let mirrored = normalize_rows(&(&h * (wo * &h).sum_dim_intlist([1i64].as_slice(), true, Kind::Float) * 2.0 - wo));
+    let above = mirrored.narrow(1, 2, 1).gt(0.02);
+    (mirrored, above)
+}
+
+pub(crate) fn normalize_rows(v: &Tensor) -> Tensor {
     v / v.square().sum_dim_intlist([1i64].as_slice(), true, Kind::Float).sqrt().clamp_min(1e-12)
 }
 
