@@ -117,6 +117,10 @@ COLOCATED="${FLASHMAT_GPU_COLOCATED:-0}"
 # material; reports/highlights-experiments.md; 0: as the campaigns before
 # 2026-11-27 trained).
 MOVED="${FLASHMAT_GPU_MOVED:-0}"
+# Weight of the lobe term (--lobe-weight, issue 48: L1 at random pixels
+# under lights inside their true GGX lobe; reports/highlights-experiments.md)
+# in the campaign and the frozen job; 0: as the campaigns before 2026-11-27.
+LOBE="${FLASHMAT_GPU_LOBE:-0}"
 # Share of dark procedural materials (--dark-share, issue 53: most real
 # materials are darker than the families' colours; 0: the paper's data, as
 # the campaigns before 2026-11-27 trained).
@@ -168,6 +172,7 @@ recipe() {
   [ "$COLOCATED" != 0 ] && constraint+=(--colocated-outputs "$COLOCATED")
   [ "$DARK_SHARE" != 0 ] && constraint+=(--dark-share "$DARK_SHARE")
   [ "$MOVED" != 0 ] && constraint+=(--moved-highlight-outputs "$MOVED")
+  [ "$LOBE" != 0 ] && constraint+=(--lobe-weight "$LOBE")
   echo --preset "$PRESET" --ldr --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --lr "$LR" \
     --warmup-steps "$WARMUP" --straight-through-output --bank "$BANK" --seed "$SEED" \
     --steps 100000000 --checkpoint-every 500 --preview-every 1000 "${teacher[@]}" "${constraint[@]}"
@@ -337,7 +342,7 @@ frozen() {
   rm -rf "$dir" && mkdir -p "$dir"
   local common=(--preset "$PRESET" --ldr --warm-start "$base" --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS"
     --colocated-outputs "$FROZEN_COLOCATED" --hemisphere-outputs "$HEMISPHERE" --lr "$FROZEN_LR" --warmup-steps 50
-    --straight-through-output --checkerboard-free --adv-weight 0 --lpips-weight 0.1 --chroma-weight 1
+    --straight-through-output --checkerboard-free --adv-weight 0 --lpips-weight 0.1 --chroma-weight 1 --lobe-weight "$LOBE"
     --bank "$BANK" --steps 100000000 --minutes "$minutes" --checkpoint-every "$FROZEN_EVERY"
     --preview-every 1000000 --keep-exports --device "$DEVICE" --precision "$PRECISION" --threads "$FROZEN_THREADS")
   start_util_sampler "$dir/gpu-util.csv"
@@ -585,7 +590,7 @@ cpu_dry_run() {
   source scripts/env.sh
   [ -x "$FLASHMAT_RELEASE_BIN" ] || cargo build --release --bin flashmat
   export FLASHMAT_GPU_DEVICE=cpu FLASHMAT_GPU_PRESET=tiny FLASHMAT_GPU_CROP=32 FLASHMAT_GPU_BATCH=2 \
-    FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_COLOCATED=1 FLASHMAT_GPU_MOVED=1 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
+    FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_COLOCATED=1 FLASHMAT_GPU_MOVED=1 FLASHMAT_GPU_LOBE=0.1 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
     FLASHMAT_GPU_WORK="$tmp/machine" FLASHMAT_GPU_BIN="$FLASHMAT_RELEASE_BIN" \
     FLASHMAT_GPU_RESUME="$tmp/resume.safetensors" FLASHMAT_TORCH_LIB="$FLASHMAT_TORCH_LIB" \
     FLASHMAT_GPU_TEACHER_STEPS=20 FLASHMAT_GPU_TEACHER_PIXELS=1024 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/teacher.safetensors"
@@ -610,6 +615,7 @@ cpu_dry_run() {
   grep -q '"checkerboard_free": true' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --checkerboard-free"
   grep -q '"dark_share": 0.25' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --dark-share 0.25"
   grep -q '"moved_highlight_outputs": 1' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --moved-highlight-outputs 1"
+  grep -q '"weight_lobe": 0.1' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --lobe-weight 0.1"
   grep -q "^VERDICT: " "$tmp/out3/verdict/verdict.md" || die "dry run: no verdict"
   for f in model.safetensors log.jsonl losses.png chunk.md; do
     [ -f "$tmp/out2/$f" ] || die "dry run: chunk 2 brought back no $f"
