@@ -164,6 +164,32 @@ fn eval_exposures_take_negative_stops_and_refuse_non_numbers() {
     assert_error(&flashmat(&args("nan").iter().map(String::as_str).collect::<Vec<_>>()), &["--exposures", "NaN"]);
 }
 
+/// `eval --ceiling`: the bundled model's estimate and one fit per K on the
+/// glossiest held-out material, written as ceiling.md and ceiling.csv; the
+/// print-out (no renderer to fit) is refused in one line.
+#[test]
+fn eval_ceiling_fits_the_map_and_refuses_the_printout() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ceiling");
+    let model = format!("{}/models/flashmat.safetensors", env!("CARGO_MANIFEST_DIR"));
+    let args = ["eval", "--ceiling", "0,2", "--ceiling-materials", "1", "--ceiling-steps", "3", "--size", "32", "--ldr-input", "--model", &model, "-o", s(&out)];
+    assert_ok(&flashmat(&args));
+    let csv = std::fs::read_to_string(out.join("ceiling.csv")).unwrap();
+    let maps: Vec<&str> = csv.lines().skip(1).map(|l| l.split(',').next().unwrap()).collect();
+    assert_eq!(maps, ["estimate", "fit 0", "fit 2"]);
+    // The glossiest held-out material, and each fit lowers its own data term.
+    for line in csv.lines().skip(2) {
+        let cells: Vec<&str> = line.split(',').collect();
+        assert_eq!(cells[1], "test30");
+        let (before, after): (f64, f64) = (cells[3].parse().unwrap(), cells[4].parse().unwrap());
+        assert!(after < before, "{line}");
+    }
+    assert!(std::fs::read_to_string(out.join("ceiling.md")).unwrap().contains("| fit 2 |"));
+    no_temp_files(&out);
+    let printout = ["eval", "--ceiling", "--model", "printout", "-o", s(&out)];
+    assert_error(&flashmat(&printout), &["--ceiling", "one flashmat model"]);
+}
+
 #[test]
 fn baselines_train_resume_export_and_eval() {
     let dir = tempfile::tempdir().unwrap();

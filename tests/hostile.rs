@@ -188,6 +188,7 @@ fn mini_config() -> ModelConfig {
         render_hidden: 8,
         render_narrow: 4,
         disc_width: 2,
+        half_angle_feature: false,
     }
 }
 

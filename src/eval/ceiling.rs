@@ -7,10 +7,9 @@
 //! the moved-highlight test ([`super::highlights`]) under its three lights,
 //! which the fit never sees.
 //!
-//! - K = 0 (the photo alone) asks whether a map that reproduces the photo
-//!   exactly relights better than M_est's: the photo cannot say where a
-//!   highlight would go, so a ghost here is the renderer's reading of
-//!   photographed highlights, not M_est's.
+//! - K = 0 (the photo alone): the map that reproduces the photo exactly.
+//!   A ghost here is what the photo alone asks of a map under this
+//!   renderer, the pull M_est (which sees only the photo) trains under.
 //! - K > 0: a map exists that no photo could give; if the lobe stays weak
 //!   with it, no M_est can fix the lobe with this renderer.
 //!
