@@ -26,10 +26,9 @@ fn main() -> Result<()> {
     let model = Model::new(&cfg, Device::Cpu)?;
     let teacher = flashmat::train::teacher::Teacher::load(std::path::Path::new(teacher_file), &cfg, Device::Cpu, Some(&model.renderer_vs))?;
     let moved = HighlightConfig::default();
-    let gloss: Vec<f64> = flashmat::eval::load_materials(flashmat::eval::PROCEDURAL_TEST, 32, None)?.iter().map(|(_, m)| highlights::glossiness(m)).collect();
     let mut rows = vec![];
     println!("| material | glossiness | ghost | lobe | rest | test log L1 |\n|---|---|---|---|---|---|");
-    for i in highlights::glossiest(&gloss, highlights::CHECK_MATERIALS) {
+    for i in highlights::glossiest_test_materials(highlights::CHECK_MATERIALS)? {
         let m = flashmat::data::procedural::test_material(i, size);
         let maps = flashmat::data::samples::stack_maps(std::slice::from_ref(&m), Device::Cpu)?;
         let truth = flashmat::eval::reference_renders(&m, &moved.configs());

@@ -132,9 +132,7 @@ pub fn run(opts: &CeilingOptions) -> Result<Vec<Vec<CeilingRow>>> {
     super::check_eval_size(cfg.size)?;
     let name = opts.model.file_stem().map_or_else(|| opts.model.display().to_string(), |s| s.to_string_lossy().into_owned());
     let mut method = ModelMethod::load(&opts.model, name.clone(), opts.ldr_input, opts.device)?;
-    // Ranked on 32-pixel maps (the same order as at full size), generated at full size only for those picked.
-    let gloss: Vec<f64> = super::load_materials(super::PROCEDURAL_TEST, 32, None)?.iter().map(|(_, m)| highlights::glossiness(m)).collect();
-    let picks = highlights::glossiest(&gloss, cfg.materials);
+    let picks = highlights::glossiest_test_materials(cfg.materials)?;
     std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;
     let bar = if opts.progress { ProgressBar::new(picks.len() as u64) } else { ProgressBar::hidden() };
     bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} materials, {elapsed} (eta {eta}) {msg}").expect("valid template"));
@@ -190,14 +188,13 @@ pub fn markdown(model: &str, opts: &CeilingOptions, all: &[Vec<CeilingRow>]) -> 
     for (j, (name, rows)) in per_map.iter().enumerate() {
         let sm = highlights::summarize(&rows.iter().collect::<Vec<_>>());
         let mean = |f: fn(&CeilingRow) -> f64| all.iter().map(|r| f(&r[j])).sum::<f64>() / all.len().max(1) as f64;
-        let stats = |r: &highlights::RatioStats, count: usize| if r.n == 0 { "- | - | -".to_string() } else { format!("{:.2} | {:.2} | {count}/{}", r.geo_mean, r.median, r.n) };
         let rest_out = rows.iter().filter_map(|r| r.rest).filter(|&v| !(0.9..=1.1).contains(&v)).count();
         let _ = writeln!(
             s,
             "| {name} | {} | {} | {} | {:.4} | {:.4} | {:.4} |",
-            stats(&sm.ghost, sm.ghost.above_1_5),
-            stats(&sm.lobe, sm.lobe.below_0_67),
-            stats(&sm.rest, rest_out),
+            highlights::stats_cells(&sm.ghost, sm.ghost.above_1_5),
+            highlights::stats_cells(&sm.lobe, sm.lobe.below_0_67),
+            highlights::stats_cells(&sm.rest, rest_out),
             mean(|r| r.fit_l1_before),
             mean(|r| r.fit_l1_after),
             mean(|r| r.test_l1)

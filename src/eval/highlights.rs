@@ -372,7 +372,8 @@ pub fn csv_text(methods: &[(String, Vec<MaterialHighlights>)]) -> String {
     s
 }
 
-fn stats_cells(s: &RatioStats, count: usize) -> String {
+/// `geometric mean | median | count/n` of one ratio (`- | - | -` for none).
+pub(crate) fn stats_cells(s: &RatioStats, count: usize) -> String {
     if s.n == 0 {
         return "- | - | -".into();
     }
@@ -483,6 +484,14 @@ pub fn picture(methods: &mut [Box<dyn Method>], materials: &[(String, Svbrdf)], 
     Ok(Some((crate::viz::grid(&rows, 4)?, note)))
 }
 
+/// Indices of the `n` glossiest held-out materials, glossiest first:
+/// ranked on 32-pixel maps (the maps' means, so the same order as at any
+/// size), for the caller to generate at its size only those it scores.
+pub fn glossiest_test_materials(n: usize) -> Result<Vec<usize>> {
+    let gloss: Vec<f64> = super::load_materials(super::PROCEDURAL_TEST, 32, None)?.iter().map(|(_, m)| glossiness(m)).collect();
+    Ok(glossiest(&gloss, n))
+}
+
 /// Materials of the training log's highlight check: the glossiest of the
 /// held-out set (matte ones rarely have a highlight region to measure).
 pub const CHECK_MATERIALS: usize = 6;
@@ -492,11 +501,9 @@ pub const CHECK_MATERIALS: usize = 6;
 /// clamped for LDR-input models, no LPIPS: the training log's numbers.
 pub fn highlight_check(model: &crate::model::Model, info: &crate::model::ModelInfo, size: usize) -> Result<HighlightSummary> {
     let cfg = HighlightConfig::default();
-    // Ranked on 32-pixel maps (means of the maps: the same order), generated at `size` only for the six.
-    let gloss: Vec<f64> = super::load_materials(super::PROCEDURAL_TEST, 32, None)?.iter().map(|(_, m)| glossiness(m)).collect();
     let mut method = super::methods::BorrowedModelMethod::new(model, info.clone());
     let rows = tch::no_grad(|| {
-        glossiest(&gloss, CHECK_MATERIALS)
+        glossiest_test_materials(CHECK_MATERIALS)?
             .into_iter()
             .map(|i| {
                 let m = crate::data::procedural::test_material(i, size);
