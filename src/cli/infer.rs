@@ -30,8 +30,9 @@ pub struct EstimateOptions {
     pub exposure: Option<f64>,
     /// How the photo's exposure reaches the material: `calibrated` (a photo darker than M_est's training photos
     /// is brought up to their brightness, the material keeps the exposure as a gain calibrated on the photo),
-    /// `normalized` (the same without the calibration) or `off` (M_est sees the photo as it is, as before
-    /// version 3 of .nmat).
+    /// `normalized` (the same without the calibration), `calibrated-clipping` (as calibrated, but an 8-bit photo is
+    /// brought up even where that clips its highlight: flashmat before the clip limit) or `off` (M_est sees the
+    /// photo as it is, as before version 3 of .nmat).
     #[arg(long, value_enum, default_value_t = ExposureMode::Calibrated)]
     pub exposure_mode: ExposureMode,
     /// Model resolution in pixels of the shorter side (a multiple of 8); the cropped photo is shrunk to it and
@@ -98,6 +99,7 @@ impl RefineWeights {
 pub enum ExposureMode {
     Calibrated,
     Normalized,
+    CalibratedClipping,
     Off,
 }
 
@@ -106,6 +108,7 @@ impl ExposureMode {
         match self {
             ExposureMode::Calibrated => infer::ExposureConfig::default(),
             ExposureMode::Normalized => infer::ExposureConfig { calibrate: false, ..Default::default() },
+            ExposureMode::CalibratedClipping => infer::ExposureConfig { clip_share: None, ..Default::default() },
             ExposureMode::Off => infer::ExposureConfig::off(),
         }
     }

@@ -186,6 +186,10 @@ pub struct TrainArgs {
     /// Pixels per step of the lobe term (over the whole batch).
     #[arg(long, default_value_t = flashmat::train::config::DEFAULT_LOBE_PIXELS, value_name = "N", value_parser = super::count)]
     pub lobe_pixels: usize,
+    /// Share of the lobe term's pairs whose light is inside the lobe; the others take a random light at the same
+    /// pixel and view, so the term also holds the renderer down around the lobe (1: lobe lights only).
+    #[arg(long, default_value_t = 1.0, value_name = "P")]
+    pub lobe_share: f64,
     /// Largest shift of the second photo, in pixels per axis (with --shift-weight).
     #[arg(long, default_value_t = 16, value_name = "PIXELS")]
     pub shift_pixels: usize,
@@ -395,6 +399,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         weight_shift: a.shift_weight,
         weight_lobe: a.lobe_weight,
         lobe_pixels: a.lobe_pixels,
+        lobe_share: a.lobe_share,
         shift_pixels: a.shift_pixels,
         shift_scale_free: a.shift_scale_free,
         steps: a.steps.unwrap_or(TrainConfig::default().steps),

@@ -5,7 +5,8 @@
 //!
 //! ```text
 //! level  = median over pixels of the photo's RGB mean        (robust: a highlight is a few pixels)
-//! s      = max(1, min_level / level)                         (dark photos are brought up)
+//! s      = max(1, min(min_level / level, 1 / bright))        (dark photos are brought up, LDR ones no further
+//!                                                             than their brightest pixels reach the clip)
 //! M_est  sees clamp(s * photo)                               (LDR models: clamped to [0, 1] as in training)
 //! gain   = 1 / s, times the identity calibration below
 //! ```
@@ -17,6 +18,14 @@
 //! are left as they are: the bundled model follows their brightness (and
 //! normalising them down cost detail: on held-out material 19, median
 //! 0.49, the identity log error doubled, 0.026 -> 0.051; reports/exposure.md).
+//!
+//! For LDR models the lift stops where the photo's brightest pixels (all
+//! but [`ExposureConfig::clip_share`] of them) reach 1: bringing a dark
+//! photo up to the level clipped its flash highlight, which M_est then read
+//! as a dull one (held-out test21 at -6 stops: identity 0.37x), and an
+//! already clipped photo lost its detail above 1 / s (Identity LPIPS
+//! +0.011 over the held-out set; reports/exposure.md). The scale is still
+//! 2^k times larger for a photo k stops darker, so its map is the same.
 //!
 //! The identity calibration then makes the material give its photo back:
 //! the network's render under the photo's own flash is compared with the
@@ -48,6 +57,10 @@ pub const HIGHLIGHT_FACTOR: f64 = 2.0;
 /// Photo values at or above this are clipped (8-bit white, after decoding).
 pub const CLIPPED_LEVEL: f64 = 0.999;
 
+/// Share of pixels the lift may bring to the clip ([`ExposureConfig::clip_share`]):
+/// a tenth of a percent, so one hot pixel does not hold a photo down.
+pub const DEFAULT_CLIP_SHARE: f64 = 0.001;
+
 /// Calibration factors outside this range are refused (the network's
 /// identity render is then far from the photo for another reason, and the
 /// normalised gain alone is kept).
@@ -63,11 +76,14 @@ pub struct ExposureConfig {
     pub min_level: f64,
     /// Calibrate the gain on the identity render.
     pub calibrate: bool,
+    /// Share of pixels an LDR photo's lift may bring to 1 (their brightest
+    /// channel); None: lifted to the level whatever it clips.
+    pub clip_share: Option<f64>,
 }
 
 impl Default for ExposureConfig {
     fn default() -> Self {
-        Self { normalize: true, min_level: DEFAULT_MIN_LEVEL, calibrate: true }
+        Self { normalize: true, min_level: DEFAULT_MIN_LEVEL, calibrate: true, clip_share: Some(DEFAULT_CLIP_SHARE) }
     }
 }
 
@@ -79,6 +95,9 @@ impl ExposureConfig {
 
     pub fn validate(&self) -> Result<()> {
         ensure!(self.min_level.is_finite() && self.min_level > 0.0 && self.min_level <= 1.0, "the exposure's minimum level must be in (0, 1], got {}", self.min_level);
+        if let Some(share) = self.clip_share {
+            ensure!((0.0..1.0).contains(&share), "the share of pixels the lift may clip must be in [0, 1), got {share}");
+        }
         Ok(())
     }
 }
@@ -96,12 +115,29 @@ pub fn photo_level(photo: &Tensor) -> Option<f64> {
     (level.is_finite() && level > 1e-8).then_some(level)
 }
 
+/// The brightest channel of the photo's pixels at the given share from the
+/// top: all but `share` of the pixels are at or below it. photo: linear
+/// `[3, H, W]`.
+pub fn bright_level(photo: &Tensor, share: f64) -> f64 {
+    let peaks = photo.to_kind(Kind::Float).max_dim(0, false).0.flatten(0, -1);
+    let n = peaks.numel() as i64;
+    let k = ((n as f64 * (1.0 - share)).ceil() as i64).clamp(1, n);
+    peaks.kthvalue(k, 0, false).0.double_value(&[])
+}
+
 /// The scale M_est's input is multiplied by: min_level / level for a photo
-/// darker than the minimum, else 1 (also when off, or when the photo has
-/// no level).
-pub fn normalizing_scale(photo: &Tensor, cfg: &ExposureConfig) -> f64 {
+/// darker than the minimum, for an LDR photo (`clip_to_one`) no more than
+/// brings its [`bright_level`] to 1, and never below 1 (1 also when off,
+/// or when the photo has no level). photo: linear `[3, H, W]`.
+pub fn normalizing_scale(photo: &Tensor, cfg: &ExposureConfig, clip_to_one: bool) -> f64 {
     match (cfg.normalize, photo_level(photo)) {
-        (true, Some(level)) => (cfg.min_level / level).max(1.0),
+        (true, Some(level)) => {
+            let cap = match (clip_to_one, cfg.clip_share) {
+                (true, Some(share)) => 1.0 / bright_level(photo, share).max(1e-12),
+                _ => f64::INFINITY,
+            };
+            (cfg.min_level / level).min(cap).max(1.0)
+        }
         _ => 1.0,
     }
 }
@@ -143,21 +179,44 @@ mod tests {
 
     #[test]
     fn the_level_is_the_median_and_ignores_a_highlight() {
-        // 64 pixels: 40 at 0.02, 24 at 0.005 (RGB means); one highlight pixel at 5.
+        // 64 pixels: 40 at 0.02, 24 at 0.005 (RGB means); one highlight pixel at
+        // 5 (HDR: no clip to respect).
         let p = photo(|c, y, x| if (y, x) == (4, 4) { 5.0 } else if y < 5 { [0.01, 0.02, 0.03][c] } else { 0.005 });
         assert!((photo_level(&p).unwrap() - 0.02).abs() < 1e-7);
         let cfg = ExposureConfig::default();
-        assert!((normalizing_scale(&p, &cfg) - DEFAULT_MIN_LEVEL / 0.02).abs() < 1e-5);
+        assert!((normalizing_scale(&p, &cfg, false) - DEFAULT_MIN_LEVEL / 0.02).abs() < 1e-5);
         // Two stops darker: four times the scale, so the same input for M_est.
         let dark = &p / 4.0;
-        assert!((normalizing_scale(&dark, &cfg) - 4.0 * normalizing_scale(&p, &cfg)).abs() < 1e-4);
-        assert_eq!(normalizing_scale(&p, &ExposureConfig::off()), 1.0);
+        assert!((normalizing_scale(&dark, &cfg, false) - 4.0 * normalizing_scale(&p, &cfg, false)).abs() < 1e-4);
+        assert_eq!(normalizing_scale(&p, &ExposureConfig::off(), false), 1.0);
         // A photo at or above the minimum level is left as it is.
-        assert_eq!(normalizing_scale(&(&p * 6.0), &cfg), 1.0);
-        assert_eq!(normalizing_scale(&(&p * 50.0), &cfg), 1.0);
+        assert_eq!(normalizing_scale(&(&p * 6.0), &cfg, false), 1.0);
+        assert_eq!(normalizing_scale(&(&p * 50.0), &cfg, false), 1.0);
         // A black photo has no level: left as it is.
         assert_eq!(photo_level(&Tensor::zeros([3, 8, 8], (Kind::Float, Device::Cpu))), None);
-        assert_eq!(normalizing_scale(&Tensor::zeros([3, 8, 8], (Kind::Float, Device::Cpu)), &cfg), 1.0);
+        assert_eq!(normalizing_scale(&Tensor::zeros([3, 8, 8], (Kind::Float, Device::Cpu)), &cfg, false), 1.0);
+    }
+
+    #[test]
+    fn an_ldr_photo_is_lifted_no_further_than_its_highlight_reaches_the_clip() {
+        // 64 pixels at 0.01 (RGB mean) with a highlight of 4 pixels at 0.2
+        // (green 0.25): the level asks for 10x, the highlight allows 4x.
+        let p = photo(|c, y, x| if y == 0 && x < 4 { [0.15, 0.25, 0.2][c] } else { 0.01 });
+        assert!((bright_level(&p, 0.0) - 0.25).abs() < 1e-7);
+        let cfg = ExposureConfig::default();
+        assert!((normalizing_scale(&p, &cfg, true) - 4.0).abs() < 1e-5);
+        // HDR input has no clip; nor does a configuration without a share.
+        assert!((normalizing_scale(&p, &cfg, false) - 10.0).abs() < 1e-5);
+        assert!((normalizing_scale(&p, &ExposureConfig { clip_share: None, ..cfg }, true) - 10.0).abs() < 1e-5);
+        // A share above the highlight's 4 of 64 pixels lets them clip.
+        assert!((bright_level(&p, 0.1) - 0.01).abs() < 1e-7);
+        assert!((normalizing_scale(&p, &ExposureConfig { clip_share: Some(0.1), ..cfg }, true) - 10.0).abs() < 1e-5);
+        // Two stops darker: still four times the scale, so the same input for M_est.
+        assert!((normalizing_scale(&(&p / 4.0), &cfg, true) - 16.0).abs() < 1e-4);
+        // An already clipped photo is not lifted at all.
+        let clipped = photo(|_, y, x| if y == 0 && x < 4 { 1.0 } else { 0.01 });
+        assert_eq!(normalizing_scale(&clipped, &cfg, true), 1.0);
+        assert!(ExposureConfig { clip_share: Some(1.0), ..cfg }.validate().is_err());
     }
 
     #[test]

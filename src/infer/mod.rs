@@ -139,7 +139,7 @@ pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, 
     let device = model.device();
     let linear = photo.linear.to_tensor(); // [3, H, W]
     let clamp = |t: &tch::Tensor| if info.ldr_input { crate::spaces::ldr_clamp(t) } else { t.clamp_min(0.0) };
-    let scale = exposure::normalizing_scale(&clamp(&linear), exposure);
+    let scale = exposure::normalizing_scale(&clamp(&linear), exposure, info.ldr_input);
     let x = photo_est_input(&(&linear * scale), info.ldr_input, device); // [1, 4, H, W]
     let est = model.est.fold_batchnorm();
     let map = match plan {

@@ -195,6 +195,11 @@ pub struct TrainConfig {
     /// Pixels a step of the lobe term samples (over the whole batch).
     #[serde(default = "default_lobe_pixels")]
     pub lobe_pixels: usize,
+    /// Share of the lobe term's pairs with a light inside the lobe; the rest
+    /// take a cosine-distributed light at the same pixels and views
+    /// (`losses::lobe_l1`). 1: lobe lights only.
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub lobe_share: f64,
     /// Largest shift of the second photo in pixels (each axis).
     #[serde(default = "default_shift_pixels")]
     pub shift_pixels: usize,
@@ -264,6 +269,14 @@ fn default_lobe_pixels() -> usize {
     DEFAULT_LOBE_PIXELS
 }
 
+fn one() -> f64 {
+    1.0
+}
+
+fn is_one(v: &f64) -> bool {
+    *v == 1.0
+}
+
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
@@ -314,6 +327,7 @@ impl Default for TrainConfig {
             weight_shift: 0.0,
             weight_lobe: 0.0,
             lobe_pixels: DEFAULT_LOBE_PIXELS,
+            lobe_share: 1.0,
             shift_pixels: default_shift_pixels(),
             shift_scale_free: false,
             pixel_fraction: 0.6,
@@ -389,6 +403,7 @@ impl TrainConfig {
         )?;
         anyhow::ensure!(self.weight_lobe == 0.0 || self.lobe_pixels >= 1, "--lobe-pixels must be at least 1");
         limits::STEP_PIXELS.check("--lobe-pixels", self.lobe_pixels as u64)?;
+        anyhow::ensure!((0.0..=1.0).contains(&self.lobe_share), "--lobe-share must be within 0..1, got {}", self.lobe_share);
         limits::BANK_PIXELS.check_product(
             format_args!("the material bank (--bank {} x {} squared)", self.bank, self.material_size),
             &[self.bank as u64, self.material_size as u64, self.material_size as u64],

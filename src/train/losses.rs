@@ -170,10 +170,14 @@ pub fn pixel_mask<R: rand::Rng>(neural: &Tensor, targets: &Tensor, fraction: f64
 /// cosine-distributed over the hemisphere and a light inside the pixel's
 /// true GGX lobe (`teacher::lobe_lights`); mean |ln(1 + R) - ln(1 + R_GGX)|
 /// over the pairs whose light stays above the surface, R rendered from the
-/// neural map's code at the pixel. Every draw comes from `rng`, so it
-/// replays on resume. neural: `[N, C, H, W]` (with its graph for M_est's
-/// half, detached for the renderer's); maps: `[N, 10, H, W]` -> scalar.
-pub fn lobe_l1<R: rand::Rng>(renderer: &crate::model::NeuralRenderer, neural: &Tensor, maps: &Tensor, pixels: usize, rng: &mut R) -> Result<Tensor> {
+/// neural map's code at the pixel. With `lobe_share` below 1, the other
+/// pairs take a cosine-distributed light instead: at the same pixels and
+/// views, so the term also holds the renderer to GGX around the lobe
+/// (trained on lobe lights alone it brightened everything, reports/
+/// highlights-experiments.md). Every draw comes from `rng`, so it replays
+/// on resume. neural: `[N, C, H, W]` (with its graph for M_est's half,
+/// detached for the renderer's); maps: `[N, 10, H, W]` -> scalar.
+pub fn lobe_l1<R: rand::Rng>(renderer: &crate::model::NeuralRenderer, neural: &Tensor, maps: &Tensor, pixels: usize, lobe_share: f64, rng: &mut R) -> Result<Tensor> {
     use rand_distr::{Distribution, StandardNormal};
     let s = neural.size();
     let (c, total) = (s[1], s[0] * s[2] * s[3]);
@@ -187,11 +191,30 @@ pub fn lobe_l1<R: rand::Rng>(renderer: &crate::model::NeuralRenderer, neural: &T
         wo.extend_from_slice(&[u.sqrt() * phi.cos(), u.sqrt() * phi.sin(), (1.0 - u).max(1e-4).sqrt()]);
     }
     let offsets: Vec<f32> = (0..2 * pixels).map(|_| StandardNormal.sample(rng)).collect();
+    // Drawn only when mixing, so a share of 1 replays the stream of runs before it.
+    let off_lobe: Option<(Vec<f32>, Vec<f32>)> = (lobe_share < 1.0).then(|| {
+        let mut light = Vec::with_capacity(3 * pixels);
+        let mut off = Vec::with_capacity(pixels);
+        for _ in 0..pixels {
+            let (u, phi) = (rng.random::<f32>(), rng.random::<f32>() * std::f32::consts::TAU);
+            light.extend_from_slice(&[u.sqrt() * phi.cos(), u.sqrt() * phi.sin(), (1.0 - u).max(1e-4).sqrt()]);
+            off.push(if rng.random::<f64>() < lobe_share { 0.0 } else { 1.0 });
+        }
+        (light, off)
+    });
     let index = Tensor::from_slice(&index).to_device(device);
     let rows = |t: &Tensor| t.permute([0, 2, 3, 1]).reshape([-1, t.size()[1]]).index_select(0, &index);
     let (codes, maps) = (rows(neural), rows(&maps.to_kind(Kind::Float)));
     let wo = Tensor::from_slice(&wo).view([r, 3]).to_device(device);
     let (wi, above) = super::teacher::lobe_lights(&maps, &wo, &Tensor::from_slice(&offsets).view([r, 2]).to_device(device));
+    let (wi, above) = match off_lobe {
+        Some((light, off)) => {
+            let off = Tensor::from_slice(&off).view([r, 1]).to_device(device);
+            let light = Tensor::from_slice(&light).view([r, 3]).to_device(device);
+            (&off * light + (1.0 - &off) * wi, above.logical_or(&off.gt(0.5)))
+        }
+        None => (wi, above),
+    };
     let target = tch::no_grad(|| super::teacher::ggx_log_rows(&maps, &wi, &wo));
     let pred = renderer.forward_rows(&codes.view([r, c]), &wi, &wo)?;
     let weight = above.to_kind(Kind::Float);
