@@ -100,6 +100,7 @@ pub enum ExposureMode {
     Calibrated,
     Normalized,
     CalibratedClipping,
+    CalibratedCapped,
     Off,
 }
 
@@ -109,6 +110,7 @@ impl ExposureMode {
             ExposureMode::Calibrated => infer::ExposureConfig::default(),
             ExposureMode::Normalized => infer::ExposureConfig { calibrate: false, ..Default::default() },
             ExposureMode::CalibratedClipping => infer::ExposureConfig { clip_share: None, ..Default::default() },
+            ExposureMode::CalibratedCapped => infer::ExposureConfig { lift_candidates: 1, ..Default::default() },
             ExposureMode::Off => infer::ExposureConfig::off(),
         }
     }

@@ -190,6 +190,10 @@ pub struct TrainArgs {
     /// pixel and view, so the term also holds the renderer down around the lobe (1: lobe lights only).
     #[arg(long, default_value_t = 1.0, value_name = "P")]
     pub lobe_share: f64,
+    /// Share of the lobe term's views taken from the flash camera's cone (within 14 degrees of the normal, where
+    /// the photo's camera and the moved-highlight test look from) instead of the whole hemisphere.
+    #[arg(long, default_value_t = 0.0, value_name = "P")]
+    pub lobe_camera_share: f64,
     /// Largest shift of the second photo, in pixels per axis (with --shift-weight).
     #[arg(long, default_value_t = 16, value_name = "PIXELS")]
     pub shift_pixels: usize,
@@ -400,6 +404,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         weight_lobe: a.lobe_weight,
         lobe_pixels: a.lobe_pixels,
         lobe_share: a.lobe_share,
+        lobe_camera_share: a.lobe_camera_share,
         shift_pixels: a.shift_pixels,
         shift_scale_free: a.shift_scale_free,
         steps: a.steps.unwrap_or(TrainConfig::default().steps),

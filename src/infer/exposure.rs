@@ -27,6 +27,14 @@
 //! +0.011 over the held-out set; reports/exposure.md). The scale is still
 //! 2^k times larger for a photo k stops darker, so its map is the same.
 //!
+//! Where the clip holds the lift below the level, neither end is right for
+//! every photo (lifted less, M_est reads the darker photo too bright and its
+//! highlight comes back too strong; lifted fully, the clipped highlight
+//! comes back too dull), so [`ExposureConfig::lift_candidates`] scales
+//! between the two are tried and the material whose identity render gives
+//! the unclipped photo's mean back best, highlight included
+//! ([`identity_error`]), is kept. The choice is the same k stops darker.
+//!
 //! The identity calibration then makes the material give its photo back:
 //! the network's render under the photo's own flash is compared with the
 //! photo over the pixels that are neither clipped nor in the flash
@@ -61,6 +69,10 @@ pub const CLIPPED_LEVEL: f64 = 0.999;
 /// a tenth of a percent, so one hot pixel does not hold a photo down.
 pub const DEFAULT_CLIP_SHARE: f64 = 0.001;
 
+/// Lifts tried between the clip-limited one and the level's
+/// ([`ExposureConfig::lift_candidates`]).
+pub const DEFAULT_LIFT_CANDIDATES: usize = 3;
+
 /// Calibration factors outside this range are refused (the network's
 /// identity render is then far from the photo for another reason, and the
 /// normalised gain alone is kept).
@@ -79,11 +91,16 @@ pub struct ExposureConfig {
     /// Share of pixels an LDR photo's lift may bring to 1 (their brightest
     /// channel); None: lifted to the level whatever it clips.
     pub clip_share: Option<f64>,
+    /// Where the clip holds the lift below the level (and the gain is
+    /// calibrated): how many lifts, geometrically spaced from the
+    /// clip-limited one to the level's, M_est runs at; the material that
+    /// gives its photo back best is kept. 1: the clip-limited lift alone.
+    pub lift_candidates: usize,
 }
 
 impl Default for ExposureConfig {
     fn default() -> Self {
-        Self { normalize: true, min_level: DEFAULT_MIN_LEVEL, calibrate: true, clip_share: Some(DEFAULT_CLIP_SHARE) }
+        Self { normalize: true, min_level: DEFAULT_MIN_LEVEL, calibrate: true, clip_share: Some(DEFAULT_CLIP_SHARE), lift_candidates: DEFAULT_LIFT_CANDIDATES }
     }
 }
 
@@ -95,6 +112,7 @@ impl ExposureConfig {
 
     pub fn validate(&self) -> Result<()> {
         ensure!(self.min_level.is_finite() && self.min_level > 0.0 && self.min_level <= 1.0, "the exposure's minimum level must be in (0, 1], got {}", self.min_level);
+        ensure!(self.lift_candidates >= 1, "at least one lift must be tried");
         if let Some(share) = self.clip_share {
             ensure!((0.0..1.0).contains(&share), "the share of pixels the lift may clip must be in [0, 1), got {share}");
         }
@@ -140,6 +158,40 @@ pub fn normalizing_scale(photo: &Tensor, cfg: &ExposureConfig, clip_to_one: bool
         }
         _ => 1.0,
     }
+}
+
+/// The scales M_est's input is tried at: [`normalizing_scale`] alone, or,
+/// where the clip holds it below the level's lift and the gain is
+/// calibrated, `lift_candidates` scales geometrically spaced from it to the
+/// level's (both ends included); an LDR photo already clipped (beyond the
+/// clip share) gets none. photo: linear `[3, H, W]`.
+pub fn candidate_scales(photo: &Tensor, cfg: &ExposureConfig, clip_to_one: bool) -> Vec<f64> {
+    let capped = normalizing_scale(photo, cfg, clip_to_one);
+    let full = normalizing_scale(photo, cfg, false);
+    let n = cfg.lift_candidates;
+    // A photo the camera already clipped is not lifted past it: trying lifts
+    // on those too cost 0.007 Identity LPIPS at 0 stops (reports/exposure.md).
+    let clipped = cfg.clip_share.is_some_and(|share| bright_level(photo, share) >= CLIPPED_LEVEL);
+    if !cfg.calibrate || n <= 1 || !clip_to_one || clipped || full <= capped * (1.0 + 1e-9) {
+        return vec![capped];
+    }
+    (0..n).map(|i| capped * (full / capped).powf(i as f64 / (n - 1) as f64)).collect()
+}
+
+/// How far a material's identity render `[3, H, W]` is from giving its
+/// photo `[3, H, W]` back (both linear): |ln(mean I / mean P)| over the
+/// pixels not clipped in any channel, highlight included (the flash
+/// highlight carries much of a glossy photo's light, which the calibration
+/// leaves to the network). Unchanged by the exposure; infinite when
+/// nothing can be compared.
+pub fn identity_error(photo: &Tensor, identity: &Tensor) -> f64 {
+    let unclipped = photo.max_dim(0, false).0.lt(CLIPPED_LEVEL).unsqueeze(0).expand_as(photo);
+    if unclipped.sum(Kind::Int64).int64_value(&[]) == 0 {
+        return f64::INFINITY;
+    }
+    let mean = |t: &Tensor| t.to_kind(Kind::Double).clamp_min(0.0).masked_select(&unclipped).mean(Kind::Double).double_value(&[]);
+    let e = (mean(identity) / mean(photo)).ln().abs();
+    if e.is_finite() { e } else { f64::INFINITY }
 }
 
 /// Pixels the identity calibration compares `[H, W]` (bool): not clipped in
@@ -217,6 +269,51 @@ mod tests {
         let clipped = photo(|_, y, x| if y == 0 && x < 4 { 1.0 } else { 0.01 });
         assert_eq!(normalizing_scale(&clipped, &cfg, true), 1.0);
         assert!(ExposureConfig { clip_share: Some(1.0), ..cfg }.validate().is_err());
+    }
+
+    #[test]
+    fn lifts_are_tried_between_the_clip_and_the_level() {
+        // The photo of the clip test: the clip allows 4x, the level asks for 10x.
+        let p = photo(|c, y, x| if y == 0 && x < 4 { [0.15, 0.25, 0.2][c] } else { 0.01 });
+        let cfg = ExposureConfig::default();
+        let s = candidate_scales(&p, &cfg, true);
+        assert_eq!(s.len(), 3);
+        for (a, b) in s.iter().zip([4.0, 40f64.sqrt(), 10.0]) {
+            assert!((a - b).abs() < 1e-5, "{s:?}");
+        }
+        // Nothing to choose: no clip in the way, no calibration, one candidate.
+        assert_eq!(candidate_scales(&p, &cfg, false).len(), 1);
+        assert_eq!(candidate_scales(&p, &ExposureConfig { calibrate: false, ..cfg }, true), vec![s[0]]);
+        assert_eq!(candidate_scales(&p, &ExposureConfig { lift_candidates: 1, ..cfg }, true), vec![s[0]]);
+        assert!(ExposureConfig { lift_candidates: 0, ..cfg }.validate().is_err());
+        // A photo already clipped gets no lift at all.
+        let clipped = photo(|_, y, x| if y == 0 && x < 4 { 1.0 } else { 0.01 });
+        assert_eq!(candidate_scales(&clipped, &cfg, true), vec![1.0]);
+        // Two stops darker: every candidate four times larger.
+        for (a, b) in candidate_scales(&(&p / 4.0), &cfg, true).iter().zip(&s) {
+            assert!((a - 4.0 * b).abs() < 1e-4);
+        }
+    }
+
+    #[test]
+    fn the_identity_error_counts_the_unclipped_highlight_and_ignores_the_exposure() {
+        // Photo mean (63 x 0.02 + 0.5) / 64; a render right outside the
+        // highlight and at 1.5 in it: mean (63 x 0.02 + 1.5) / 64.
+        let p = photo(|_, y, x| if (y, x) == (0, 0) { 0.5 } else { 0.02 });
+        let r = photo(|_, y, x| if (y, x) == (0, 0) { 1.5 } else { 0.02 });
+        let want = (2.76f64 / 1.76).ln();
+        let e = identity_error(&p, &r);
+        assert!((e - want).abs() < 1e-6, "{e} vs {want}");
+        let (half, twice) = (identity_error(&p, &(&p * 0.5)), identity_error(&p, &(&p * 2.0)));
+        assert!((half - 2f64.ln()).abs() < 1e-6 && (twice - 2f64.ln()).abs() < 1e-6, "too dark counts as much as too bright: {half}, {twice}");
+        assert_eq!(identity_error(&p, &p), 0.0);
+        assert!((identity_error(&(&p / 8.0), &(&r / 8.0)) - e).abs() < 1e-9);
+        // A clipped pixel is left out: no error with the highlight at 1 and drawn at 3.
+        let clipped = photo(|_, y, x| if (y, x) == (0, 0) { 1.0 } else { 0.02 });
+        let r2 = photo(|_, y, x| if (y, x) == (0, 0) { 3.0 } else { 0.02 });
+        assert!(identity_error(&clipped, &r2) < 1e-9);
+        assert_eq!(identity_error(&photo(|_, _, _| 1.0), &r2), f64::INFINITY);
+        assert_eq!(identity_error(&p, &(&r * 0.0)), f64::INFINITY);
     }
 
     #[test]

@@ -133,18 +133,39 @@ pub fn estimate(model: &Model, info: &ModelInfo, photo: &PreparedPhoto) -> Resul
 /// gain is the inverse scale, calibrated on the identity render when
 /// `exposure.calibrate` ([`exposure::calibration_factor`]). The stored
 /// input photo is the photo itself (clamped the same way, not normalised).
-pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, plan: &EstPlan, exposure: &ExposureConfig, on_tile: impl FnMut()) -> Result<NeuralMaterial> {
+pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, plan: &EstPlan, exposure: &ExposureConfig, mut on_tile: impl FnMut()) -> Result<NeuralMaterial> {
     ensure!(photo.linear.channels == 3, "the prepared photo must have 3 channels, got {}", photo.linear.channels);
     exposure.validate()?;
-    let device = model.device();
     let linear = photo.linear.to_tensor(); // [3, H, W]
     let clamp = |t: &tch::Tensor| if info.ldr_input { crate::spaces::ldr_clamp(t) } else { t.clamp_min(0.0) };
-    let scale = exposure::normalizing_scale(&clamp(&linear), exposure, info.ldr_input);
-    let x = photo_est_input(&(&linear * scale), info.ldr_input, device); // [1, 4, H, W]
+    let stored = clamp(&linear);
+    let scales = exposure::candidate_scales(&stored, exposure, info.ldr_input);
+    let mut best: Option<(f64, NeuralMaterial)> = None;
+    for &scale in &scales {
+        let material = estimate_at_scale(model, info, photo, &linear, &stored, scale, plan, exposure, &mut on_tile)?;
+        if scales.len() == 1 {
+            return Ok(material);
+        }
+        let identity = material.render(&[NeuralMaterial::identity_config()])?.get(0); // [3, H, W]
+        let error = exposure::identity_error(&material.input_photo, &identity);
+        if best.as_ref().is_none_or(|(e, _)| error < *e) {
+            best = Some((error, material));
+        }
+    }
+    Ok(best.expect("candidate_scales returns at least one scale").1)
+}
+
+/// M_est on the photo times `scale` and the material around its map (gain
+/// 1 / scale, calibrated when asked). linear: the photo `[3, H, W]`;
+/// stored: the same clamped as the material keeps it.
+#[allow(clippy::too_many_arguments)]
+fn estimate_at_scale(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, linear: &tch::Tensor, stored: &tch::Tensor, scale: f64, plan: &EstPlan, exposure: &ExposureConfig, on_tile: &mut impl FnMut()) -> Result<NeuralMaterial> {
+    let device = model.device();
+    let x = photo_est_input(&(linear * scale), info.ldr_input, device); // [1, 4, H, W]
     let est = model.est.fold_batchnorm();
     let map = match plan {
         EstPlan::Whole => est.forward(&x)?,
-        EstPlan::Tiled(core) => est.forward_layerwise(&x, *core, on_tile)?,
+        EstPlan::Tiled(core) => est.forward_layerwise(&x, *core, &mut *on_tile)?,
     }; // [1, C, H, W]
     ensure!(crate::image::all_finite(&map), "M_est produced NaN/Inf values for this photo (the model's weights have diverged?)");
     let meta = NmatMeta {
@@ -157,8 +178,7 @@ pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, 
         refine: None,
         gain: 1.0 / scale,
     };
-    let stored = clamp(&linear).to_device(device);
-    let mut material = NeuralMaterial::from_parts(map.get(0), stored, &model.config, &model.renderer_vs.variables(), meta)?;
+    let mut material = NeuralMaterial::from_parts(map.get(0), stored.to_device(device), &model.config, &model.renderer_vs.variables(), meta)?;
     if exposure.calibrate {
         let identity = material.render(&[NeuralMaterial::identity_config()])?.get(0); // [3, H, W]
         if let Some(f) = exposure::calibration_factor(&material.input_photo, &identity) {
@@ -282,6 +302,32 @@ mod tests {
                 assert_eq!(plain.meta.gain, 1.0);
             }
         }
+    }
+
+    /// A dark photo whose highlight the level's lift would clip: the lifts
+    /// between are tried, the kept material gives the photo back at least
+    /// as well as either end, and the photo two stops darker keeps the same
+    /// map at a quarter of the gain.
+    #[test]
+    fn a_dark_photo_with_a_highlight_keeps_the_lift_that_gives_it_back_best() {
+        let LoadedModel { model, info, .. } = load_model(None, Device::Cpu).unwrap();
+        // Median 0.0067 (the level asks for 15x), a 4x4 highlight at 0.2-0.26 (the clip allows 3.8x).
+        let lin = |k: f32| Image::from_fn(3, 24, 24, move |c, y, x| k * if (9..13).contains(&y) && (9..13).contains(&x) { 0.2 + 0.03 * c as f32 } else { 0.005 + 0.001 * c as f32 + 0.0005 * ((x * 7 + y * 3) % 5) as f32 });
+        let at = |k: f32| PreparedPhoto::at_model_view(lin(k), true, "p.png");
+        let cfg = ExposureConfig::default();
+        assert_eq!(exposure::candidate_scales(&at(1.0).linear.to_tensor(), &cfg, true).len(), 3);
+        let error = |m: &NeuralMaterial| exposure::identity_error(&m.input_photo, &m.render(&[NeuralMaterial::identity_config()]).unwrap().get(0));
+        let est = |k: f32, cfg: &ExposureConfig| estimate_planned(&model, &info, &at(k), &EstPlan::Whole, cfg, || ()).unwrap();
+        let kept = est(1.0, &cfg);
+        let capped = est(1.0, &ExposureConfig { lift_candidates: 1, ..cfg });
+        let clipping = est(1.0, &ExposureConfig { clip_share: None, ..cfg });
+        assert!(capped.meta.gain > clipping.meta.gain * 1.5, "the two ends differ: {} / {}", capped.meta.gain, clipping.meta.gain);
+        let e = error(&kept);
+        assert!(e <= error(&capped) + 1e-12 && e <= error(&clipping) + 1e-12, "{e} vs {} and {}", error(&capped), error(&clipping));
+        let darker = est(0.25, &cfg);
+        let d = (&kept.neural_map - &darker.neural_map).abs().max().double_value(&[]);
+        assert!(d < 1e-4 * (1.0 + kept.neural_map.abs().max().double_value(&[])), "maps differ by {d}");
+        assert!((kept.meta.gain / darker.meta.gain - 4.0).abs() < 1e-4, "{} / {}", kept.meta.gain, darker.meta.gain);
     }
 
     #[test]

@@ -200,6 +200,10 @@ pub struct TrainConfig {
     /// (`losses::lobe_l1`). 1: lobe lights only.
     #[serde(default = "one", skip_serializing_if = "is_one")]
     pub lobe_share: f64,
+    /// Share of the lobe term's views taken from the flash camera's cone
+    /// instead of the hemisphere (`losses::lobe_l1`). 0: none.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub lobe_camera_share: f64,
     /// Largest shift of the second photo in pixels (each axis).
     #[serde(default = "default_shift_pixels")]
     pub shift_pixels: usize,
@@ -328,6 +332,7 @@ impl Default for TrainConfig {
             weight_lobe: 0.0,
             lobe_pixels: DEFAULT_LOBE_PIXELS,
             lobe_share: 1.0,
+            lobe_camera_share: 0.0,
             shift_pixels: default_shift_pixels(),
             shift_scale_free: false,
             pixel_fraction: 0.6,
@@ -404,6 +409,7 @@ impl TrainConfig {
         anyhow::ensure!(self.weight_lobe == 0.0 || self.lobe_pixels >= 1, "--lobe-pixels must be at least 1");
         limits::STEP_PIXELS.check("--lobe-pixels", self.lobe_pixels as u64)?;
         anyhow::ensure!((0.0..=1.0).contains(&self.lobe_share), "--lobe-share must be within 0..1, got {}", self.lobe_share);
+        anyhow::ensure!((0.0..=1.0).contains(&self.lobe_camera_share), "--lobe-camera-share must be within 0..1, got {}", self.lobe_camera_share);
         limits::BANK_PIXELS.check_product(
             format_args!("the material bank (--bank {} x {} squared)", self.bank, self.material_size),
             &[self.bank as u64, self.material_size as u64, self.material_size as u64],

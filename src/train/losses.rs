@@ -165,6 +165,11 @@ pub fn pixel_mask<R: rand::Rng>(neural: &Tensor, targets: &Tensor, fraction: f64
     mask.view([n, rows / n, 1, h, w])
 }
 
+/// Half-angle of the flash camera's views in the lobe term: a camera at
+/// the model's 28 degree field of view sees the material's corners about 14
+/// degrees off the normal (`lobe_l1`'s `camera_share`).
+pub const CAMERA_VIEW_DEG: f64 = 14.0;
+
 /// The lobe term (`TrainConfig::weight_lobe`, issue 48): at `pixels`
 /// random pixels of the batch (uniform, with replacement), a view
 /// cosine-distributed over the hemisphere and a light inside the pixel's
@@ -175,39 +180,77 @@ pub fn pixel_mask<R: rand::Rng>(neural: &Tensor, targets: &Tensor, fraction: f64
 /// views, so the term also holds the renderer to GGX around the lobe
 /// (trained on lobe lights alone it brightened everything, reports/
 /// highlights-experiments.md). Every draw comes from `rng`, so it replays
-/// on resume. neural: `[N, C, H, W]` (with its graph for M_est's half,
-/// detached for the renderer's); maps: `[N, 10, H, W]` -> scalar.
-pub fn lobe_l1<R: rand::Rng>(renderer: &crate::model::NeuralRenderer, neural: &Tensor, maps: &Tensor, pixels: usize, lobe_share: f64, rng: &mut R) -> Result<Tensor> {
+/// on resume. With `camera_share` above 0, that share of the views is the
+/// flash camera's instead (within [`CAMERA_VIEW_DEG`] of the normal, as the
+/// photo's camera and the moved-highlight test see the material).
+/// neural: `[N, C, H, W]` (with its graph for M_est's half, detached for
+/// the renderer's); maps: `[N, 10, H, W]` -> scalar.
+pub fn lobe_l1<R: rand::Rng>(renderer: &crate::model::NeuralRenderer, neural: &Tensor, maps: &Tensor, pixels: usize, lobe_share: f64, camera_share: f64, rng: &mut R) -> Result<Tensor> {
+    let p = lobe_pairs(maps, pixels, lobe_share, camera_share, rng);
+    let c = neural.size()[1];
+    let codes = neural.permute([0, 2, 3, 1]).reshape([-1, c]).index_select(0, &p.index);
+    let target = tch::no_grad(|| super::teacher::ggx_log_rows(&p.maps, &p.wi, &p.wo));
+    let pred = renderer.forward_rows(&codes, &p.wi, &p.wo)?;
+    let weight = p.used.to_kind(Kind::Float);
+    Ok(((pred - target).abs() * &weight).sum(Kind::Float) / (weight.sum(Kind::Float) * 3.0).clamp_min(1.0))
+}
+
+/// The lobe term's draws (`lobe_l1`): pixel rows, their GGX values and the
+/// light and view of each pair.
+pub struct LobePairs {
+    /// Pixel rows of the batch flattened as `[N * H * W]`: `[R]` (int64).
+    pub index: Tensor,
+    /// GGX values at those pixels `[R, 10]`.
+    pub maps: Tensor,
+    /// Light and view directions `[R, 3]` each (unit).
+    pub wi: Tensor,
+    pub wo: Tensor,
+    /// The pairs that count `[R, 1]` (bool): a lobe light above the surface, or a random light.
+    pub used: Tensor,
+}
+
+/// Draws `pixels` pairs for the lobe term from `rng` (see `lobe_l1`).
+/// maps: `[N, 10, H, W]`.
+pub fn lobe_pairs<R: rand::Rng>(maps: &Tensor, pixels: usize, lobe_share: f64, camera_share: f64, rng: &mut R) -> LobePairs {
     use rand_distr::{Distribution, StandardNormal};
-    let s = neural.size();
-    let (c, total) = (s[1], s[0] * s[2] * s[3]);
-    let device = neural.device();
+    let s = maps.size();
+    let total = s[0] * s[2] * s[3];
+    let device = maps.device();
     let r = pixels as i64;
-    let index: Vec<i64> = (0..r).map(|_| rng.random_range(0..total)).collect();
-    let mut wo = Vec::with_capacity(3 * pixels);
-    for _ in 0..pixels {
-        // Cosine-distributed over the hemisphere.
+    let cosine = |rng: &mut R| {
         let (u, phi) = (rng.random::<f32>(), rng.random::<f32>() * std::f32::consts::TAU);
-        wo.extend_from_slice(&[u.sqrt() * phi.cos(), u.sqrt() * phi.sin(), (1.0 - u).max(1e-4).sqrt()]);
-    }
+        [u.sqrt() * phi.cos(), u.sqrt() * phi.sin(), (1.0 - u).max(1e-4).sqrt()]
+    };
+    let index: Vec<i64> = (0..r).map(|_| rng.random_range(0..total)).collect();
+    let mut wo: Vec<f32> = (0..pixels).flat_map(|_| cosine(rng)).collect();
     let offsets: Vec<f32> = (0..2 * pixels).map(|_| StandardNormal.sample(rng)).collect();
-    // Drawn only when mixing, so a share of 1 replays the stream of runs before it.
+    // Each option draws only when it is on, so runs without it replay the stream of runs before it.
     let off_lobe: Option<(Vec<f32>, Vec<f32>)> = (lobe_share < 1.0).then(|| {
         let mut light = Vec::with_capacity(3 * pixels);
         let mut off = Vec::with_capacity(pixels);
         for _ in 0..pixels {
-            let (u, phi) = (rng.random::<f32>(), rng.random::<f32>() * std::f32::consts::TAU);
-            light.extend_from_slice(&[u.sqrt() * phi.cos(), u.sqrt() * phi.sin(), (1.0 - u).max(1e-4).sqrt()]);
+            light.extend_from_slice(&cosine(rng));
             off.push(if rng.random::<f64>() < lobe_share { 0.0 } else { 1.0 });
         }
         (light, off)
     });
+    if camera_share > 0.0 {
+        // Uniform over the disc the camera's cone cuts from the plane z = 1.
+        let reach = CAMERA_VIEW_DEG.to_radians().tan() as f32;
+        for i in 0..pixels {
+            let (u, phi, pick) = (rng.random::<f32>(), rng.random::<f32>() * std::f32::consts::TAU, rng.random::<f64>());
+            if pick < camera_share {
+                let (x, y) = (reach * u.sqrt() * phi.cos(), reach * u.sqrt() * phi.sin());
+                let norm = (x * x + y * y + 1.0).sqrt();
+                wo[3 * i..3 * i + 3].copy_from_slice(&[x / norm, y / norm, 1.0 / norm]);
+            }
+        }
+    }
     let index = Tensor::from_slice(&index).to_device(device);
-    let rows = |t: &Tensor| t.permute([0, 2, 3, 1]).reshape([-1, t.size()[1]]).index_select(0, &index);
-    let (codes, maps) = (rows(neural), rows(&maps.to_kind(Kind::Float)));
+    let maps = maps.to_kind(Kind::Float).permute([0, 2, 3, 1]).reshape([-1, s[1]]).index_select(0, &index);
     let wo = Tensor::from_slice(&wo).view([r, 3]).to_device(device);
     let (wi, above) = super::teacher::lobe_lights(&maps, &wo, &Tensor::from_slice(&offsets).view([r, 2]).to_device(device));
-    let (wi, above) = match off_lobe {
+    let (wi, used) = match off_lobe {
         Some((light, off)) => {
             let off = Tensor::from_slice(&off).view([r, 1]).to_device(device);
             let light = Tensor::from_slice(&light).view([r, 3]).to_device(device);
@@ -215,10 +258,7 @@ pub fn lobe_l1<R: rand::Rng>(renderer: &crate::model::NeuralRenderer, neural: &T
         }
         None => (wi, above),
     };
-    let target = tch::no_grad(|| super::teacher::ggx_log_rows(&maps, &wi, &wo));
-    let pred = renderer.forward_rows(&codes.view([r, c]), &wi, &wo)?;
-    let weight = above.to_kind(Kind::Float);
-    Ok(((pred - target).abs() * &weight).sum(Kind::Float) / (weight.sum(Kind::Float) * 3.0).clamp_min(1.0))
+    LobePairs { index, maps, wi, wo, used }
 }
 
 /// L1 over the masked pixels only. pred, target: `[N, K, 3, H, W]`; mask broadcastable.
@@ -233,6 +273,38 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
     use tch::Device;
+
+    /// The lobe term's pairs: with lobe lights only, a near-mirror pixel's
+    /// light is its view mirrored about the normal; with none, the lights
+    /// are cosine-distributed (mean z 2/3, independent of the view); with
+    /// camera views, every view is within the camera's cone.
+    #[test]
+    fn lobe_pairs_mirror_mix_and_take_the_cameras_views() {
+        use rand::SeedableRng;
+        let m = crate::svbrdf::Svbrdf::uniform(16, 16, [0.2; 3], [0.5; 3], 0.05);
+        let maps = m.stacked().to_tensor().unsqueeze(0); // [1, 10, 16, 16]
+        let rng = || rand_pcg::Pcg64::seed_from_u64(5);
+        let n = 4000;
+        let mirror = lobe_pairs(&maps, n, 1.0, 0.0, &mut rng());
+        assert_eq!(mirror.maps.size(), [n as i64, 10]);
+        let xy = |t: &Tensor| t.narrow(1, 0, 2);
+        let used = mirror.used.to_kind(Kind::Float);
+        let off = ((xy(&mirror.wi) + xy(&mirror.wo)).abs() * &used).max().double_value(&[]);
+        assert!(off < 0.05, "alpha 0.0025: the light mirrors the view, off by {off}");
+        let z = |t: &Tensor| t.narrow(1, 2, 1).mean(Kind::Float).double_value(&[]);
+        let random = lobe_pairs(&maps, n, 0.0, 0.0, &mut rng());
+        assert!(random.used.all().int64_value(&[]) == 1);
+        assert!((z(&random.wi) - 2.0 / 3.0).abs() < 0.02, "cosine lights: mean z {}", z(&random.wi));
+        // The same pixels and views either way: only the lights change.
+        assert!(random.index.equal(&mirror.index) && random.wo.equal(&mirror.wo));
+        let half = lobe_pairs(&maps, n, 0.5, 0.0, &mut rng());
+        let mirrored = ((xy(&half.wi) + xy(&half.wo)).abs().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).lt(0.05).to_kind(Kind::Float) * half.used.squeeze_dim(1).to_kind(Kind::Float)).mean(Kind::Float).double_value(&[]);
+        assert!((0.4..0.55).contains(&mirrored), "about half the pairs in the lobe: {mirrored}");
+        let camera = lobe_pairs(&maps, n, 1.0, 1.0, &mut rng());
+        let min_z = camera.wo.narrow(1, 2, 1).min().double_value(&[]);
+        assert!(min_z >= CAMERA_VIEW_DEG.to_radians().cos() - 1e-6 && min_z < 0.975, "views within 14 degrees: min z {min_z}");
+        assert!(z(&mirror.wo) < 0.7, "hemisphere views: mean z {}", z(&mirror.wo));
+    }
 
     /// Hand-derived: grey against red (0.6, 0.1, 0.1) is |1/3 - 0.75| +
     /// 2 |1/3 - 0.125| = 0.8333; a render twice as bright as the truth
