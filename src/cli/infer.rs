@@ -29,10 +29,13 @@ pub struct EstimateOptions {
     #[arg(long, value_name = "EV", allow_negative_numbers = true)]
     pub exposure: Option<f64>,
     /// How the photo's exposure reaches the material: `calibrated` (a photo darker than M_est's training photos
-    /// is brought up to their brightness, the material keeps the exposure as a gain calibrated on the photo),
-    /// `normalized` (the same without the calibration), `calibrated-clipping` (as calibrated, but an 8-bit photo is
-    /// brought up even where that clips its highlight: flashmat before the clip limit) or `off` (M_est sees the
-    /// photo as it is, as before version 3 of .nmat).
+    /// is brought up toward their brightness, an 8-bit one no further than its highlight reaches white, trying
+    /// lifts up to the level where that stops short and keeping the material that gives the photo's mean back;
+    /// the material keeps the exposure as a gain calibrated on the photo),
+    /// `normalized` (the same without the calibration), `calibrated-capped` (an 8-bit photo lifted no further than
+    /// its highlight reaches white, without trying the lifts between that and the level), `calibrated-clipping` (an
+    /// 8-bit photo brought up to the level even where that clips its highlight: flashmat before the clip limit) or
+    /// `off` (M_est sees the photo as it is, as before version 3 of .nmat).
     #[arg(long, value_enum, default_value_t = ExposureMode::Calibrated)]
     pub exposure_mode: ExposureMode,
     /// Model resolution in pixels of the shorter side (a multiple of 8); the cropped photo is shrunk to it and
