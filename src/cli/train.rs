@@ -194,6 +194,10 @@ pub struct TrainArgs {
     /// the photo's camera and the moved-highlight test look from) instead of the whole hemisphere.
     #[arg(long, default_value_t = 0.0, value_name = "P")]
     pub lobe_camera_share: f64,
+    /// Share of the lobe term's lobe lights drawn around the mirror direction at the spread of a random roughness
+    /// where that is narrower than the pixel's, so rough pixels are taught how dim they are right at the mirror.
+    #[arg(long, default_value_t = 0.0, value_name = "P")]
+    pub lobe_narrow_share: f64,
     /// Largest shift of the second photo, in pixels per axis (with --shift-weight).
     #[arg(long, default_value_t = 16, value_name = "PIXELS")]
     pub shift_pixels: usize,
@@ -405,6 +409,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         lobe_pixels: a.lobe_pixels,
         lobe_share: a.lobe_share,
         lobe_camera_share: a.lobe_camera_share,
+        lobe_narrow_share: a.lobe_narrow_share,
         shift_pixels: a.shift_pixels,
         shift_scale_free: a.shift_scale_free,
         steps: a.steps.unwrap_or(TrainConfig::default().steps),

@@ -204,6 +204,10 @@ pub struct TrainConfig {
     /// instead of the hemisphere (`losses::lobe_l1`). 0: none.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub lobe_camera_share: f64,
+    /// Share of the lobe lights drawn at a narrower spread than the pixel's
+    /// own (`losses::LobeSampling::narrow_share`). 0: none.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub lobe_narrow_share: f64,
     /// Largest shift of the second photo in pixels (each axis).
     #[serde(default = "default_shift_pixels")]
     pub shift_pixels: usize,
@@ -333,6 +337,7 @@ impl Default for TrainConfig {
             lobe_pixels: DEFAULT_LOBE_PIXELS,
             lobe_share: 1.0,
             lobe_camera_share: 0.0,
+            lobe_narrow_share: 0.0,
             shift_pixels: default_shift_pixels(),
             shift_scale_free: false,
             pixel_fraction: 0.6,
@@ -396,6 +401,11 @@ impl TrainConfig {
     /// Checks the configuration, its sizes against [`crate::limits`]
     /// before anything of those sizes is allocated (it may come from the
     /// command line or from a checkpoint's file).
+    /// How the lobe term draws its pairs.
+    pub fn lobe_sampling(&self) -> super::losses::LobeSampling {
+        super::losses::LobeSampling { pixels: self.lobe_pixels, lobe_share: self.lobe_share, camera_share: self.lobe_camera_share, narrow_share: self.lobe_narrow_share }
+    }
+
     pub fn validate(&self) -> anyhow::Result<()> {
         use crate::limits;
         anyhow::ensure!(self.crop % 8 == 0 && self.crop >= 32, "--crop must be a multiple of 8 and at least 32 (got {})", self.crop);
@@ -410,6 +420,7 @@ impl TrainConfig {
         limits::STEP_PIXELS.check("--lobe-pixels", self.lobe_pixels as u64)?;
         anyhow::ensure!((0.0..=1.0).contains(&self.lobe_share), "--lobe-share must be within 0..1, got {}", self.lobe_share);
         anyhow::ensure!((0.0..=1.0).contains(&self.lobe_camera_share), "--lobe-camera-share must be within 0..1, got {}", self.lobe_camera_share);
+        anyhow::ensure!((0.0..=1.0).contains(&self.lobe_narrow_share), "--lobe-narrow-share must be within 0..1, got {}", self.lobe_narrow_share);
         limits::BANK_PIXELS.check_product(
             format_args!("the material bank (--bank {} x {} squared)", self.bank, self.material_size),
             &[self.bank as u64, self.material_size as u64, self.material_size as u64],

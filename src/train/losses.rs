@@ -185,8 +185,8 @@ pub const CAMERA_VIEW_DEG: f64 = 14.0;
 /// photo's camera and the moved-highlight test see the material).
 /// neural: `[N, C, H, W]` (with its graph for M_est's half, detached for
 /// the renderer's); maps: `[N, 10, H, W]` -> scalar.
-pub fn lobe_l1<R: rand::Rng>(renderer: &crate::model::NeuralRenderer, neural: &Tensor, maps: &Tensor, pixels: usize, lobe_share: f64, camera_share: f64, rng: &mut R) -> Result<Tensor> {
-    let p = lobe_pairs(maps, pixels, lobe_share, camera_share, rng);
+pub fn lobe_l1<R: rand::Rng>(renderer: &crate::model::NeuralRenderer, neural: &Tensor, maps: &Tensor, sampling: &LobeSampling, rng: &mut R) -> Result<Tensor> {
+    let p = lobe_pairs(maps, sampling, rng);
     let c = neural.size()[1];
     let codes = neural.permute([0, 2, 3, 1]).reshape([-1, c]).index_select(0, &p.index);
     let target = tch::no_grad(|| super::teacher::ggx_log_rows(&p.maps, &p.wi, &p.wo));
@@ -209,9 +209,35 @@ pub struct LobePairs {
     pub used: Tensor,
 }
 
-/// Draws `pixels` pairs for the lobe term from `rng` (see `lobe_l1`).
+/// How the lobe term draws its pairs (`lobe_l1`; `TrainConfig`'s
+/// `lobe_pixels`, `lobe_share`, `lobe_camera_share`, `lobe_narrow_share`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LobeSampling {
+    /// Pairs per step, over the whole batch.
+    pub pixels: usize,
+    /// Share of pairs with a light in the lobe (the rest: a random light).
+    pub lobe_share: f64,
+    /// Share of views from the flash camera's cone (the rest: the hemisphere).
+    pub camera_share: f64,
+    /// Share of lobe lights drawn around the mirror direction with the
+    /// spread of a roughness U(0.05, 1) where that is narrower than the
+    /// pixel's own: a rough pixel is then also asked how dim it is right at
+    /// the mirror direction, where a glossy one is bright (without it, a
+    /// renderer taught lobes drew a mirror highlight on matte materials).
+    pub narrow_share: f64,
+}
+
+impl LobeSampling {
+    /// Lobe lights only, at each pixel's own spread, views over the hemisphere.
+    pub fn lobes(pixels: usize) -> Self {
+        Self { pixels, lobe_share: 1.0, camera_share: 0.0, narrow_share: 0.0 }
+    }
+}
+
+/// Draws the lobe term's pairs from `rng` (see `lobe_l1`).
 /// maps: `[N, 10, H, W]`.
-pub fn lobe_pairs<R: rand::Rng>(maps: &Tensor, pixels: usize, lobe_share: f64, camera_share: f64, rng: &mut R) -> LobePairs {
+pub fn lobe_pairs<R: rand::Rng>(maps: &Tensor, sampling: &LobeSampling, rng: &mut R) -> LobePairs {
+    let LobeSampling { pixels, lobe_share, camera_share, narrow_share } = *sampling;
     use rand_distr::{Distribution, StandardNormal};
     let s = maps.size();
     let total = s[0] * s[2] * s[3];
@@ -246,10 +272,27 @@ pub fn lobe_pairs<R: rand::Rng>(maps: &Tensor, pixels: usize, lobe_share: f64, c
             }
         }
     }
+    let narrow: Option<Vec<f32>> = (narrow_share > 0.0).then(|| {
+        (0..pixels)
+            .map(|_| {
+                let (roughness, pick) = (0.05 + 0.95 * rng.random::<f32>(), rng.random::<f64>());
+                if pick < narrow_share { roughness } else { f32::INFINITY }
+            })
+            .collect()
+    });
     let index = Tensor::from_slice(&index).to_device(device);
     let maps = maps.to_kind(Kind::Float).permute([0, 2, 3, 1]).reshape([-1, s[1]]).index_select(0, &index);
     let wo = Tensor::from_slice(&wo).view([r, 3]).to_device(device);
-    let (wi, above) = super::teacher::lobe_lights(&maps, &wo, &Tensor::from_slice(&offsets).view([r, 2]).to_device(device));
+    // The spread's roughness: the pixel's own, or the narrower draw.
+    let spread = match narrow {
+        Some(roughness) => {
+            let own = maps.narrow(1, 6, 1);
+            let narrowed = own.minimum(&Tensor::from_slice(&roughness).view([r, 1]).to_device(device));
+            Tensor::cat(&[maps.narrow(1, 0, 6), narrowed, maps.narrow(1, 7, 3)], 1)
+        }
+        None => maps.shallow_clone(),
+    };
+    let (wi, above) = super::teacher::lobe_lights(&spread, &wo, &Tensor::from_slice(&offsets).view([r, 2]).to_device(device));
     let (wi, used) = match off_lobe {
         Some((light, off)) => {
             let off = Tensor::from_slice(&off).view([r, 1]).to_device(device);
@@ -285,25 +328,31 @@ mod tests {
         let maps = m.stacked().to_tensor().unsqueeze(0); // [1, 10, 16, 16]
         let rng = || rand_pcg::Pcg64::seed_from_u64(5);
         let n = 4000;
-        let mirror = lobe_pairs(&maps, n, 1.0, 0.0, &mut rng());
+        let mirror = lobe_pairs(&maps, &LobeSampling::lobes(n), &mut rng());
         assert_eq!(mirror.maps.size(), [n as i64, 10]);
         let xy = |t: &Tensor| t.narrow(1, 0, 2);
         let used = mirror.used.to_kind(Kind::Float);
         let off = ((xy(&mirror.wi) + xy(&mirror.wo)).abs() * &used).max().double_value(&[]);
         assert!(off < 0.05, "alpha 0.0025: the light mirrors the view, off by {off}");
         let z = |t: &Tensor| t.narrow(1, 2, 1).mean(Kind::Float).double_value(&[]);
-        let random = lobe_pairs(&maps, n, 0.0, 0.0, &mut rng());
+        let random = lobe_pairs(&maps, &LobeSampling { lobe_share: 0.0, ..LobeSampling::lobes(n) }, &mut rng());
         assert!(random.used.all().int64_value(&[]) == 1);
         assert!((z(&random.wi) - 2.0 / 3.0).abs() < 0.02, "cosine lights: mean z {}", z(&random.wi));
         // The same pixels and views either way: only the lights change.
         assert!(random.index.equal(&mirror.index) && random.wo.equal(&mirror.wo));
-        let half = lobe_pairs(&maps, n, 0.5, 0.0, &mut rng());
+        let half = lobe_pairs(&maps, &LobeSampling { lobe_share: 0.5, ..LobeSampling::lobes(n) }, &mut rng());
         let mirrored = ((xy(&half.wi) + xy(&half.wo)).abs().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).lt(0.05).to_kind(Kind::Float) * half.used.squeeze_dim(1).to_kind(Kind::Float)).mean(Kind::Float).double_value(&[]);
         assert!((0.4..0.55).contains(&mirrored), "about half the pairs in the lobe: {mirrored}");
-        let camera = lobe_pairs(&maps, n, 1.0, 1.0, &mut rng());
+        let camera = lobe_pairs(&maps, &LobeSampling { camera_share: 1.0, ..LobeSampling::lobes(n) }, &mut rng());
         let min_z = camera.wo.narrow(1, 2, 1).min().double_value(&[]);
         assert!(min_z >= CAMERA_VIEW_DEG.to_radians().cos() - 1e-6 && min_z < 0.975, "views within 14 degrees: min z {min_z}");
         assert!(z(&mirror.wo) < 0.7, "hemisphere views: mean z {}", z(&mirror.wo));
+        // A rough pixel's lobe lights spread wide; narrowed, many sit at the mirror direction.
+        let rough = crate::svbrdf::Svbrdf::uniform(16, 16, [0.2; 3], [0.5; 3], 1.0).stacked().to_tensor().unsqueeze(0);
+        let near_mirror = |p: &LobePairs| (xy(&p.wi) + xy(&p.wo)).abs().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).lt(0.1).to_kind(Kind::Float).mean(Kind::Float).double_value(&[]);
+        let wide = near_mirror(&lobe_pairs(&rough, &LobeSampling::lobes(n), &mut rng()));
+        let narrowed = near_mirror(&lobe_pairs(&rough, &LobeSampling { narrow_share: 1.0, ..LobeSampling::lobes(n) }, &mut rng()));
+        assert!(wide < 0.08 && narrowed > 3.0 * wide, "pairs within 0.1 of the mirror: {wide} at the pixel's spread, {narrowed} narrowed");
     }
 
     /// Hand-derived: grey against red (0.6, 0.1, 0.1) is |1/3 - 0.75| +

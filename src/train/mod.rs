@@ -360,7 +360,7 @@ impl Trainer {
     /// the same pixels and directions in both halves (one stream per step).
     fn lobe_term(&self, b: &TrainingBatch, neural: &Tensor) -> Result<Tensor> {
         let mut rng = batches::step_rng(self.config.seed, self.step, self.config.shard.stream(LOBE_STREAM));
-        losses::lobe_l1(&self.model.renderer, neural, &b.maps, self.config.lobe_pixels, self.config.lobe_share, self.config.lobe_camera_share, &mut rng)
+        losses::lobe_l1(&self.model.renderer, neural, &b.maps, &self.config.lobe_sampling(), &mut rng)
     }
 
     /// The alternating scheme's step from one forward pass. The two-pass

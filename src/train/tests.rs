@@ -975,7 +975,7 @@ fn lobe_weight_adds_the_lobe_term_and_the_renderer_learns_it() {
     let term = |t: &Trainer, seed: u64| {
         tch::no_grad(|| {
             let neural = t.model.est.forward_t(&batch.est_input, true).unwrap();
-            losses::lobe_l1(&t.model.renderer, &neural, &batch.maps, 2048, 1.0, 0.0, &mut Pcg64::seed_from_u64(seed)).unwrap().double_value(&[])
+            losses::lobe_l1(&t.model.renderer, &neural, &batch.maps, &losses::LobeSampling::lobes(2048), &mut Pcg64::seed_from_u64(seed)).unwrap().double_value(&[])
         })
     };
     let plain = Trainer::new(cfg.clone(), tch::Device::Cpu).unwrap();
