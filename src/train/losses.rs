@@ -167,24 +167,19 @@ pub fn pixel_mask<R: rand::Rng>(neural: &Tensor, targets: &Tensor, fraction: f64
 
 /// Half-angle of the flash camera's views in the lobe term: a camera at
 /// the model's 28 degree field of view sees the material's corners about 14
-/// degrees off the normal (`lobe_l1`'s `camera_share`).
+/// degrees off the normal ([`LobeSampling::camera_share`]).
 pub const CAMERA_VIEW_DEG: f64 = 14.0;
 
-/// The lobe term (`TrainConfig::weight_lobe`, issue 48): at `pixels`
-/// random pixels of the batch (uniform, with replacement), a view
-/// cosine-distributed over the hemisphere and a light inside the pixel's
-/// true GGX lobe (`teacher::lobe_lights`); mean |ln(1 + R) - ln(1 + R_GGX)|
-/// over the pairs whose light stays above the surface, R rendered from the
-/// neural map's code at the pixel. With `lobe_share` below 1, the other
-/// pairs take a cosine-distributed light instead: at the same pixels and
-/// views, so the term also holds the renderer to GGX around the lobe
-/// (trained on lobe lights alone it brightened everything, reports/
-/// highlights-experiments.md). Every draw comes from `rng`, so it replays
-/// on resume. With `camera_share` above 0, that share of the views is the
-/// flash camera's instead (within [`CAMERA_VIEW_DEG`] of the normal, as the
-/// photo's camera and the moved-highlight test see the material).
-/// neural: `[N, C, H, W]` (with its graph for M_est's half, detached for
-/// the renderer's); maps: `[N, 10, H, W]` -> scalar.
+/// The lobe term (`TrainConfig::weight_lobe`, issue 48): at
+/// `sampling.pixels` random pixels of the batch (uniform, with
+/// replacement), a view cosine-distributed over the hemisphere and a light
+/// inside the pixel's true GGX lobe (`teacher::lobe_lights`); mean
+/// |ln(1 + R) - ln(1 + R_GGX)| over the pairs whose light stays above the
+/// surface, R rendered from the neural map's code at the pixel. The other
+/// fields of [`LobeSampling`] mix in random lights, camera views and
+/// narrower lobe lights ([`lobe_pairs`]). Every draw comes from `rng`, so
+/// it replays on resume. neural: `[N, C, H, W]` (with its graph for M_est's
+/// half, detached for the renderer's); maps: `[N, 10, H, W]` -> scalar.
 pub fn lobe_l1<R: rand::Rng>(renderer: &crate::model::NeuralRenderer, neural: &Tensor, maps: &Tensor, sampling: &LobeSampling, rng: &mut R) -> Result<Tensor> {
     let p = lobe_pairs(maps, sampling, rng);
     let c = neural.size()[1];
@@ -215,9 +210,13 @@ pub struct LobePairs {
 pub struct LobeSampling {
     /// Pairs per step, over the whole batch.
     pub pixels: usize,
-    /// Share of pairs with a light in the lobe (the rest: a random light).
+    /// Share of pairs with a light in the lobe; the rest take a
+    /// cosine-distributed light at the same pixels and views, meant to hold
+    /// the renderer to GGX around the lobe (at 0.5 it did not lower the
+    /// rest's overshoot: reports/highlights-experiments.md, E4).
     pub lobe_share: f64,
-    /// Share of views from the flash camera's cone (the rest: the hemisphere).
+    /// Share of views from the flash camera's cone, where the photo's camera
+    /// and the moved-highlight test look from (the rest: the hemisphere).
     pub camera_share: f64,
     /// Share of lobe lights drawn around the mirror direction with the
     /// spread of a roughness U(0.05, 1) where that is narrower than the
