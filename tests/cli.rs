@@ -186,6 +186,13 @@ fn eval_ceiling_fits_the_map_and_refuses_the_printout() {
     }
     assert!(std::fs::read_to_string(out.join("ceiling.md")).unwrap().contains("| fit 2 |"));
     no_temp_files(&out);
+    // Chosen materials instead of the glossiest; an index past the set is refused.
+    let only = dir.path().join("only");
+    assert_ok(&flashmat(&["eval", "--ceiling", "0", "--ceiling-only", "32,7", "--ceiling-steps", "2", "--size", "32", "--ldr-input", "--model", &model, "-o", s(&only)]));
+    let rows: Vec<String> = std::fs::read_to_string(only.join("ceiling.csv")).unwrap().lines().skip(1).map(|l| l.split(',').take(2).collect::<Vec<_>>().join(",")).collect();
+    assert_eq!(rows, ["estimate,test32", "fit 0,test32", "estimate,test07", "fit 0,test07"]);
+    assert!(std::fs::read_to_string(only.join("ceiling.md")).unwrap().contains("The 2 chosen held-out materials"));
+    assert_error(&flashmat(&["eval", "--ceiling", "--ceiling-only", "50", "--model", &model, "-o", s(&only)]), &["--ceiling-only", "0 to 49"]);
     let printout = ["eval", "--ceiling", "--model", "printout", "-o", s(&out)];
     assert_error(&flashmat(&printout), &["--ceiling", "one flashmat model"]);
 }

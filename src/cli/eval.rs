@@ -46,6 +46,9 @@ pub struct EvalArgs {
     /// Glossiest held-out materials the ceiling scores.
     #[arg(long, value_name = "N", default_value_t = flashmat::eval::highlights::CHECK_MATERIALS, value_parser = super::count)]
     pub ceiling_materials: usize,
+    /// Held-out materials the ceiling scores instead of the glossiest, by index (e.g. 32,42,22: matte ones).
+    #[arg(long, value_name = "I", value_delimiter = ',', requires = "ceiling")]
+    pub ceiling_only: Vec<usize>,
     /// Cases of the paper's table, comma-separated.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "reflect,identity,hemisphere")]
     pub cases: Vec<Sampling>,
@@ -183,7 +186,7 @@ fn ceiling(args: &EvalArgs, fit_lights: &[usize]) -> Result<()> {
         out: args.output.clone(),
         device: flashmat::device::parse_device(&args.device)?,
         progress: true,
-        config: CeilingConfig { fit_lights, steps: args.ceiling_steps, materials: args.ceiling_materials, size: args.size, ..CeilingConfig::default() },
+        config: CeilingConfig { fit_lights, steps: args.ceiling_steps, materials: args.ceiling_materials, only: args.ceiling_only.clone(), size: args.size, ..CeilingConfig::default() },
     };
     flashmat::eval::ceiling::run(&opts)?;
     println!("{}", std::fs::read_to_string(args.output.join("ceiling.md"))?);

@@ -44,13 +44,16 @@ pub struct CeilingConfig {
     /// The glossiest held-out materials scored (matte ones rarely have a
     /// highlight region to measure).
     pub materials: usize,
+    /// Held-out materials scored instead of the glossiest (indices, e.g. the
+    /// matte ones whose rest a renderer overshoots); empty: the glossiest.
+    pub only: Vec<usize>,
     /// Side of the materials' maps (a multiple of 8).
     pub size: usize,
 }
 
 impl Default for CeilingConfig {
     fn default() -> Self {
-        Self { fit_lights: vec![0, 5], steps: 300, learning_rate: 0.02, materials: highlights::CHECK_MATERIALS, size: 128 }
+        Self { fit_lights: vec![0, 5], steps: 300, learning_rate: 0.02, materials: highlights::CHECK_MATERIALS, only: vec![], size: 128 }
     }
 }
 
@@ -122,7 +125,8 @@ pub struct CeilingOptions {
     pub config: CeilingConfig,
 }
 
-/// Scores the estimate and every fit on the glossiest held-out materials,
+/// Scores the estimate and every fit on the glossiest held-out materials
+/// (or those of `config.only`),
 /// writes `ceiling.md` and `ceiling.csv` into `opts.out`; returns the rows
 /// per material.
 pub fn run(opts: &CeilingOptions) -> Result<Vec<Vec<CeilingRow>>> {
@@ -132,7 +136,13 @@ pub fn run(opts: &CeilingOptions) -> Result<Vec<Vec<CeilingRow>>> {
     super::check_eval_size(cfg.size)?;
     let name = opts.model.file_stem().map_or_else(|| opts.model.display().to_string(), |s| s.to_string_lossy().into_owned());
     let mut method = ModelMethod::load(&opts.model, name.clone(), opts.ldr_input, opts.device)?;
-    let picks = highlights::glossiest_test_materials(cfg.materials)?;
+    let picks = if cfg.only.is_empty() {
+        highlights::glossiest_test_materials(cfg.materials)?
+    } else {
+        let last = crate::data::procedural::TEST_SET_SIZE - 1;
+        ensure!(cfg.only.iter().all(|&i| i <= last), "--ceiling-only takes held-out material indices from 0 to {last}, got {:?}", cfg.only);
+        cfg.only.clone()
+    };
     std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;
     let bar = if opts.progress { ProgressBar::new(picks.len() as u64) } else { ProgressBar::hidden() };
     bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} materials, {elapsed} (eta {eta}) {msg}").expect("valid template"));
@@ -170,11 +180,12 @@ pub fn markdown(model: &str, opts: &CeilingOptions, all: &[Vec<CeilingRow>]) -> 
     let mut s = format!("# The renderer's ceiling: {model}\n\n");
     let _ = writeln!(
         s,
-        "The {} glossiest held-out materials at {}x{} ({} photos). Each map row: M_est's estimate, or that estimate fitted for {} Adam steps \
+        "The {} {} held-out materials at {}x{} ({} photos). Each map row: M_est's estimate, or that estimate fitted for {} Adam steps \
          (step {} x its RMS, renderer frozen) to the true renders of the photo's configuration and K moved-highlight configurations \
          (the photo's camera, mirror highlight on the material; seed {FIT_SEED:#x}), then relit under the moved-highlight test's lights, \
          which no fit sees. log L1: mean |ln(1+R) - ln(1+truth)|.\n",
         all.len(),
+        if cfg.only.is_empty() { "glossiest" } else { "chosen" },
         cfg.size,
         cfg.size,
         if opts.ldr_input { "8-bit" } else { "HDR" },
