@@ -187,7 +187,8 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = flashmat::train::config::DEFAULT_LOBE_PIXELS, value_name = "N", value_parser = super::count)]
     pub lobe_pixels: usize,
     /// Share of the lobe term's pairs whose light is inside the lobe; the others take a random light at the same
-    /// pixel and view, so the term also holds the renderer down around the lobe (1: lobe lights only).
+    /// pixel and view, meant to hold the renderer down around the lobe (1: lobe lights only; at 0.5 the rest's
+    /// overshoot stayed, reports/highlights-experiments.md).
     #[arg(long, default_value_t = 1.0, value_name = "P")]
     pub lobe_share: f64,
     /// Share of the lobe term's views taken from the flash camera's cone (within 14 degrees of the normal, where

@@ -967,6 +967,16 @@ fn synchronise_averages_and_agrees_on_the_verdict_across_ranks() {
 fn lobe_weight_adds_the_lobe_term_and_the_renderer_learns_it() {
     let cfg = TrainConfig { weight_lpips: 0.0, weight_adv: 0.0, ..tiny_config() };
     assert!(TrainConfig { weight_lobe: -1.0, ..cfg.clone() }.validate().is_err());
+    for bad in [TrainConfig { lobe_share: 1.5, ..cfg.clone() }, TrainConfig { lobe_camera_share: -0.1, ..cfg.clone() }, TrainConfig { lobe_narrow_share: 2.0, ..cfg.clone() }] {
+        assert!(bad.validate().unwrap_err().to_string().contains("must be within 0..1"));
+    }
+    // The options are kept in config.json only when set, so older runs read back the same.
+    let json = serde_json::to_value(&cfg).unwrap();
+    assert!(json.get("lobe_share").is_none() && json.get("lobe_narrow_share").is_none());
+    let set = serde_json::to_value(TrainConfig { lobe_share: 0.5, ..cfg.clone() }).unwrap();
+    assert_eq!(set["lobe_share"], 0.5);
+    let back: TrainConfig = serde_json::from_value(json).unwrap();
+    assert_eq!(back.lobe_sampling(), losses::LobeSampling::lobes(cfg.lobe_pixels));
     assert!(TrainConfig { weight_lobe: 1.0, scheme: UpdateScheme::Combined, ..cfg.clone() }.validate().unwrap_err().to_string().contains("alternating"));
     // A glossy material: its lobe is what the term asks for.
     let m = crate::svbrdf::Svbrdf::uniform(32, 32, [0.2, 0.15, 0.1], [0.5; 3], 0.2);
