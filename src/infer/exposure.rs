@@ -185,12 +185,11 @@ pub fn candidate_scales(photo: &Tensor, cfg: &ExposureConfig, clip_to_one: bool)
 /// leaves to the network). Unchanged by the exposure; infinite when
 /// nothing can be compared.
 pub fn identity_error(photo: &Tensor, identity: &Tensor) -> f64 {
-    let unclipped = photo.max_dim(0, false).0.lt(CLIPPED_LEVEL).unsqueeze(0).expand_as(photo);
+    let unclipped = unclipped_mask(photo);
     if unclipped.sum(Kind::Int64).int64_value(&[]) == 0 {
         return f64::INFINITY;
     }
-    let mean = |t: &Tensor| t.to_kind(Kind::Double).clamp_min(0.0).masked_select(&unclipped).mean(Kind::Double).double_value(&[]);
-    let e = (mean(identity) / mean(photo)).ln().abs();
+    let e = (masked_mean(identity, &unclipped) / masked_mean(photo, &unclipped)).ln().abs();
     if e.is_finite() { e } else { f64::INFINITY }
 }
 
@@ -199,9 +198,18 @@ pub fn identity_error(photo: &Tensor, identity: &Tensor) -> f64 {
 pub fn calibration_mask(photo: &Tensor) -> Tensor {
     let lum = luminance(photo);
     let median = lum.flatten(0, -1).median().double_value(&[]);
-    let unclipped = photo.max_dim(0, false).0.lt(CLIPPED_LEVEL);
     let below_highlight = lum.le(HIGHLIGHT_FACTOR * median.max(0.0));
-    unclipped.logical_and(&below_highlight)
+    unclipped_mask(photo).logical_and(&below_highlight)
+}
+
+/// Pixels not clipped in any channel `[H, W]` (bool). photo: linear `[3, H, W]`.
+fn unclipped_mask(photo: &Tensor) -> Tensor {
+    photo.max_dim(0, false).0.lt(CLIPPED_LEVEL)
+}
+
+/// Mean of `t` `[3, H, W]` (clamped at 0) over the pixels of `mask` `[H, W]`.
+fn masked_mean(t: &Tensor, mask: &Tensor) -> f64 {
+    t.to_kind(Kind::Double).clamp_min(0.0).masked_select(&mask.unsqueeze(0).expand_as(t)).mean(Kind::Double).double_value(&[])
 }
 
 /// The factor that makes the identity render's mean equal the photo's over
@@ -214,9 +222,7 @@ pub fn calibration_factor(photo: &Tensor, identity: &Tensor) -> Option<f64> {
     if pixels * 100 < mask.numel() as i64 {
         return None;
     }
-    let m = mask.unsqueeze(0).expand_as(photo);
-    let mean = |t: &Tensor| t.to_kind(Kind::Double).clamp_min(0.0).masked_select(&m).mean(Kind::Double).double_value(&[]);
-    let factor = mean(photo) / mean(identity);
+    let factor = masked_mean(photo, &mask) / masked_mean(identity, &mask);
     (factor.is_finite() && factor > 1.0 / MAX_CALIBRATION && factor < MAX_CALIBRATION).then_some(factor)
 }
 

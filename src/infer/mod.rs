@@ -141,12 +141,10 @@ pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, 
     let stored = clamp(&linear);
     let scales = exposure::candidate_scales(&stored, exposure, info.ldr_input);
     let mut best: Option<(f64, NeuralMaterial)> = None;
+    let choosing = scales.len() > 1;
     for &scale in &scales {
-        let material = estimate_at_scale(model, info, photo, &linear, &stored, scale, plan, exposure, &mut on_tile)?;
-        if scales.len() == 1 {
-            return Ok(material);
-        }
-        let identity = material.render(&[NeuralMaterial::identity_config()])?.get(0); // [3, H, W]
+        let (material, identity) = estimate_at_scale(model, info, photo, &linear, &stored, scale, plan, exposure, choosing, &mut on_tile)?;
+        let Some(identity) = identity.filter(|_| choosing) else { return Ok(material) };
         let error = exposure::identity_error(&material.input_photo, &identity);
         if best.as_ref().is_none_or(|(e, _)| error < *e) {
             best = Some((error, material));
@@ -156,10 +154,23 @@ pub fn estimate_planned(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, 
 }
 
 /// M_est on the photo times `scale` and the material around its map (gain
-/// 1 / scale, calibrated when asked). linear: the photo `[3, H, W]`;
-/// stored: the same clamped as the material keeps it.
+/// 1 / scale, calibrated when asked), with its identity render `[3, H, W]`
+/// at the final gain where the calibration or `want_identity` made one
+/// (rendered once: the render is linear in the gain). linear: the photo
+/// `[3, H, W]`; stored: the same clamped as the material keeps it.
 #[allow(clippy::too_many_arguments)]
-fn estimate_at_scale(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, linear: &tch::Tensor, stored: &tch::Tensor, scale: f64, plan: &EstPlan, exposure: &ExposureConfig, on_tile: &mut impl FnMut()) -> Result<NeuralMaterial> {
+fn estimate_at_scale(
+    model: &Model,
+    info: &ModelInfo,
+    photo: &PreparedPhoto,
+    linear: &tch::Tensor,
+    stored: &tch::Tensor,
+    scale: f64,
+    plan: &EstPlan,
+    exposure: &ExposureConfig,
+    want_identity: bool,
+    on_tile: &mut impl FnMut(),
+) -> Result<(NeuralMaterial, Option<tch::Tensor>)> {
     let device = model.device();
     let x = photo_est_input(&(linear * scale), info.ldr_input, device); // [1, 4, H, W]
     let est = model.est.fold_batchnorm();
@@ -179,13 +190,14 @@ fn estimate_at_scale(model: &Model, info: &ModelInfo, photo: &PreparedPhoto, lin
         gain: 1.0 / scale,
     };
     let mut material = NeuralMaterial::from_parts(map.get(0), stored.to_device(device), &model.config, &model.renderer_vs.variables(), meta)?;
-    if exposure.calibrate {
-        let identity = material.render(&[NeuralMaterial::identity_config()])?.get(0); // [3, H, W]
-        if let Some(f) = exposure::calibration_factor(&material.input_photo, &identity) {
+    let mut identity = if exposure.calibrate || want_identity { Some(material.render(&[NeuralMaterial::identity_config()])?.get(0)) } else { None };
+    if let (true, Some(id)) = (exposure.calibrate, identity.as_mut()) {
+        if let Some(f) = exposure::calibration_factor(&material.input_photo, id) {
             material.meta.gain *= f;
+            *id = &*id * f;
         }
     }
-    Ok(material)
+    Ok((material, identity))
 }
 
 /// `frames` configurations of a light circling the material at radius
