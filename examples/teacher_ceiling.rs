@@ -8,8 +8,12 @@
 //! apart from how flashmat trains it (`flashmat eval --ceiling`).
 //!
 //! ```sh
-//! cargo run --release --example teacher_ceiling -- [TEACHER] [SIZE]
+//! cargo run --release --example teacher_ceiling -- [TEACHER] [SIZE] [all | I,J,...]
 //! ```
+//!
+//! The third argument scores other held-out materials than the glossiest
+//! six: `all` of them, or the listed indices (the matte ones, where a
+//! renderer that draws a lobe for every code overshoots).
 
 use anyhow::Result;
 use flashmat::eval::highlights::{self, HighlightConfig};
@@ -25,10 +29,15 @@ fn main() -> Result<()> {
     let cfg: ModelConfig = serde_json::from_str::<flashmat::train::teacher::TeacherConfig>(archive.meta("teacher_config")?)?.model;
     let model = Model::new(&cfg, Device::Cpu)?;
     let teacher = flashmat::train::teacher::Teacher::load(std::path::Path::new(teacher_file), &cfg, Device::Cpu, Some(&model.renderer_vs))?;
+    let materials: Vec<usize> = match args.get(3).map(|s| s.as_str()) {
+        None => highlights::glossiest_test_materials(highlights::CHECK_MATERIALS)?,
+        Some("all") => (0..flashmat::data::procedural::TEST_SET_SIZE).collect(),
+        Some(list) => list.split(',').map(|s| s.trim().parse()).collect::<Result<_, _>>()?,
+    };
     let moved = HighlightConfig::default();
     let mut rows = vec![];
     println!("| material | glossiness | ghost | lobe | rest | test log L1 |\n|---|---|---|---|---|---|");
-    for i in highlights::glossiest_test_materials(highlights::CHECK_MATERIALS)? {
+    for i in materials {
         let m = flashmat::data::procedural::test_material(i, size);
         let maps = flashmat::data::samples::stack_maps(std::slice::from_ref(&m), Device::Cpu)?;
         let truth = flashmat::eval::reference_renders(&m, &moved.configs());

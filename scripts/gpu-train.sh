@@ -43,6 +43,18 @@
 #             b/renderer.safetensors is M_est trained, then a renderer
 #             trained for it (8 files, a job's limit)
 #
+#   GPU:    bash scripts/gpu-train.sh distill [MINUTES]
+#             issue 48's lever (reports/highlights-experiments.md, section 5):
+#             a per-pixel teacher trained with lobe samples draws the moved
+#             highlights from the true maps; M_est (from .gpu/resume.safetensors
+#             or the bundled model) learns its codes against its frozen
+#             renderer. The teacher is .gpu/teacher.safetensors when carried,
+#             else trained first on the device (FLASHMAT_GPU_DISTILL_TEACHER_*);
+#             writes model.safetensors (the late exports averaged),
+#             teacher.safetensors (when trained here), distill.md (steps/s,
+#             code error, the moved-highlight and exposure tables against the
+#             starting model) and distill.tgz
+#
 #   here:   OUT=DIR bash scripts/gpu-train.sh settle MODEL [MINUTES]
 #             after the GPU jobs, on this CPU: MODEL's renderer alone at the
 #             small recipe (one co-located output of four, 64x64), which
@@ -134,6 +146,16 @@ TEACHER_STEPS="${FLASHMAT_GPU_TEACHER_STEPS:-0}"
 TEACHER_PIXELS="${FLASHMAT_GPU_TEACHER_PIXELS:-65536}"
 CODE_WEIGHT="${FLASHMAT_GPU_CODE_WEIGHT:-1}"
 CODE_UNTIL="${FLASHMAT_GPU_CODE_UNTIL:-20000}"
+# The distill job (issue 48): the teacher's preset (its M_est layout must be
+# the starting model's: compact for the bundled compact-f8), its steps and
+# lobe share when trained on the device (6,500 steps at 0.5 made the CPU
+# teacher T3: lobe 1.08, rest 1.11 from the true maps), M_est's learning
+# rate and the code term's weight (constant).
+DISTILL_PRESET="${FLASHMAT_GPU_DISTILL_PRESET:-compact}"
+DISTILL_TEACHER_STEPS="${FLASHMAT_GPU_DISTILL_TEACHER_STEPS:-6500}"
+DISTILL_TEACHER_LOBE="${FLASHMAT_GPU_DISTILL_TEACHER_LOBE:-0.5}"
+DISTILL_LR="${FLASHMAT_GPU_DISTILL_LR:-3e-4}"
+DISTILL_CODE_WEIGHT="${FLASHMAT_GPU_DISTILL_CODE_WEIGHT:-1}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
 # What the networks compute in (flashmat train --precision): tf32 until
 # the side-by-side benchmark (bench) has measured bf16 on the card.
@@ -407,6 +429,72 @@ frozen_chain() {
     bash "$ROOT/scripts/gpu-train.sh" frozen "$second"
 }
 
+# Issue 48's lever: M_est learns the codes of a teacher whose renderer draws
+# moved highlights (reports/highlights-experiments.md, section 5).
+distill() {
+  local minutes="${1:-6}" out="${OUT:?set OUT to the folder that comes back}"
+  [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "distill: MINUTES must be a number, not '$minutes'"
+  use_machine_libtorch
+  mkdir -p "$WORK" "$out"
+  smoke
+  local base="$RESUME_MODEL" dir="$WORK/distill" teacher="$CARRIED_TEACHER" how
+  [ -f "$base" ] || base="$ROOT/models/flashmat.safetensors"
+  rm -rf "$dir" && mkdir -p "$dir"
+  local t0; t0=$(date +%s)
+  if [ -f "$teacher" ]; then
+    how="the carried teacher $(basename "$teacher")"
+  else
+    "$BIN" train-teacher --preset "$DISTILL_PRESET" --out "$dir/teacher" --steps "$DISTILL_TEACHER_STEPS" \
+      --pixels "$TEACHER_PIXELS" --lobe-share "$DISTILL_TEACHER_LOBE" --seed "$SEED" --device "$DEVICE" >"$dir/teacher.log" 2>&1 \
+      || die "distill: the teacher failed: $(grep -m 1 '^error' "$dir/teacher.log")"
+    teacher="$dir/teacher/teacher.safetensors"
+    cp "$teacher" "$out/teacher.safetensors"
+    how="trained here, $DISTILL_TEACHER_STEPS steps at lobe share $DISTILL_TEACHER_LOBE, $TEACHER_PIXELS pixels a step, $(($(date +%s) - t0)) s; $(grep held_out "$dir/teacher/log.jsonl" | tail -n 1)"
+  fi
+  local args=(--preset "$DISTILL_PRESET" --ldr --teacher "$teacher" --code-weight "$DISTILL_CODE_WEIGHT" --warm-start "$base"
+    --freeze-renderer --adv-weight 0 --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --colocated-outputs "$FROZEN_COLOCATED"
+    --lr "$DISTILL_LR" --warmup-steps 50 --straight-through-output --checkerboard-free --lpips-weight 0.1 --chroma-weight 1
+    --dark-share "$DARK_SHARE" --bank "$BANK" --steps 100000000 --minutes "$minutes" --checkpoint-every "$FROZEN_EVERY"
+    --preview-every 1000000 --keep-exports --device "$DEVICE" --precision "$PRECISION" --seed "$((SEED + 30))")
+  start_util_sampler "$dir/gpu-util.csv"
+  local t1; t1=$(date +%s)
+  "$BIN" train --out "$dir/run" "${args[@]}" --export-dir "$dir/exports" >"$dir/train.log" 2>&1 \
+    || die "distill: training failed: $(grep -m 1 '^error' "$dir/train.log")"
+  local t2; t2=$(date +%s)
+  [ -n "$UTIL_PID" ] && kill "$UTIL_PID" 2>/dev/null || true
+  local exports late
+  mapfile -t exports < <(ls "$dir/exports"/step-*.safetensors | sort -V)
+  late=("${exports[@]:$(( ${#exports[@]} / 2 ))}")
+  "$BIN" average "${late[@]}" -o "$out/model.safetensors"
+  {
+    echo "# Distill: M_est learns the teacher's codes against its frozen renderer (from $(basename "$base"))"
+    echo
+    echo "- GPU: $(gpu_info); teacher: $how; M_est: $((t2 - t1)) s"
+    python3 - "$dir/run/log.jsonl" "$BATCH" <<'PY'
+import json, sys
+steps = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
+seconds = sum(s["seconds"] for s in steps)
+first, last = steps[:100], steps[-100:]
+mean = lambda rows, k: sum(r[k] for r in rows) / len(rows)
+print(f"- steps {steps[0]['step']} to {steps[-1]['step']}, {len(steps) / seconds:.2f} steps/s ({len(steps) * int(sys.argv[2]) / seconds:.1f} materials/s); "
+      f"code error (relative L1) {mean(first, 'code'):.3f} -> {mean(last, 'code'):.3f}, L1 {mean(first, 'l1'):.4f} -> {mean(last, 'l1'):.4f} (first and last 100 steps)")
+PY
+    echo "- averaged: ${late[*]##*/}"
+    [ -s "$dir/gpu-util.csv" ] && awk -F, '$1 ~ /^ *[0-9]/ { s += $1; n++ } END { if (n) printf "- GPU busy: %.0f%% (mean of %d samples)\n", s / n, n }' "$dir/gpu-util.csv"
+    [ -f "$dir/run/colour.jsonl" ] && echo "- checks at the last checkpoint (moved highlights on the six glossiest, uniform colour): \`$(tail -n 1 "$dir/run/colour.jsonl")\`"
+    echo "- recipe: \`flashmat train ${args[*]}\`"
+  } >"$out/distill.md"
+  cp "$base" "$dir/start.safetensors"
+  if timeout "$FROZEN_SCORE_SECONDS" "$BIN" eval --model "$out/model.safetensors" --model "$dir/start.safetensors" --dataset procedural-test \
+    --cases identity --ldr-input --device "$DEVICE" -o "$dir/held-out" "${EVAL_EXTRA[@]}" >"$dir/held-out.log" 2>&1; then
+    { echo; sed -n '/^## LPIPS/,$p' "$dir/held-out/summary.md"; } >>"$out/distill.md"
+  else
+    echo "- held-out scores: not finished in ${FROZEN_SCORE_SECONDS} s (\`held-out.log\` in distill.tgz)" >>"$out/distill.md"
+  fi
+  tar czf "$out/distill.tgz" -C "$dir" --exclude='*.safetensors' --exclude=previews .
+  cat "$out/distill.md"
+}
+
 # The frozen job's two models, and each one's mean with the starting model
 # (the mean brought the near-black highlight back within 2x,
 # reports/gpu-campaign-2026-11-25/), scored on the GPU against the starting
@@ -651,6 +739,17 @@ cpu_dry_run() {
     || die "dry run: the chain's second job was not scored against the chain's starting model"
   n=$(find "$tmp/out4" -type f | wc -l)
   [ "$n" -le 8 ] || die "dry run: the frozen chain brings back $n files (a job returns at most 8)"
+  echo "== distill: a teacher trained with lobe samples, then M_est alone learning its codes"
+  FLASHMAT_GPU_DISTILL_PRESET=tiny FLASHMAT_GPU_DISTILL_TEACHER_STEPS=20 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/no-teacher" \
+    FLASHMAT_GPU_FROZEN_EVERY=2 FLASHMAT_GPU_EVAL_EXTRA="--limit 2 --size 64" OUT="$tmp/out6" bash "$self" distill 0.1
+  for f in model.safetensors teacher.safetensors distill.md distill.tgz; do
+    [ -f "$tmp/out6/$f" ] || die "dry run: distill brought back no $f"
+  done
+  grep -q "lobe share 0.5" "$tmp/out6/distill.md" || die "dry run: distill's teacher was not trained with lobe samples"
+  grep -q '"freeze_renderer": true' "$tmp/machine/distill/run/config.json" && grep -q '"weight_code": 1' "$tmp/machine/distill/run/config.json" \
+    || die "dry run: distill did not train M_est alone with the code term"
+  grep -q '^## Moved highlights' "$tmp/out6/distill.md" && grep -q 'code error (relative L1)' "$tmp/out6/distill.md" \
+    || die "dry run: distill.md lacks the code error or the moved-highlight table"
   echo "== settle the chain's renderer on the CPU"
   FLASHMAT_SETTLE_CROP=32 FLASHMAT_SETTLE_EVERY=2 FLASHMAT_SETTLE_UNIFORM_SIZE=32 OUT="$tmp/out5" \
     bash "$self" settle "$tmp/out4/b/renderer.safetensors" 0.05
@@ -674,6 +773,7 @@ case "${1:-}" in
   frozen) shift; frozen "$@" ;;
   frozen-chain) shift; frozen_chain "$@" ;;
   settle) shift; settle "$@" ;;
+  distill) shift; distill "$@" ;;
   --cpu-dry-run) cpu_dry_run ;;
-  *) die "usage: gpu-train.sh stage | chunk [MINUTES] | verdict | final [MINUTES] | frozen [MINUTES] | frozen-chain [MINUTES_A] [MINUTES_B] | settle MODEL [MINUTES] | --cpu-dry-run" ;;
+  *) die "usage: gpu-train.sh stage | chunk [MINUTES] | verdict | final [MINUTES] | frozen [MINUTES] | frozen-chain [MINUTES_A] [MINUTES_B] | settle MODEL [MINUTES] | distill [MINUTES] | --cpu-dry-run" ;;
 esac

@@ -53,10 +53,17 @@ impl Trainer {
     /// (BatchNorm statistics included) and the renderer take its weights,
     /// the step count its recorded steps; the optimizers and the
     /// discriminator stay fresh. The file must hold the same model, trained
-    /// on the same kind of input photos.
+    /// on the same kind of input photos. With a teacher (`--teacher`) the
+    /// renderer stays the teacher's and only M_est is taken, from any model
+    /// whose M_est has the same layout (the teacher's code term then moves
+    /// a trained M_est into the teacher's code space, issue 48).
     pub fn warm_start_from(&mut self, path: &Path) -> Result<()> {
         let device = self.device();
-        let (model, info) = crate::model::Model::load_expecting(path, device, &self.model.model_id())?;
+        let (model, info) = if self.teacher.is_some() {
+            crate::model::Model::load(path, device)?
+        } else {
+            crate::model::Model::load_expecting(path, device, &self.model.model_id())?
+        };
         if info.ldr_input != self.config.ldr_input {
             bail!(
                 "{}: a model trained on {} photos cannot warm-start a run on {} photos (--ldr)",
@@ -65,8 +72,12 @@ impl Trainer {
                 if self.config.ldr_input { "LDR" } else { "HDR" }
             );
         }
-        let named = model.named_variables().into_iter().collect();
-        self.model.load_named(&named).with_context(|| format!("{}: warm start", path.display()))?;
+        if self.teacher.is_some() {
+            restore_vars(&self.model.est_vs.variables(), &model.est_vs.variables(), &format!("{}: M_est (warm start beside the teacher's renderer)", path.display()))?;
+        } else {
+            let named = model.named_variables().into_iter().collect();
+            self.model.load_named(&named).with_context(|| format!("{}: warm start", path.display()))?;
+        }
         self.step = info.steps;
         Ok(())
     }

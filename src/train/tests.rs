@@ -421,6 +421,25 @@ fn teacher_codes_supervise_m_est_and_fade_out() {
     for (name, v) in fresh.model.renderer_vs.variables() {
         assert!(v.equal(&theirs[&name]), "{name}");
     }
+    // A warm start beside a teacher takes M_est from the file and keeps the
+    // teacher's renderer, from a model whose renderer has another layout.
+    let other = ModelConfig { name: "tiny-f4".into(), enc_frequencies: 4, ..ModelConfig::tiny() };
+    let trained = crate::model::Model::new(&other, tch::Device::Cpu).unwrap();
+    let model_file = dir.path().join("other.safetensors");
+    trained.save(&model_file, &crate::model::ModelInfo { ldr_input: false, steps: 7 }, false).unwrap();
+    let mut warm = Trainer::new(cfg.clone(), tch::Device::Cpu).unwrap();
+    warm.warm_start_from(&model_file).unwrap();
+    assert_eq!(warm.step, 7);
+    let est = trained.est_vs.variables();
+    for (name, v) in warm.model.est_vs.variables() {
+        assert!(v.equal(&est[&name]), "M_est {name}");
+    }
+    for (name, v) in warm.model.renderer_vs.variables() {
+        assert!(v.equal(&theirs[&name]), "renderer {name}");
+    }
+    // Without the teacher that file is another model, refused.
+    let plain = TrainConfig { teacher: None, weight_code: 0.0, ..cfg.clone() };
+    assert!(Trainer::new(plain, tch::Device::Cpu).unwrap().warm_start_from(&model_file).is_err());
     // The code term is logged while it applies and is 0 once faded.
     run::start(cfg.clone(), &RunOptions::new(dir.path().join("r"), tch::Device::Cpu, false)).unwrap();
     let codes: Vec<f64> = run::read_log(&dir.path().join("r")).iter().map(|l| l.code).collect();
