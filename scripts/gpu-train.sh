@@ -432,7 +432,7 @@ frozen_chain() {
 # Issue 48's lever: M_est learns the codes of a teacher whose renderer draws
 # moved highlights (reports/highlights-experiments.md, section 5).
 distill() {
-  local minutes="${1:-6}" out="${OUT:?set OUT to the folder that comes back}"
+  local minutes="${1:-4}" out="${OUT:?set OUT to the folder that comes back}"
   [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "distill: MINUTES must be a number, not '$minutes'"
   use_machine_libtorch
   mkdir -p "$WORK" "$out"

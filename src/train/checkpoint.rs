@@ -53,17 +53,19 @@ impl Trainer {
     /// (BatchNorm statistics included) and the renderer take its weights,
     /// the step count its recorded steps; the optimizers and the
     /// discriminator stay fresh. The file must hold the same model, trained
-    /// on the same kind of input photos. With a teacher (`--teacher`) the
-    /// renderer stays the teacher's and only M_est is taken, from any model
-    /// whose M_est has the same layout (the teacher's code term then moves
-    /// a trained M_est into the teacher's code space, issue 48).
+    /// on the same kind of input photos. With a teacher (`--teacher`) a
+    /// model of another preset is accepted where its M_est has the same
+    /// layout: M_est alone is taken and the renderer stays the teacher's
+    /// (the code term then moves a trained M_est into the teacher's code
+    /// space, issue 48); a model of the same preset (a curriculum chunk's
+    /// export) gives both halves, as without a teacher.
     pub fn warm_start_from(&mut self, path: &Path) -> Result<()> {
         let device = self.device();
-        let (model, info) = if self.teacher.is_some() {
-            crate::model::Model::load(path, device)?
-        } else {
-            crate::model::Model::load_expecting(path, device, &self.model.model_id())?
-        };
+        let (model, info) = crate::model::Model::load(path, device)?;
+        let estimator_only = model.model_id() != self.model.model_id();
+        if estimator_only && self.teacher.is_none() {
+            bail!("{} holds model '{}', expected '{}' (another preset or configuration)", path.display(), model.model_id(), self.model.model_id());
+        }
         if info.ldr_input != self.config.ldr_input {
             bail!(
                 "{}: a model trained on {} photos cannot warm-start a run on {} photos (--ldr)",
@@ -72,7 +74,7 @@ impl Trainer {
                 if self.config.ldr_input { "LDR" } else { "HDR" }
             );
         }
-        if self.teacher.is_some() {
+        if estimator_only {
             restore_vars(&self.model.est_vs.variables(), &model.est_vs.variables(), &format!("{}: M_est (warm start beside the teacher's renderer)", path.display()))?;
         } else {
             let named = model.named_variables().into_iter().collect();

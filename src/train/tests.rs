@@ -440,6 +440,16 @@ fn teacher_codes_supervise_m_est_and_fade_out() {
     // Without the teacher that file is another model, refused.
     let plain = TrainConfig { teacher: None, weight_code: 0.0, ..cfg.clone() };
     assert!(Trainer::new(plain, tch::Device::Cpu).unwrap().warm_start_from(&model_file).is_err());
+    // A model of the run's own preset (a curriculum chunk's export) gives both halves.
+    let same = crate::model::Model::new(&ModelConfig::tiny(), tch::Device::Cpu).unwrap();
+    let same_file = dir.path().join("same.safetensors");
+    same.save(&same_file, &crate::model::ModelInfo { ldr_input: false, steps: 9 }, false).unwrap();
+    let mut chunk = Trainer::new(cfg.clone(), tch::Device::Cpu).unwrap();
+    chunk.warm_start_from(&same_file).unwrap();
+    let renderer = same.renderer_vs.variables();
+    for (name, v) in chunk.model.renderer_vs.variables() {
+        assert!(v.equal(&renderer[&name]) && !v.equal(&theirs[&name]), "renderer {name}");
+    }
     // The code term is logged while it applies and is 0 once faded.
     run::start(cfg.clone(), &RunOptions::new(dir.path().join("r"), tch::Device::Cpu, false)).unwrap();
     let codes: Vec<f64> = run::read_log(&dir.path().join("r")).iter().map(|l| l.code).collect();
