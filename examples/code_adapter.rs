@@ -87,7 +87,8 @@ fn main() -> Result<()> {
     }
     ensure!(est.keys().any(|k| k.ends_with("head.weight")), "no head weight in M_est");
     drop(teacher);
-    out.save(&args[3], &info, false)?;
+    // f16 storage as `flashmat export` writes (11 MB: it travels in .gpu/ to a GPU job).
+    out.save(&args[3], &info, true)?;
     println!("wrote {} (M_est of {} with its head remapped, the teacher's renderer)", args[3], args[1]);
     Ok(())
 }
