@@ -57,6 +57,26 @@ impl Default for TeacherConfig {
     }
 }
 
+impl TeacherConfig {
+    /// The recipe settings of `given` that differ from this (stored) one, as
+    /// "name stored (given)": a continued teacher keeps its stored recipe and
+    /// takes only the step count, which a caller must be told.
+    pub fn ignored_on_continue(&self, given: &TeacherConfig) -> Vec<String> {
+        let mut out = vec![];
+        let mut check = |name: &str, stored: String, new: String| {
+            if stored != new {
+                out.push(format!("{name} {stored} (given {new})"));
+            }
+        };
+        check("--pixels", self.pixels.to_string(), given.pixels.to_string());
+        check("--lr", self.lr.to_string(), given.lr.to_string());
+        check("--seed", self.seed.to_string(), given.seed.to_string());
+        check("--lobe-share", self.lobe_share.to_string(), given.lobe_share.to_string());
+        check("--checkpoint-every", self.checkpoint_every.to_string(), given.checkpoint_every.to_string());
+        out
+    }
+}
+
 /// The encoder: 10 GGX values -> 128 -> 128 -> C, LeakyReLU(0.01), no biases.
 #[derive(Debug)]
 pub struct TeacherEncoder {
@@ -295,6 +315,10 @@ pub fn run(config: TeacherConfig, dir: &Path, device: Device, minutes: Option<f6
     let mut t = if file.exists() {
         let mut t = TeacherTrainer::resume(&file, device)?;
         ensure!(t.config.model == config.model, "{} holds a teacher of another model; use another folder", dir.display());
+        let ignored = t.config.ignored_on_continue(&config);
+        if !ignored.is_empty() {
+            eprintln!("warning: {} continues with its stored recipe: {}", dir.display(), ignored.join(", "));
+        }
         t.config.steps = config.steps;
         t
     } else {
@@ -391,6 +415,10 @@ mod tests {
         run(TeacherConfig { steps: 30, ..cfg.clone() }, &dir.path().join("b"), Device::Cpu, None, false).unwrap();
         let resumed = run(cfg.clone(), &dir.path().join("b"), Device::Cpu, None, false).unwrap();
         assert_eq!(resumed.step, 60);
+        // A continued teacher keeps its recipe; what a caller gave otherwise is named.
+        assert!(cfg.ignored_on_continue(&TeacherConfig { steps: 90, ..cfg.clone() }).is_empty());
+        let ignored = cfg.ignored_on_continue(&TeacherConfig { lr: 3e-4, lobe_share: 0.5, ..cfg.clone() });
+        assert_eq!(ignored, vec!["--lr 0.003 (given 0.0003)".to_string(), "--lobe-share 0 (given 0.5)".to_string()]);
         let theirs = resumed.model.renderer_vs.variables();
         for (name, a) in full.model.renderer_vs.variables() {
             assert!(a.allclose(&theirs[&name], 1e-6, 1e-7, false), "{name}");
