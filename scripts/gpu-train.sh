@@ -353,6 +353,16 @@ EOF
 # side: one run keeps the GPU about 45% busy, the two about 70%
 # (reports/gpu-campaign-2026-11-25/). Each run's later half of exports is
 # averaged (the CPU runs' lesson: late-checkpoint means beat the last one).
+# Averages the later half of a run's exports (sorted by step) into $2;
+# LATE_EXPORTS keeps their file names for the report.
+average_late_exports() {
+  local exports
+  mapfile -t exports < <(ls "$1"/step-*.safetensors | sort -V)
+  LATE_EXPORTS=("${exports[@]:$(( ${#exports[@]} / 2 ))}")
+  "$BIN" average "${LATE_EXPORTS[@]}" -o "$2"
+  LATE_EXPORTS=("${LATE_EXPORTS[@]##*/}")
+}
+
 frozen() {
   local minutes="${1:-5.5}" out="${OUT:?set OUT to the folder that comes back}"
   [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "frozen: MINUTES must be a number, not '$minutes'"
@@ -381,16 +391,14 @@ frozen() {
   local t1; t1=$(date +%s)
   [ -n "$UTIL_PID" ] && kill "$UTIL_PID" 2>/dev/null || true
   [ -z "$failed" ] || die "frozen: training failed ($failed): $(grep -h -m 1 '^error' "$dir"/estimator.log "$dir"/renderer.log | head -n 1)"
-  local half exports late
+  local half
   {
     echo "# Frozen halves side by side (warm start from $(basename "$base"))"
     echo
     echo "- GPU: $(gpu_info); $((t1 - t0)) s of wall time for both runs"
   } >"$out/frozen.md"
   for half in estimator renderer; do
-    mapfile -t exports < <(ls "$dir/$half-exports"/step-*.safetensors | sort -V)
-    late=("${exports[@]:$(( ${#exports[@]} / 2 ))}")
-    "$BIN" average "${late[@]}" -o "$out/$half.safetensors"
+    average_late_exports "$dir/$half-exports" "$out/$half.safetensors"
     python3 - "$dir/$half/log.jsonl" "$half" "$BATCH" >>"$out/frozen.md" <<'EOF'
 import json, sys
 steps = [json.loads(l) for l in open(sys.argv[1]) if l.strip()]
@@ -400,7 +408,7 @@ key = "l1" if sys.argv[2] == "estimator" else "l1_render"
 print(f"- {sys.argv[2]} alone: steps {steps[0]['step']} to {steps[-1]['step']}, {len(steps) / seconds:.2f} steps/s "
       f"({len(steps) * int(sys.argv[3]) / seconds:.1f} materials/s), last 100 steps' L1 {sum(s[key] for s in last) / len(last):.4f}")
 EOF
-    echo "  - averaged: ${late[*]##*/}" >>"$out/frozen.md"
+    echo "  - averaged: ${LATE_EXPORTS[*]}" >>"$out/frozen.md"
     [ -f "$dir/$half/colour.jsonl" ] && echo "  - uniform-colour check at its last checkpoint: \`$(tail -n 1 "$dir/$half/colour.jsonl")\`" >>"$out/frozen.md"
   done
   {
@@ -462,10 +470,7 @@ distill() {
     || die "distill: training failed: $(grep -m 1 '^error' "$dir/train.log")"
   local t2; t2=$(date +%s)
   [ -n "$UTIL_PID" ] && kill "$UTIL_PID" 2>/dev/null || true
-  local exports late
-  mapfile -t exports < <(ls "$dir/exports"/step-*.safetensors | sort -V)
-  late=("${exports[@]:$(( ${#exports[@]} / 2 ))}")
-  "$BIN" average "${late[@]}" -o "$out/model.safetensors"
+  average_late_exports "$dir/exports" "$out/model.safetensors"
   {
     echo "# Distill: M_est learns the teacher's codes against its frozen renderer (from $(basename "$base"))"
     echo
@@ -479,7 +484,7 @@ mean = lambda rows, k: sum(r[k] for r in rows) / len(rows)
 print(f"- steps {steps[0]['step']} to {steps[-1]['step']}, {len(steps) / seconds:.2f} steps/s ({len(steps) * int(sys.argv[2]) / seconds:.1f} materials/s); "
       f"code error (relative L1) {mean(first, 'code'):.3f} -> {mean(last, 'code'):.3f}, L1 {mean(first, 'l1'):.4f} -> {mean(last, 'l1'):.4f} (first and last 100 steps)")
 PY
-    echo "- averaged: ${late[*]##*/}"
+    echo "- averaged: ${LATE_EXPORTS[*]}"
     [ -s "$dir/gpu-util.csv" ] && awk -F, '$1 ~ /^ *[0-9]/ { s += $1; n++ } END { if (n) printf "- GPU busy: %.0f%% (mean of %d samples)\n", s / n, n }' "$dir/gpu-util.csv"
     [ -f "$dir/run/colour.jsonl" ] && echo "- checks at the last checkpoint (moved highlights on the six glossiest, uniform colour): \`$(tail -n 1 "$dir/run/colour.jsonl")\`"
     echo "- recipe: \`flashmat train ${args[*]}\`"

@@ -61,11 +61,12 @@ impl Trainer {
     /// export) gives both halves, as without a teacher.
     pub fn warm_start_from(&mut self, path: &Path) -> Result<()> {
         let device = self.device();
-        let (model, info) = crate::model::Model::load(path, device)?;
+        let (model, info) = if self.teacher.is_some() {
+            crate::model::Model::load(path, device)?
+        } else {
+            crate::model::Model::load_expecting(path, device, &self.model.model_id())?
+        };
         let estimator_only = model.model_id() != self.model.model_id();
-        if estimator_only && self.teacher.is_none() {
-            bail!("{} holds model '{}', expected '{}' (another preset or configuration)", path.display(), model.model_id(), self.model.model_id());
-        }
         if info.ldr_input != self.config.ldr_input {
             bail!(
                 "{}: a model trained on {} photos cannot warm-start a run on {} photos (--ldr)",
