@@ -396,3 +396,42 @@ fn rendered_pngs_round_trip_and_questionable_photos_warn() {
     let err = assert_ok(&flashmat(&["relight", s(&d.join("noisy.exr")), "--identity", "--model", s(&model), "--size", "64", "-o", s(&d.join("n.png"))]));
     assert!(err.contains("warning: ") && err.contains("noisy.exr: 100 of its 12288 colour values (0.81%) are negative"), "{err}");
 }
+
+/// `--highlight-fill` on estimate and on a .nmat: the photographed flash
+/// highlight's codes are replaced inside its disc and nowhere else, and the
+/// line says what was done.
+#[test]
+fn the_highlight_fill_changes_the_codes_under_the_flash_highlight_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let model = tiny_model(&d.join("tiny-ldr.safetensors"), true, 6);
+    // A matte photo with a bright disc of radius 5 px at its centre (the flash highlight) and texture around it.
+    let photo_img = Image::from_fn(3, 32, 32, |c, y, x| {
+        let r = (x as f32 + 0.5 - 16.0).hypot(y as f32 + 0.5 - 16.0);
+        if r < 5.0 { 0.95 } else { 0.08 + 0.04 * (((x / 3 + y / 4) % 3) as f32) + 0.01 * c as f32 }
+    });
+    let photo = d.join("photo.png");
+    flashmat::io::write_png(&photo, &photo_img.map(flashmat::spaces::srgb_encode), flashmat::io::BitDepth::Eight).unwrap();
+    let (plain, filled) = (d.join("plain.nmat"), d.join("filled.nmat"));
+    let args = |out: &Path| vec!["estimate".to_string(), s(&photo).to_string(), "--model".into(), s(&model).into(), "--fov".into(), "28".into(), "--size".into(), "32".into(), "-o".into(), s(out).into()];
+    assert_ok(&flashmat(&args(&plain).iter().map(String::as_str).collect::<Vec<_>>()));
+    let mut with_fill = args(&filled);
+    with_fill.push("--highlight-fill".into());
+    let err = assert_ok(&flashmat(&with_fill.iter().map(String::as_str).collect::<Vec<_>>()));
+    assert!(err.contains("highlight fill: codes of") && err.contains("copied from"), "{err}");
+    let (p, f) = (NeuralMaterial::load(&plain, Device::Cpu).unwrap(), NeuralMaterial::load(&filled, Device::Cpu).unwrap());
+    let changed: Vec<f32> = Vec::try_from((&p.neural_map - &f.neural_map).abs().amax([0i64].as_slice(), false).flatten(0, -1)).unwrap();
+    assert!(changed[16 * 32 + 16] > 0.0, "the centre's codes must change");
+    // Disc 5 px + 2% dilation + 2% feather of 32 px: nothing changes 7 px or more from the centre.
+    for (i, v) in changed.iter().enumerate() {
+        let r = ((i % 32) as f32 + 0.5 - 16.0).hypot((i / 32) as f32 + 0.5 - 16.0);
+        assert!(r < 7.0 || *v == 0.0, "pixel {i} at {r} px changed by {v}");
+    }
+    // On a .nmat (its stored photo), and a mode that does not exist.
+    let id = d.join("id.png");
+    let err = assert_ok(&flashmat(&["relight", s(&plain), "--identity", "--highlight-fill", "blend", "-o", s(&id)]));
+    assert!(err.contains("interpolated from around the highlight"), "{err}");
+    let e = flashmat(&["relight", s(&plain), "--identity", "--highlight-fill", "smear", "-o", s(&id)]);
+    assert_eq!(e.status.code(), Some(2), "{}", stderr(&e));
+    no_temp_files(d);
+}

@@ -88,9 +88,17 @@ pub struct EvalArgs {
     /// How flashmat models handle the photo's exposure (see `flashmat estimate --help`).
     #[arg(long, value_enum, default_value_t = super::infer::ExposureMode::Calibrated)]
     pub exposure_mode: super::infer::ExposureMode,
+    /// Also score every flashmat model with the photographed flash highlight filled in its map (rows NAME+fill;
+    /// `copy`: codes copied from beside the highlight, `blend`: interpolated; see `flashmat estimate --help`).
+    #[arg(long, value_enum, value_name = "MODE", num_args = 0..=1, default_missing_value = "copy")]
+    pub highlight_fill: Option<flashmat::infer::highlight_fill::FillMode>,
 }
 
 impl EvalArgs {
+    fn highlight_fill_config(&self) -> Option<flashmat::infer::highlight_fill::HighlightFillConfig> {
+        self.highlight_fill.map(flashmat::infer::highlight_fill::HighlightFillConfig::with_mode)
+    }
+
     /// The variants asked for, checked (0 steps: the unrefined model).
     fn refine_configs(&self) -> Result<Vec<flashmat::infer::refine::RefineConfig>> {
         let mut steps = self.refine.clone().unwrap_or_default();
@@ -124,6 +132,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             progress: true,
             refine: args.refine_configs()?,
             exposure: args.exposure_mode.config(),
+            highlight_fill: args.highlight_fill_config(),
         };
         eval::captures::run(&opts)?;
         return print_summary(&args.output);
@@ -149,6 +158,7 @@ fn eval_options(args: &EvalArgs) -> Result<EvalOptions> {
         refine: args.refine_configs()?,
         exposures: args.exposures.clone(),
         exposure: args.exposure_mode.config(),
+        highlight_fill: args.highlight_fill_config(),
     })
 }
 

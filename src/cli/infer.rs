@@ -57,6 +57,12 @@ pub struct EstimateOptions {
     pub refine: Option<usize>,
     #[command(flatten)]
     pub refine_weights: RefineWeights,
+    /// Fill the photographed flash highlight in the neural map, before any refinement: `copy` (the default with no
+    /// MODE) takes the codes under it from the material beside it, `blend` interpolates them from around it. The
+    /// material then no longer keeps the photo's highlight where it was when the light moves (issue 48), at the
+    /// cost of its own identity render there (`flashmat::infer::highlight_fill`, reports/highlights-experiments.md).
+    #[arg(long, value_enum, value_name = "MODE", num_args = 0..=1, default_missing_value = "copy")]
+    pub highlight_fill: Option<flashmat::infer::highlight_fill::FillMode>,
     /// Make the material tile seamlessly (after any refinement): the neural map is made periodic by joining a
     /// half-shifted copy along minimum-error seams, codes copied, never blended (`flashmat::infer::tiling`).
     #[arg(long)]
@@ -122,6 +128,10 @@ impl ExposureMode {
 impl EstimateOptions {
     fn exposure_config(&self) -> infer::ExposureConfig {
         self.exposure_mode.config()
+    }
+
+    fn highlight_fill_config(&self) -> Option<infer::highlight_fill::HighlightFillConfig> {
+        self.highlight_fill.map(infer::highlight_fill::HighlightFillConfig::with_mode)
     }
 
     /// The requested refinement, checked; None without `--refine` or with `--refine 0`.
@@ -256,6 +266,10 @@ pub fn estimate_photo(photo: &Path, opts: &EstimateOptions) -> Result<(NeuralMat
     // The photo's camera line comes with the timing, once the outputs are
     // written: a failure stays a single error line.
     let summary = format!("{}\n{summary}", prepared.camera_note);
+    let summary = match opts.highlight_fill_config() {
+        Some(cfg) => format!("{summary}\n{}", material.fill_highlight(&cfg)?.summary()),
+        None => summary,
+    };
     let summary = match &refine_cfg {
         Some(cfg) => format!("{summary}\n{}", refine_with_progress(&mut material, &prepared.linear.to_tensor(), prepared.ldr, cfg)?),
         None => summary,
@@ -291,6 +305,7 @@ pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMater
     }
     let refine_cfg = opts.refine_config()?;
     let mut material = NeuralMaterial::load(path, flashmat::device::parse_device(&opts.device)?)?;
+    let filled = opts.highlight_fill_config().map(|cfg| material.fill_highlight(&cfg)).transpose()?.map(|r| r.summary());
     let line = match &refine_cfg {
         Some(cfg) => {
             // The stored photo is what M_est saw: clamped to [0, 1] for 8-bit photos and LDR-input models.
@@ -300,6 +315,7 @@ pub fn open_material(path: &Path, opts: &EstimateOptions) -> Result<(NeuralMater
         }
         None => None,
     };
+    let line = [filled, line].into_iter().flatten().reduce(|a, b| format!("{a}\n{b}"));
     let line = match opts.tile {
         true => Some([line, Some(tile(&mut material)?)].into_iter().flatten().collect::<Vec<_>>().join("\n")),
         false => line,

@@ -39,6 +39,8 @@ pub struct CaptureEvalOptions {
     pub refine: Vec<crate::infer::refine::RefineConfig>,
     /// How flashmat models handle the photo's exposure (`--exposure-mode`).
     pub exposure: crate::infer::ExposureConfig,
+    /// Also score every flashmat model with its photographed highlight filled.
+    pub highlight_fill: Option<crate::infer::highlight_fill::HighlightFillConfig>,
 }
 
 /// Scores of one method on one photo.
@@ -75,7 +77,7 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
     let n = captures.photos.len();
     ensure!(n >= 2, "capture folder {} has 1 photo; it needs at least 2 (one to estimate from, others to compare with)", opts.dir.display());
     // Capture photos are 8-bit: the methods get LDR photos.
-    let mut methods = open_methods(&opts.models, true, opts.device, &opts.refine, &opts.exposure)?;
+    let mut methods = open_methods(&opts.models, true, opts.device, &opts.refine, &opts.exposure, opts.highlight_fill)?;
     let photos = captures.load_compensated(opts.size)?;
     let input = captures.overhead();
     let others: Vec<usize> = (0..n).filter(|&i| i != input).collect();
@@ -260,6 +262,7 @@ mod tests {
             progress: false,
             refine: vec![],
             exposure: crate::infer::ExposureConfig::default(),
+            highlight_fill: None,
         }
     }
 

@@ -18,7 +18,9 @@
 //! A photo with any channel of any pixel at 1 is **clipped**: its
 //! highlight is cut and the ratio is a different question (the highlight
 //! issue); the summary reports clipped photos apart (for the relit scale,
-//! pairs where either photo is clipped).
+//! pairs where either photo is clipped), with a second ratio over the
+//! pixels the photo kept: whether the method got the exposure of what the
+//! camera did record.
 
 use super::methods::Method;
 use crate::geometry::{LightView, MODEL_FOV_DEG};
@@ -70,20 +72,29 @@ pub struct ExposureRow {
     pub ratio_rgb: [f64; 3],
     /// The same of the RGB means.
     pub ratio: f64,
+    /// The same over the pixels not clipped in the photo (= `ratio` on an
+    /// unclipped photo; NaN when every pixel is clipped).
+    pub ratio_kept: f64,
     /// Moved lights' mean at EV over at 0 stops, over 2^EV; `None` at 0.
     pub relit_scale: Option<f64>,
     /// The 0-stop photo's [`clipped_fraction`] (the relit scale's reference).
     pub reference_clipped: f64,
 }
 
-/// The identity ratio of a prepared method. exposed_truth: `[3, H, W]`,
-/// the linear co-located render x 2^EV, unclamped.
-pub fn identity_ratio(method: &dyn Method, exposed_truth: &Tensor) -> Result<([f64; 3], f64)> {
+/// The identity ratio of a prepared method: per channel, of the RGB means,
+/// and of the RGB means over the pixels `photo` does not clip (NaN when it
+/// clips all). exposed_truth: `[3, H, W]`, the linear co-located render x
+/// 2^EV, unclamped; photo: the same as the method saw it.
+pub fn identity_ratio(method: &dyn Method, exposed_truth: &Tensor, photo: &Tensor) -> Result<([f64; 3], f64, f64)> {
     let render = method.render(&[LightView::colocated(MODEL_FOV_DEG)])?.get(0).clamp_min(0.0);
-    let (r, p) = (channel_means(&render), channel_means(&exposed_truth.to_device(tch::Device::Cpu).to_kind(Kind::Float)));
+    let truth = exposed_truth.to_device(tch::Device::Cpu).to_kind(Kind::Float);
+    let (r, p) = (channel_means(&render), channel_means(&truth));
     let rgb = [0, 1, 2].map(|c| r[c] / p[c].max(1e-12));
     let all = r.iter().sum::<f64>() / p.iter().sum::<f64>().max(1e-12);
-    Ok((rgb, all))
+    let kept = photo.to_device(tch::Device::Cpu).lt(1.0).all_dim(0, true).to_kind(Kind::Double); // [1, H, W]
+    let masked_sum = |t: &Tensor| f64::try_from((t.to_kind(Kind::Double) * &kept).sum(Kind::Double)).unwrap_or(f64::NAN);
+    let kept_ratio = masked_sum(&render) / masked_sum(&truth);
+    Ok((rgb, all, if kept_ratio.is_finite() { kept_ratio } else { f64::NAN }))
 }
 
 /// Scores one method on one material at every exposure. photo_linear:
@@ -112,7 +123,7 @@ pub fn measure(method: &mut dyn Method, material: &str, photo_linear: &Tensor, e
             }
         };
         let means = channel_means(&relit.clamp_min(0.0));
-        let (ratio_rgb, ratio) = identity_ratio(method, &exposed(photo_linear, ev, false))?;
+        let (ratio_rgb, ratio, ratio_kept) = identity_ratio(method, &exposed(photo_linear, ev, false), &photo)?;
         let relit_scale = match reference {
             None => {
                 reference = Some(means);
@@ -120,7 +131,7 @@ pub fn measure(method: &mut dyn Method, material: &str, photo_linear: &Tensor, e
             }
             Some(r) => Some(means.iter().sum::<f64>() / r.iter().sum::<f64>().max(1e-12) / 2f64.powf(ev)),
         };
-        rows.push(ExposureRow { material: material.to_string(), ev, clipped: clipped_fraction(&photo), ratio_rgb, ratio, relit_scale, reference_clipped });
+        rows.push(ExposureRow { material: material.to_string(), ev, clipped: clipped_fraction(&photo), ratio_rgb, ratio, ratio_kept, relit_scale, reference_clipped });
     }
     // Back in the order asked for.
     rows.sort_by(|a, b| {
@@ -140,14 +151,14 @@ pub fn geo_min_max(values: &[f64]) -> (f64, f64, f64) {
 }
 
 /// CSV of every method's rows: `method,material,ev,clipped,ratio,ratio_r,
-/// ratio_g,ratio_b,relit_scale,reference_clipped`.
+/// ratio_g,ratio_b,relit_scale,reference_clipped,ratio_kept`.
 pub fn csv_text(methods: &[(String, Vec<ExposureRow>)]) -> String {
-    let mut s = String::from("method,material,ev,clipped,ratio,ratio_r,ratio_g,ratio_b,relit_scale,reference_clipped\n");
+    let mut s = String::from("method,material,ev,clipped,ratio,ratio_r,ratio_g,ratio_b,relit_scale,reference_clipped,ratio_kept\n");
     for (name, rows) in methods {
         for r in rows {
             let _ = writeln!(
                 s,
-                "{name},{},{},{:.6},{:.5},{:.5},{:.5},{:.5},{},{:.6}",
+                "{name},{},{},{:.6},{:.5},{:.5},{:.5},{:.5},{},{:.6},{:.5}",
                 r.material,
                 r.ev,
                 r.clipped,
@@ -156,7 +167,8 @@ pub fn csv_text(methods: &[(String, Vec<ExposureRow>)]) -> String {
                 r.ratio_rgb[1],
                 r.ratio_rgb[2],
                 r.relit_scale.map_or(String::new(), |v| format!("{v:.5}")),
-                r.reference_clipped
+                r.reference_clipped,
+                r.ratio_kept
             );
         }
     }
@@ -180,14 +192,14 @@ pub fn markdown(methods: &[(String, Vec<ExposureRow>)], ldr: bool) -> String {
         s,
         "The photo is the linear co-located render x 2^EV{}. Identity ratio: mean of the identity render over the photo's before the clamp{} (RGB means; per channel in exposure/curve.csv). \
          Relit scale: mean of the renders under the moved-highlight lights at EV over at 0 stops, over 2^EV (1 = scales with the exposure). \
-         Cells: geometric mean [min, max] over materials; a photo with any pixel at 1 is clipped and counted apart (for the relit scale: either photo). \
+         Cells: geometric mean [min, max] over materials; a photo with any pixel at 1 is clipped and counted apart (for the relit scale: either photo), with the identity ratio also over the pixels it kept (kept pixels). \
          Target: identity ratio within {}-{}.\n",
         if ldr { ", then clamped to [0, 1] (8-bit)" } else { " (HDR: nothing clips)" },
         if ldr { " (on a clipped photo: how much of what the clip hid comes back)" } else { "" },
         RATIO_TARGET.0,
         RATIO_TARGET.1
     );
-    let _ = writeln!(s, "| Method | EV | unclipped photos | identity ratio | in target | R / G / B (geo) | relit scale | clipped photos | identity ratio (clipped) | relit scale (clipped) |\n|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "| Method | EV | unclipped photos | identity ratio | in target | R / G / B (geo) | relit scale | clipped photos | identity ratio (clipped) | kept pixels (clipped) | relit scale (clipped) |\n|---|---|---|---|---|---|---|---|---|---|---|");
     for (name, rows) in methods {
         let mut evs: Vec<f64> = vec![];
         for r in rows {
@@ -205,9 +217,13 @@ pub fn markdown(methods: &[(String, Vec<ExposureRow>)], ldr: bool) -> String {
             let rgb = [0, 1, 2].map(|c| geo_min_max(&clean.iter().map(|r| r.ratio_rgb[c]).collect::<Vec<_>>()).0);
             let rgb = if clean.is_empty() { "-".into() } else { format!("{:.2} / {:.2} / {:.2}", rgb[0], rgb[1], rgb[2]) };
             let scale = |v: &[f64]| if ev == 0.0 { "(reference)".to_string() } else { gmm(v) };
+            // Over the pixels the clipped photos kept: geometric mean [min, max] (in target / of them).
+            let kept_values: Vec<f64> = clipped.iter().map(|r| r.ratio_kept).filter(|v| v.is_finite()).collect();
+            let kept_in = kept_values.iter().filter(|v| (RATIO_TARGET.0..=RATIO_TARGET.1).contains(*v)).count();
+            let kept = if kept_values.is_empty() { "-".to_string() } else { format!("{} ({kept_in}/{})", gmm(&kept_values), kept_values.len()) };
             let _ = writeln!(
                 s,
-                "| {name} | {ev:+} | {} | {} | {in_target}/{} | {rgb} | {} | {} | {} | {} |",
+                "| {name} | {ev:+} | {} | {} | {in_target}/{} | {rgb} | {} | {} | {} | {kept} | {} |",
                 clean.len(),
                 gmm(&ratios(&clean)),
                 clean.len(),
@@ -259,8 +275,12 @@ mod tests {
         assert_eq!((rows[0].clipped, rows[1].clipped), (0.0, 0.0), "{rows:?}");
         assert!((rows[0].ratio - 1.0).abs() < 1e-5 && (rows[1].ratio - 1.0).abs() < 1e-5, "{rows:?}");
         assert!(rows[2].clipped > 0.0 && rows[2].ratio < 1.0, "{:?}", rows[2]);
+        // Over the pixels it kept, the clipped photo's print-out is the photo itself.
+        assert!((rows[2].ratio_kept - 1.0).abs() < 1e-5, "{:?}", rows[2]);
+        assert!(rows.iter().filter(|r| r.clipped == 0.0).all(|r| (r.ratio_kept - r.ratio).abs() < 1e-6), "{rows:?}");
         let md = markdown(&[("printout".into(), rows.clone())], true);
         assert!(md.contains("| printout | -6 | 1 | 1.00 [1.00, 1.00] | 1/1 |"), "{md}");
+        assert!(md.contains("| 1.00 [1.00, 1.00] (1/1) |"), "the clipped photo's kept pixels: {md}");
         assert!(csv_text(&[("printout".into(), rows)]).lines().count() == 4);
         assert!(measure(&mut p, "x", &linear, &[-1.0], false, &moved, None).is_err());
     }

@@ -122,6 +122,9 @@ pub struct EvalOptions {
     pub exposures: Vec<f64>,
     /// How flashmat models handle the photo's exposure (`--exposure-mode`).
     pub exposure: crate::infer::ExposureConfig,
+    /// Also score every flashmat model with its photographed highlight
+    /// filled (`--highlight-fill`; rows `NAME+fill`).
+    pub highlight_fill: Option<crate::infer::highlight_fill::HighlightFillConfig>,
 }
 
 /// One line of a method's CSV.
@@ -272,7 +275,7 @@ pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     let mut cases = opts.cases.clone();
     cases.dedup();
     let opts = EvalOptions { cases, exposures: exposure_list(&opts.exposures)?, ..opts.clone() };
-    let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device, &opts.refine, &opts.exposure)?;
+    let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device, &opts.refine, &opts.exposure, opts.highlight_fill)?;
     let materials = load_materials(&opts.dataset, opts.size, opts.limit)?;
     let lpips = Lpips::new(opts.device)?;
     std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;

@@ -309,7 +309,7 @@ pub fn run(opts: &ShadowEvalOptions) -> Result<Vec<ShadowRow>> {
     ensure!(opts.lights > 0, "--lights must be at least 1");
     super::check_eval_size(opts.size)?;
     opts.shadows.validate()?;
-    let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device, &[], &crate::infer::ExposureConfig::default())?;
+    let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device, &[], &crate::infer::ExposureConfig::default(), None)?;
     let materials = super::load_materials(&opts.dataset, opts.size, opts.limit)?;
     let lpips = Lpips::new(opts.device)?;
     std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;

@@ -21,6 +21,7 @@ fn small_eval(models: Vec<String>, out: &std::path::Path) -> EvalOptions {
         refine: vec![],
         exposures: vec![0.0],
         exposure: crate::infer::ExposureConfig::default(),
+        highlight_fill: None,
     }
 }
 

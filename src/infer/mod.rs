@@ -17,6 +17,7 @@
 
 pub mod camera;
 pub mod exposure;
+pub mod highlight_fill;
 pub mod nmat;
 pub mod photo;
 pub mod refine;

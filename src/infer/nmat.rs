@@ -102,6 +102,15 @@ impl NeuralMaterial {
         Ok(Self { neural_map, input_photo, config: config.clone(), renderer, renderer_vs, meta })
     }
 
+    /// Fills the photographed flash highlight in the map with the codes of
+    /// the material beside it ([`super::highlight_fill`]); the report says
+    /// what was done.
+    pub fn fill_highlight(&mut self, cfg: &super::highlight_fill::HighlightFillConfig) -> Result<super::highlight_fill::FillReport> {
+        let (map, report) = super::highlight_fill::fill_highlight(&self.neural_map, &self.input_photo, cfg)?;
+        self.neural_map = map;
+        Ok(report)
+    }
+
     /// An independent copy (own map, photo and renderer weights): to try
     /// several refinements of one estimate.
     pub fn duplicate(&self) -> Result<Self> {

@@ -9,6 +9,7 @@ use crate::baselines::{Baseline, BaselineNet, RelightEncoded, TrainMethod};
 use crate::geometry::{config_tensors, LightView, MODEL_FOV_DEG};
 use crate::image::Image;
 use crate::infer::refine::{refine, RefineConfig};
+use crate::infer::highlight_fill::HighlightFillConfig;
 use crate::infer::{self, ExposureConfig, NeuralMaterial, PreparedPhoto};
 use crate::model::{FoldedMEst, Model, ModelInfo};
 use crate::svbrdf::render::direction_maps_for;
@@ -22,6 +23,12 @@ pub const PRINTOUT: &str = "printout";
 /// Name of a flashmat model's refined variant: `NAME+refineSTEPS`.
 pub fn refined_name(name: &str, steps: usize) -> String {
     format!("{name}+refine{steps}")
+}
+
+/// Name of a flashmat model's variant with the photographed highlight
+/// filled in its map ([`infer::highlight_fill`]): `NAME+fill`.
+pub fn filled_name(name: &str) -> String {
+    format!("{name}+fill")
 }
 
 /// Inverse of [`refined_name`]: (model name, refinement steps), steps 0
@@ -58,6 +65,8 @@ pub struct ModelMethod {
     refine: Option<RefineConfig>,
     /// How the photo's exposure reaches the material (`--exposure-mode`).
     exposure: ExposureConfig,
+    /// The photographed highlight filled in the map (`--highlight-fill`).
+    highlight_fill: Option<HighlightFillConfig>,
     material: Option<NeuralMaterial>,
 }
 
@@ -66,7 +75,7 @@ impl ModelMethod {
     /// (recorded in the neural material's metadata).
     pub fn load(path: &Path, name: String, ldr_photo: bool, device: Device) -> Result<Self> {
         let loaded = infer::load_model(Some(path), device)?;
-        Ok(Self { name, model: loaded.model, info: loaded.info, ldr_photo, refine: None, exposure: ExposureConfig::default(), material: None })
+        Ok(Self { name, model: loaded.model, info: loaded.info, ldr_photo, refine: None, exposure: ExposureConfig::default(), highlight_fill: None, material: None })
     }
 
     /// The same method with another exposure handling.
@@ -91,7 +100,7 @@ impl Method for ModelMethod {
     }
 
     fn prepare(&mut self, photo_linear: &Tensor) -> Result<()> {
-        self.material = Some(estimate_material(&self.name, &self.model, &self.info, self.ldr_photo, self.refine.as_ref(), &self.exposure, photo_linear)?);
+        self.material = Some(estimate_material(&self.name, &self.model, &self.info, self.ldr_photo, self.refine.as_ref(), &self.exposure, self.highlight_fill.as_ref(), photo_linear)?);
         Ok(())
     }
 
@@ -101,12 +110,17 @@ impl Method for ModelMethod {
 }
 
 /// A flashmat model's neural material of an evaluation photo `[3, H, W]`
-/// (linear, seen from the co-located view), refined when `refine` says:
-/// the one place evaluation calls inference.
-fn estimate_material(name: &str, model: &Model, info: &ModelInfo, ldr_photo: bool, refine_cfg: Option<&RefineConfig>, exposure: &ExposureConfig, photo_linear: &Tensor) -> Result<NeuralMaterial> {
+/// (linear, seen from the co-located view), its highlight filled and then
+/// refined when `highlight_fill` and `refine` say: the one place evaluation
+/// calls inference.
+#[allow(clippy::too_many_arguments)]
+fn estimate_material(name: &str, model: &Model, info: &ModelInfo, ldr_photo: bool, refine_cfg: Option<&RefineConfig>, exposure: &ExposureConfig, highlight_fill: Option<&HighlightFillConfig>, photo_linear: &Tensor) -> Result<NeuralMaterial> {
     let linear = Image::from_tensor(&photo_linear.to_device(Device::Cpu).to_kind(Kind::Float))?;
     let photo = PreparedPhoto::at_model_view(linear, ldr_photo, "evaluation render");
     let mut material = infer::estimate_planned(model, info, &photo, &infer::EstPlan::Whole, exposure, || ())?;
+    if let Some(cfg) = highlight_fill {
+        material.fill_highlight(cfg)?;
+    }
     if let Some(cfg) = refine_cfg {
         let report = refine(&mut material, &photo.linear.to_tensor(), ldr_photo, cfg, |_| {})?;
         ensure!(report.stopped.is_none(), "{name}: {}", report.summary());
@@ -143,7 +157,7 @@ impl Method for BorrowedModelMethod<'_> {
     }
 
     fn prepare(&mut self, photo_linear: &Tensor) -> Result<()> {
-        self.material = Some(estimate_material("model", self.model, &self.info, self.info.ldr_input, None, &ExposureConfig::default(), photo_linear)?);
+        self.material = Some(estimate_material("model", self.model, &self.info, self.info.ldr_input, None, &ExposureConfig::default(), None, photo_linear)?);
         Ok(())
     }
 
@@ -359,8 +373,10 @@ pub fn open_model_file(path: &Path, name: String, ldr_photo: bool, device: Devic
 /// settings, each flashmat model becomes one method per setting, named
 /// `NAME+refineSTEPS`, and a setting of 0 steps is the unrefined `NAME`
 /// (so `--refine 0,100` scores both, `--refine 100` only the refined one).
-/// Flashmat models handle the photo's exposure as `exposure` says.
-pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &[RefineConfig], exposure: &ExposureConfig) -> Result<Vec<Box<dyn Method>>> {
+/// Flashmat models handle the photo's exposure as `exposure` says. With
+/// `highlight_fill`, each of those also comes with its photographed
+/// highlight filled (`NAME+fill`, `NAME+fill+refineSTEPS`), for pairing.
+pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &[RefineConfig], exposure: &ExposureConfig, highlight_fill: Option<HighlightFillConfig>) -> Result<Vec<Box<dyn Method>>> {
     ensure!(!specs.is_empty(), "give at least one --model (a model file or `printout`)");
     let mut out: Vec<Box<dyn Method>> = Vec::new();
     let mut names: Vec<String> = Vec::new();
@@ -395,17 +411,20 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &
             out.push(open_model_file(path, name, ldr_photo, device)?);
             continue;
         }
-        if refine.is_empty() {
-            out.push(Box::new(ModelMethod::load(path, name, ldr_photo, device)?.with_exposure(*exposure)));
-            continue;
-        }
-        for cfg in refine {
-            if cfg.steps == 0 {
-                out.push(Box::new(ModelMethod::load(path, name.clone(), ldr_photo, device)?.with_exposure(*exposure)));
-            } else {
-                let refined = refined_name(&name, cfg.steps);
-                names.push(refined.clone());
-                out.push(Box::new(ModelMethod::load(path, refined, ldr_photo, device)?.with_refine(cfg.clone()).with_exposure(*exposure)));
+        // One method per refinement setting (0 steps: unrefined), each also
+        // with the highlight fill when asked.
+        let settings: Vec<Option<&RefineConfig>> = if refine.is_empty() { vec![None] } else { refine.iter().map(|c| (c.steps > 0).then_some(c)).collect() };
+        for cfg in settings {
+            for fill in std::iter::once(None).chain(highlight_fill.map(Some)) {
+                let filled = fill.map_or(name.clone(), |_| filled_name(&name));
+                let variant = cfg.map_or(filled.clone(), |c| refined_name(&filled, c.steps));
+                if variant != name {
+                    names.push(variant.clone());
+                }
+                let mut method = ModelMethod::load(path, variant, ldr_photo, device)?.with_exposure(*exposure);
+                method.refine = cfg.cloned();
+                method.highlight_fill = fill;
+                out.push(Box::new(method));
             }
         }
     }
