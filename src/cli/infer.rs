@@ -57,10 +57,11 @@ pub struct EstimateOptions {
     pub refine: Option<usize>,
     #[command(flatten)]
     pub refine_weights: RefineWeights,
-    /// Fill the photographed flash highlight in the neural map, before any refinement: `copy` (the default with no
-    /// MODE) takes the codes under it from the material beside it, `blend` interpolates them from around it. The
-    /// material then no longer keeps the photo's highlight where it was when the light moves (issue 48), at the
-    /// cost of its own identity render there (`flashmat::infer::highlight_fill`, reports/highlights-experiments.md).
+    /// Experimental: fill the photographed flash highlight in the neural map, before any refinement: `copy` (the
+    /// default with no MODE) takes the codes under it from the material beside it, `blend` interpolates them. Less
+    /// of the photo's highlight stays where it was when the light moves (on the held-out set 2.08x -> 1.80x the
+    /// truth), but the photo's own render loses it and a copy can bring the wrong material: LPIPS is worse on
+    /// average (reports/highlights-experiments.md, section 6).
     #[arg(long, value_enum, value_name = "MODE", num_args = 0..=1, default_missing_value = "copy")]
     pub highlight_fill: Option<flashmat::infer::highlight_fill::FillMode>,
     /// Make the material tile seamlessly (after any refinement): the neural map is made periodic by joining a

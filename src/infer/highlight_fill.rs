@@ -205,16 +205,25 @@ pub fn fill_highlight(map: &Tensor, photo: &Tensor, cfg: &HighlightFillConfig) -
     Ok((out.to_kind(map.kind()).to_device(device), FillReport { share, shift, skipped_large: false }))
 }
 
-/// `codes` `[C, H, W]` read at (y + dy, x + dx), mirrored at the borders
-/// (a shift larger than the map wraps its mirror image).
+/// Share of each side the copy never reads from: M_est's codes along the
+/// map's border differ from the interior's (its convolutions see padding
+/// there), and a copy of them drew a frame line across the highlight.
+pub const BORDER_SHARE: f64 = 1.0 / 32.0;
+
+/// `codes` `[C, H, W]` read at (y + dy, x + dx), mirrored at the edges of
+/// the interior (the map without a [`BORDER_SHARE`] band, at least 2 px), so
+/// a shift larger than the map reads its mirror image; inside that interior
+/// (shift 0) the codes are the map's own.
 fn shifted(codes: &Tensor, dx: i64, dy: i64) -> Tensor {
     let s = codes.size();
     let idx = |n: i64, d: i64| -> Tensor {
-        let period = 2 * n;
+        let band = ((n as f64 * BORDER_SHARE) as i64).max(2).min((n - 1) / 2);
+        let (lo, len) = (band, n - 2 * band);
+        let period = 2 * len;
         let v: Vec<i64> = (0..n)
             .map(|i| {
-                let j = (i + d).rem_euclid(period);
-                if j < n { j } else { period - 1 - j }
+                let j = (i + d - lo).rem_euclid(period);
+                lo + if j < len { j } else { period - 1 - j }
             })
             .collect();
         Tensor::from_slice(&v)
@@ -383,6 +392,20 @@ mod tests {
         assert!(!report.skipped_large);
         assert_eq!(f64::try_from((&out - &map).abs().max()).unwrap(), 0.0);
         assert!(report.summary().contains("no flash highlight"));
+    }
+
+    #[test]
+    fn the_copy_reads_the_interior_mirrored_never_the_border() {
+        // Codes = column index, 64 wide: the band is 2 px, the interior columns 2..62.
+        let cols = Tensor::arange(64, (Kind::Float, Device::Cpu)).view([1, 1, 64]).expand([1, 4, 64], false).contiguous();
+        let read = |dx: i64| Vec::<f32>::try_from(shifted(&cols, dx, 0).get(0).get(0)).unwrap();
+        let same = read(0);
+        assert_eq!(&same[2..62], &(2..62).map(|v| v as f32).collect::<Vec<_>>()[..]);
+        for dx in [-200, -40, 0, 13, 40, 200] {
+            assert!(read(dx).iter().all(|&v| (2.0..62.0).contains(&v)), "shift {dx} read the border: {:?}", read(dx));
+        }
+        // Mirrored at the interior's edge: column 50 shifted by 20 reads 61 - (70 - 62) = 53.
+        assert_eq!(read(20)[50], 53.0);
     }
 
     #[test]
