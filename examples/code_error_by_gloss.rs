@@ -1,0 +1,66 @@
+//! Issue 48: where M_est misses the codes a lobe-drawing renderer needs. For
+//! each model, the relative L1 between its codes of the 50 held-out photos
+//! (8-bit, 128x128) and a teacher's codes of their true maps (the
+//! `--code-weight` term's measure; zero codes score 1), over pixels with
+//! roughness below 0.35 (glossy) and the rest, by the material's glossiness
+//! tercile (`eval::highlights::glossiness`). Section 5 of
+//! reports/highlights-experiments.md.
+//!
+//! ```sh
+//! cargo run --release --example code_error_by_gloss -- TEACHER MODEL [MODEL ...]
+//! ```
+
+use anyhow::{ensure, Result};
+use flashmat::data::{procedural, samples};
+use flashmat::model::{Model, ModelConfig};
+use flashmat::train::teacher::{self, Teacher};
+use tch::{Device, Kind};
+
+/// Pixels rougher than this count as matte.
+const GLOSSY_BELOW: f64 = 0.35;
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().collect();
+    ensure!(args.len() >= 3, "usage: code_error_by_gloss TEACHER MODEL [MODEL ...]");
+    let dev = Device::Cpu;
+    let path = std::path::Path::new(&args[1]);
+    let archive = flashmat::archive::Archive::load(path, teacher::FORMAT, teacher::VERSION)?;
+    let cfg: ModelConfig = serde_json::from_str::<teacher::TeacherConfig>(archive.meta("teacher_config")?)?.model;
+    let holder = Model::new(&cfg, dev)?;
+    let teacher = Teacher::load(path, &cfg, dev, Some(&holder.renderer_vs))?;
+    let models = args[2..].iter().map(|p| Ok((p.as_str(), Model::load(p, dev)?.0))).collect::<Result<Vec<_>>>()?;
+    // Per material: glossiness, and per model the error over glossy and matte pixels (None under 50 pixels).
+    let mut rows: Vec<(f64, Vec<[Option<f64>; 2]>)> = vec![];
+    for i in 0..procedural::TEST_SET_SIZE {
+        let m = procedural::test_material(i, 128);
+        let x = samples::photo_est_input(&flashmat::eval::colocated_render(&m), true, dev);
+        let maps = m.stacked().to_tensor().unsqueeze(0); // [1, 10, H, W]
+        let y = tch::no_grad(|| teacher.encoder.forward_maps(&maps));
+        let glossy = maps.narrow(1, 6, 1).lt(GLOSSY_BELOW).to_kind(Kind::Float); // [1, 1, H, W]
+        let masks = [glossy.shallow_clone(), 1.0 - glossy];
+        let scale = y.abs().mean(Kind::Float).double_value(&[]);
+        let mut per_model = vec![];
+        for (_, model) in &models {
+            let codes = tch::no_grad(|| model.est.forward_t(&x, false))?;
+            let err = (codes - &y).abs().mean_dim([1i64].as_slice(), true, Kind::Float);
+            per_model.push(masks.each_ref().map(|mask| {
+                let n = mask.sum(Kind::Float).double_value(&[]);
+                (n >= 50.0).then(|| (&err * mask).sum(Kind::Float).double_value(&[]) / n / scale)
+            }));
+        }
+        rows.push((flashmat::eval::highlights::glossiness(&m), per_model));
+    }
+    let tercile = flashmat::eval::highlights::terciles(&rows.iter().map(|r| r.0).collect::<Vec<_>>());
+    println!("| tercile | model | glossy pixels (materials) | matte pixels (materials) |\n|---|---|---|---|");
+    for (k, name) in flashmat::eval::highlights::TERCILES.iter().enumerate() {
+        let part: Vec<_> = rows.iter().zip(&tercile).filter(|(_, &t)| t == k).map(|(r, _)| r).collect();
+        for (j, (path, _)) in models.iter().enumerate() {
+            let cell = |c: usize| {
+                let v: Vec<f64> = part.iter().filter_map(|r| r.1[j][c]).collect();
+                if v.is_empty() { "-".to_string() } else { format!("{:.3} ({})", v.iter().sum::<f64>() / v.len() as f64, v.len()) }
+            };
+            println!("| {name} | {path} | {} | {} |", cell(0), cell(1));
+        }
+    }
+    Ok(())
+}
