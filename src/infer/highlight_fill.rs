@@ -72,7 +72,7 @@ impl HighlightFillConfig {
     }
 
     pub fn validate(&self) -> Result<()> {
-        ensure!(self.threshold.is_finite() && self.threshold > 1.0, "the highlight threshold must be above 1 (times the median), got {}", self.threshold);
+        ensure!(self.threshold.is_finite() && self.threshold > 1.0, "the highlight threshold must be above 1 (times the photo's outer level), got {}", self.threshold);
         for (name, v) in [("dilation", self.dilate), ("feather", self.feather), ("largest share", self.max_share)] {
             ensure!(v.is_finite() && (0.0..=1.0).contains(&v), "the highlight fill's {name} must be a share in [0, 1], got {v}");
         }

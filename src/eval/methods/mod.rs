@@ -83,6 +83,11 @@ impl ModelMethod {
         Self { exposure, ..self }
     }
 
+    /// The same method with (or without) the photographed highlight filled.
+    pub fn with_highlight_fill(self, highlight_fill: Option<HighlightFillConfig>) -> Self {
+        Self { highlight_fill, ..self }
+    }
+
     /// The same method with every estimate refined on its photo.
     pub fn with_refine(self, refine: RefineConfig) -> Self {
         Self { refine: Some(refine), ..self }
@@ -421,10 +426,11 @@ pub fn open_methods(specs: &[String], ldr_photo: bool, device: Device, refine: &
                 if variant != name {
                     names.push(variant.clone());
                 }
-                let mut method = ModelMethod::load(path, variant, ldr_photo, device)?.with_exposure(*exposure);
-                method.refine = cfg.cloned();
-                method.highlight_fill = fill;
-                out.push(Box::new(method));
+                let method = ModelMethod::load(path, variant, ldr_photo, device)?.with_exposure(*exposure).with_highlight_fill(fill);
+                out.push(Box::new(match cfg {
+                    Some(c) => method.with_refine(c.clone()),
+                    None => method,
+                }));
             }
         }
     }
