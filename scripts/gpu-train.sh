@@ -363,15 +363,26 @@ average_late_exports() {
   LATE_EXPORTS=("${LATE_EXPORTS[@]##*/}")
 }
 
-frozen() {
-  local minutes="${1:-5.5}" out="${OUT:?set OUT to the folder that comes back}"
-  [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "frozen: MINUTES must be a number, not '$minutes'"
+# The model a job starts from: the carried one (.gpu/resume.safetensors or
+# $FLASHMAT_GPU_RESUME), else the bundled model.
+start_model() {
+  if [ -f "$RESUME_MODEL" ]; then echo "$RESUME_MODEL"; else echo "$ROOT/models/flashmat.safetensors"; fi
+}
+
+# A device job's start (JOB MINUTES OUT DIR): MINUTES checked before any GPU
+# time is spent, the machine's libtorch, the smoke test, DIR made afresh.
+begin_device_job() {
+  [[ "$2" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "$1: MINUTES must be a number, not '$2'"
   use_machine_libtorch
-  mkdir -p "$WORK" "$out"
+  mkdir -p "$WORK" "$3"
   smoke
-  local base="$RESUME_MODEL" dir="$WORK/frozen"
-  [ -f "$base" ] || base="$ROOT/models/flashmat.safetensors"
-  rm -rf "$dir" && mkdir -p "$dir"
+  rm -rf "$4" && mkdir -p "$4"
+}
+
+frozen() {
+  local minutes="${1:-5.5}" out="${OUT:?set OUT to the folder that comes back}" dir="$WORK/frozen" base
+  begin_device_job frozen "$minutes" "$out" "$dir"
+  base=$(start_model)
   local common=(--preset "$PRESET" --ldr --warm-start "$base" --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS"
     --colocated-outputs "$FROZEN_COLOCATED" --hemisphere-outputs "$HEMISPHERE" --lr "$FROZEN_LR" --warmup-steps 50
     --straight-through-output --checkerboard-free --adv-weight 0 --lpips-weight 0.1 --chroma-weight 1 --lobe-weight "$LOBE"
@@ -428,8 +439,8 @@ frozen_chain() {
   # Both checked before the first job spends GPU time.
   [[ "$first" =~ ^[0-9]+([.][0-9]+)?$ && "$second" =~ ^[0-9]+([.][0-9]+)?$ ]] \
     || die "frozen-chain: MINUTES_A and MINUTES_B must be numbers, not '$first' and '$second'"
-  local start="$RESUME_MODEL"
-  [ -f "$start" ] || start="$ROOT/models/flashmat.safetensors"
+  local start
+  start=$(start_model)
   local staged="$WORK/chain-start.safetensors"
   mkdir -p "$WORK" && cp "$start" "$staged"
   FLASHMAT_GPU_RESUME="$staged" FLASHMAT_GPU_FROZEN_SCORE=0 OUT="$out/a" bash "$ROOT/scripts/gpu-train.sh" frozen "$first"
@@ -440,14 +451,9 @@ frozen_chain() {
 # Issue 48's lever: M_est learns the codes of a teacher whose renderer draws
 # moved highlights (reports/highlights-experiments.md, section 5).
 distill() {
-  local minutes="${1:-4}" out="${OUT:?set OUT to the folder that comes back}"
-  [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "distill: MINUTES must be a number, not '$minutes'"
-  use_machine_libtorch
-  mkdir -p "$WORK" "$out"
-  smoke
-  local base="$RESUME_MODEL" dir="$WORK/distill" teacher="$CARRIED_TEACHER" how
-  [ -f "$base" ] || base="$ROOT/models/flashmat.safetensors"
-  rm -rf "$dir" && mkdir -p "$dir"
+  local minutes="${1:-4}" out="${OUT:?set OUT to the folder that comes back}" dir="$WORK/distill" teacher="$CARRIED_TEACHER" base how
+  begin_device_job distill "$minutes" "$out" "$dir"
+  base=$(start_model)
   local t0; t0=$(date +%s)
   if [ -f "$teacher" ]; then
     how="the carried teacher $(basename "$teacher")"
