@@ -121,7 +121,7 @@ impl ExposureConfig {
 }
 
 /// Per-pixel RGB mean of a linear photo `[3, H, W]` -> `[H, W]`.
-fn luminance(photo: &Tensor) -> Tensor {
+pub(crate) fn luminance(photo: &Tensor) -> Tensor {
     photo.to_kind(Kind::Float).clamp_min(0.0).mean_dim(&[0i64][..], false, Kind::Float)
 }
 

@@ -117,7 +117,7 @@ pub fn highlight_mask(photo: &Tensor, centre: (f64, f64), cfg: &HighlightFillCon
     let s = photo.size();
     ensure!(s.len() == 3 && s[0] == 3, "the photo must be [3, H, W], got {s:?}");
     let (h, w) = (s[1] as usize, s[2] as usize);
-    let lum: Vec<f32> = Vec::try_from(photo.to_device(Device::Cpu).to_kind(Kind::Float).clamp_min(0.0).mean_dim(&[0i64][..], false, Kind::Float).flatten(0, -1))?;
+    let lum: Vec<f32> = Vec::try_from(super::exposure::luminance(&photo.to_device(Device::Cpu)).flatten(0, -1))?;
     let short = h.min(w) as f64;
     let distance = |i: usize| ((i % w) as f64 + 0.5 - centre.0).hypot((i / w) as f64 + 0.5 - centre.1);
     let empty = || Tensor::zeros([h as i64, w as i64], (Kind::Float, Device::Cpu));
