@@ -2,7 +2,7 @@
 //! each model, the relative L1 between its codes of the 50 held-out photos
 //! (8-bit, 128x128) and a teacher's codes of their true maps (the
 //! `--code-weight` term's measure; zero codes score 1), over pixels with
-//! roughness below 0.35 (glossy) and the rest, by the material's glossiness
+//! roughness below 0.35 (`train::losses::GLOSSY_ROUGHNESS`: glossy) and the rest, by the material's glossiness
 //! tercile (`eval::highlights::glossiness`). Section 5 of
 //! reports/highlights-experiments.md.
 //!
@@ -15,9 +15,6 @@ use flashmat::data::{procedural, samples};
 use flashmat::model::{Model, ModelConfig};
 use flashmat::train::teacher::{self, Teacher};
 use tch::{Device, Kind};
-
-/// Pixels rougher than this count as matte.
-const GLOSSY_BELOW: f64 = 0.35;
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
@@ -36,7 +33,7 @@ fn main() -> Result<()> {
         let x = samples::photo_est_input(&flashmat::eval::colocated_render(&m), true, dev);
         let maps = m.stacked().to_tensor().unsqueeze(0); // [1, 10, H, W]
         let y = tch::no_grad(|| teacher.encoder.forward_maps(&maps));
-        let glossy = maps.narrow(1, 6, 1).lt(GLOSSY_BELOW).to_kind(Kind::Float); // [1, 1, H, W]
+        let glossy = maps.narrow(1, flashmat::svbrdf::ROUGHNESS_CHANNEL, 1).lt(flashmat::train::losses::GLOSSY_ROUGHNESS).to_kind(Kind::Float); // [1, 1, H, W]
         let masks = [glossy.shallow_clone(), 1.0 - glossy];
         let scale = y.abs().mean(Kind::Float).double_value(&[]);
         let mut per_model = vec![];

@@ -150,12 +150,14 @@ CODE_UNTIL="${FLASHMAT_GPU_CODE_UNTIL:-20000}"
 # the starting model's: compact for the bundled compact-f8), its steps and
 # lobe share when trained on the device (6,500 steps at 0.5 made the CPU
 # teacher T3: lobe 1.08, rest 1.11 from the true maps), M_est's learning
-# rate and the code term's weight (constant).
+# rate, the code term's weight (constant) and its glossy pixels' extra
+# weight (--code-gloss-weight).
 DISTILL_PRESET="${FLASHMAT_GPU_DISTILL_PRESET:-compact}"
 DISTILL_TEACHER_STEPS="${FLASHMAT_GPU_DISTILL_TEACHER_STEPS:-6500}"
 DISTILL_TEACHER_LOBE="${FLASHMAT_GPU_DISTILL_TEACHER_LOBE:-0.5}"
 DISTILL_LR="${FLASHMAT_GPU_DISTILL_LR:-3e-4}"
 DISTILL_CODE_WEIGHT="${FLASHMAT_GPU_DISTILL_CODE_WEIGHT:-1}"
+DISTILL_CODE_GLOSS="${FLASHMAT_GPU_DISTILL_CODE_GLOSS:-0}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
 # What the networks compute in (flashmat train --precision): tf32 until
 # the side-by-side benchmark (bench) has measured bf16 on the card.
@@ -465,7 +467,7 @@ distill() {
     cp "$teacher" "$out/teacher.safetensors"
     how="trained here, $DISTILL_TEACHER_STEPS steps at lobe share $DISTILL_TEACHER_LOBE, $TEACHER_PIXELS pixels a step, $(($(date +%s) - t0)) s; $(grep held_out "$dir/teacher/log.jsonl" | tail -n 1)"
   fi
-  local args=(--preset "$DISTILL_PRESET" --ldr --teacher "$teacher" --code-weight "$DISTILL_CODE_WEIGHT" --warm-start "$base"
+  local args=(--preset "$DISTILL_PRESET" --ldr --teacher "$teacher" --code-weight "$DISTILL_CODE_WEIGHT" --code-gloss-weight "$DISTILL_CODE_GLOSS" --warm-start "$base"
     --freeze-renderer --adv-weight 0 --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --colocated-outputs "$FROZEN_COLOCATED"
     --lr "$DISTILL_LR" --warmup-steps 50 --straight-through-output --checkerboard-free --lpips-weight 0.1 --chroma-weight 1
     --dark-share "$DARK_SHARE" --bank "$BANK" --steps 100000000 --minutes "$minutes" --checkpoint-every "$FROZEN_EVERY"

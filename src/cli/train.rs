@@ -61,6 +61,10 @@ pub struct TrainArgs {
     /// Weight of the teacher-code term (relative L1 of the neural map against the teacher's codes).
     #[arg(long, default_value_t = 1.0, requires = "teacher")]
     pub code_weight: f64,
+    /// Extra weight K of glossy pixels in the code term: a pixel of true roughness r counts
+    /// 1 + K * max(0, 1 - r / 0.35) times (0: all alike).
+    #[arg(long, default_value_t = 0.0, value_name = "K", requires = "teacher")]
+    pub code_gloss_weight: f64,
     /// The code term fades linearly to zero at step N (0: constant).
     #[arg(long, default_value_t = 0, value_name = "N", requires = "teacher")]
     pub code_until: u64,
@@ -383,6 +387,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         warm_start: a.warm_start.as_ref().map(|p| p.display().to_string()),
         teacher: a.teacher.as_ref().map(|p| p.display().to_string()),
         weight_code: if a.teacher.is_some() { a.code_weight } else { 0.0 },
+        code_gloss_weight: a.code_gloss_weight,
         code_until: a.code_until,
         bank: a.bank,
         lr: a.lr.unwrap_or(TrainConfig::default().lr),

@@ -15,6 +15,8 @@ use anyhow::{bail, Result};
 
 /// Number of channels of the stacked map tensor: kd(3) ks(3) roughness(1) normal(3).
 pub const MAP_CHANNELS: usize = 10;
+/// The roughness channel of the stacked map tensor.
+pub const ROUGHNESS_CHANNEL: i64 = 6;
 
 /// One material: linear maps on an H x W grid.
 #[derive(Clone, Debug, PartialEq)]

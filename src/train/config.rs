@@ -80,6 +80,10 @@ pub struct TrainConfig {
     /// Weight of the teacher-code term (0: none).
     #[serde(default)]
     pub weight_code: f64,
+    /// Extra weight of glossy pixels in the code term (`losses::code_l1`; 0:
+    /// every pixel alike).
+    #[serde(default)]
+    pub code_gloss_weight: f64,
     /// The code term fades linearly to 0 at this step (0: constant weight),
     /// leaving the paper's losses alone for the rest of the run.
     #[serde(default)]
@@ -311,6 +315,7 @@ impl Default for TrainConfig {
             warm_start: None,
             teacher: None,
             weight_code: 0.0,
+            code_gloss_weight: 0.0,
             code_until: 0,
             lr: 1e-4,
             lr_decay: 0.985,
@@ -486,6 +491,11 @@ impl TrainConfig {
         anyhow::ensure!(!self.checkerboard_free || self.method.is_flashmat(), "--checkerboard-free applies to --method flashmat only");
         anyhow::ensure!(self.weight_code >= 0.0 && self.weight_code.is_finite(), "--code-weight must be a finite number >= 0 (got {})", self.weight_code);
         anyhow::ensure!(self.weight_code == 0.0 || self.teacher.is_some(), "--code-weight needs --teacher FILE");
+        anyhow::ensure!(
+            self.code_gloss_weight >= 0.0 && self.code_gloss_weight.is_finite(),
+            "--code-gloss-weight must be a finite number >= 0 (got {})",
+            self.code_gloss_weight
+        );
         anyhow::ensure!(!self.freeze_estimator || self.method.is_flashmat(), "--freeze-estimator applies to --method flashmat only");
         anyhow::ensure!(!self.freeze_estimator || self.weight_code == 0.0, "--freeze-estimator excludes --code-weight (the teacher's code term trains M_est)");
         anyhow::ensure!(
@@ -581,6 +591,7 @@ mod tests {
         obj.remove("bank");
         obj.remove("weight_code");
         obj.remove("code_until");
+        obj.remove("code_gloss_weight");
         let c: TrainConfig = serde_json::from_value(v).unwrap();
         assert_eq!(c, TrainConfig::default());
     }

@@ -73,11 +73,27 @@ pub fn discriminator_loss(disc: &Discriminator, pred_log: &Tensor, target_log: &
     Ok((real - 1.0).square().mean(Kind::Float) + fake.square().mean(Kind::Float) + wrong.square().mean(Kind::Float))
 }
 
+/// Pixels smoother than this roughness are the glossy ones of the code
+/// term's weighting (and of `examples/code_error_by_gloss.rs`).
+pub const GLOSSY_ROUGHNESS: f64 = 0.35;
+
 /// The curriculum's dense code target: mean |neural - target| over the
 /// mean |target|, so the term's scale does not depend on how large the
-/// teacher's codes came out. neural, target: `[N, C, H, W]`.
-pub fn code_l1(neural: &Tensor, target: &Tensor) -> Tensor {
-    (neural - target).abs().mean(tch::Kind::Float) / target.abs().mean(tch::Kind::Float).clamp_min(1e-6)
+/// teacher's codes came out. With `gloss_weight` k > 0 a pixel's error
+/// counts 1 + k * max(0, 1 - r / [`GLOSSY_ROUGHNESS`]) times (r its true
+/// roughness), a weighted mean: glossy pixels are few in most materials,
+/// and an unweighted mean let M_est learn the matte pixels' codes while
+/// it unlearned the glossy ones' (reports/highlights-experiments.md
+/// section 5). neural, target: `[N, C, H, W]`, roughness: `[N, 1, H, W]`.
+pub fn code_l1(neural: &Tensor, target: &Tensor, roughness: &Tensor, gloss_weight: f64) -> Tensor {
+    let scale = target.abs().mean(Kind::Float).clamp_min(1e-6);
+    let err = (neural - target).abs();
+    if gloss_weight == 0.0 {
+        return err.mean(Kind::Float) / scale;
+    }
+    let weight = (roughness.to_kind(Kind::Float) / -GLOSSY_ROUGHNESS + 1.0).clamp_min(0.0) * gloss_weight + 1.0;
+    let per_pixel = err.mean_dim([1i64].as_slice(), true, Kind::Float);
+    (per_pixel * &weight).sum(Kind::Float) / weight.sum(Kind::Float) / scale
 }
 
 /// Mean L2 norm of the neural parameter vectors. neural: `[N, C, H, W]`.
@@ -315,6 +331,23 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
     use tch::Device;
+
+    /// The code term by hand: two pixels of two channels, errors 1 and 3,
+    /// mean |target| 2. Unweighted: 2 / 2 = 1. With weight 2 the mirror-smooth
+    /// pixel (r = 0) counts 3 times and the matte one (r = 0.7) once:
+    /// (3 * 1 + 1 * 3) / 4 / 2 = 0.75; at r = 0.175 it counts 1 + 2 * 0.5 = 2
+    /// times: (2 * 1 + 3) / 3 / 2 = 5/6.
+    #[test]
+    fn the_code_term_weights_glossy_pixels_by_their_roughness() {
+        let neural = Tensor::zeros([1, 2, 1, 2], (Kind::Float, Device::Cpu));
+        let target = Tensor::from_slice(&[1.0f32, 3.0, -1.0, -3.0]).view([1, 2, 1, 2]);
+        let code = |r0: f32, k: f64| code_l1(&neural, &target, &Tensor::from_slice(&[r0, 0.7f32]).view([1, 1, 1, 2]), k).double_value(&[]);
+        assert!((code(0.0, 0.0) - 1.0).abs() < 1e-6);
+        assert!((code(0.0, 2.0) - 0.75).abs() < 1e-6);
+        assert!((code(0.175, 2.0) - 5.0 / 6.0).abs() < 1e-6);
+        // A matte material is weighted alike everywhere: the plain mean.
+        assert!((code(0.5, 2.0) - 1.0).abs() < 1e-6);
+    }
 
     /// The lobe term's pairs: with lobe lights only, a near-mirror pixel's
     /// light is its view mirrored about the normal; with none, the lights

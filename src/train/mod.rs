@@ -314,11 +314,9 @@ impl Trainer {
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &truth_log)?;
         let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
         let mut loss_est = &l1 * cfg.weight_l1 + &lp * cfg.weight_lpips + &adv * weight_adv + chroma_term(&cfg, &pred, &truth_log);
-        let weight_code = cfg.code_weight_at(self.step);
-        if let (Some(t), true) = (&self.teacher, weight_code > 0.0) {
-            let code = losses::code_l1(&neural, &tch::no_grad(|| t.encoder.forward_maps(&b.maps)));
-            readout.push(|o, v| o.code = v, code.detach());
-            loss_est = loss_est + code * weight_code;
+        if let Some((code, plain)) = self.code_term(b, &neural) {
+            readout.push(|o, v| o.code = v, plain);
+            loss_est = loss_est + code * cfg.code_weight_at(self.step);
         }
         if let Some(t) = shift_term {
             readout.push(|o, v| o.shift = v, t.detach() / cfg.weight_shift);
@@ -354,6 +352,21 @@ impl Trainer {
     /// L1 term.
     fn shares_one_forward(&self) -> bool {
         !self.two_pass && !self.config.freeze_estimator && !self.config.freeze_renderer && self.anchor.is_none() && self.config.weight_lobe == 0.0
+    }
+
+    /// The teacher-code term of this step on `neural` `[N, C, H, W]`
+    /// (`losses::code_l1`, glossy pixels weighted by `code_gloss_weight`),
+    /// before its schedule's weight, and its plain unweighted measure
+    /// (detached) for the log, so runs with and without the weighting
+    /// compare; None without a teacher or once the term has faded.
+    fn code_term(&self, b: &TrainingBatch, neural: &Tensor) -> Option<(Tensor, Tensor)> {
+        let teacher = self.teacher.as_ref().filter(|_| self.config.code_weight_at(self.step) > 0.0)?;
+        let target = tch::no_grad(|| teacher.encoder.forward_maps(&b.maps));
+        let roughness = b.maps.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1);
+        let gloss_weight = self.config.code_gloss_weight;
+        let term = losses::code_l1(neural, &target, &roughness, gloss_weight);
+        let plain = if gloss_weight == 0.0 { term.detach() } else { losses::code_l1(&neural.detach(), &target, &roughness, 0.0) };
+        Some((term, plain))
     }
 
     /// The lobe term (`losses::lobe_l1`) of this step on `neural` `[N, C, H, W]`:
@@ -400,10 +413,9 @@ impl Trainer {
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &truth_log)?;
         let adv = losses::adversarial(&self.disc, &pred, &photo_log, weight_adv)?;
         let shared = &lp * cfg.weight_lpips + &adv * weight_adv + chroma_term(&cfg, &pred, &truth_log);
-        let weight_code = cfg.code_weight_at(self.step);
-        let code_term = match (&self.teacher, weight_code > 0.0) {
-            (Some(t), true) => Some(losses::code_l1(&neural, &tch::no_grad(|| t.encoder.forward_maps(&b.maps))) * weight_code),
-            _ => None,
+        let (code_term, code_plain) = match self.code_term(b, &neural) {
+            Some((term, plain)) => (Some(term * cfg.code_weight_at(self.step)), Some(plain)),
+            None => (None, None),
         };
         let mut loss_est = &l1 * cfg.weight_l1 + &shared;
         if let Some(c) = &code_term {
@@ -414,8 +426,8 @@ impl Trainer {
         }
         let loss_render = &l1_r * cfg.weight_l1 + &shared;
         let mut readout = Readout::default();
-        if let Some(c) = &code_term {
-            readout.push(|o, v| o.code = v, c.detach() / weight_code);
+        if let Some(plain) = code_plain {
+            readout.push(|o, v| o.code = v, plain);
         }
         if let Some(t) = &shift_term {
             readout.push(|o, v| o.shift = v, t.detach() / cfg.weight_shift);

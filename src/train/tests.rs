@@ -463,6 +463,12 @@ fn teacher_codes_supervise_m_est_and_fade_out() {
     let first = t.train_step(&batch).unwrap().code;
     let last = (0..60).map(|_| t.train_step(&batch).unwrap().code).last().unwrap();
     assert!(last < 0.5 * first, "code error {first} -> {last}");
+    // Weighting the glossy pixels changes the term, not the logged measure:
+    // the same start logs the same plain code error.
+    let weighted = TrainConfig { code_until: 0, weight_l1: 0.0, weight_adv: 0.0, lr: 3e-3, code_gloss_weight: 4.0, ..cfg.clone() };
+    let first_weighted = Trainer::new(weighted, tch::Device::Cpu).unwrap().train_step(&batch).unwrap().code;
+    assert!((first_weighted - first).abs() < 1e-5 * first, "{first_weighted} against {first}");
+    assert!(TrainConfig { code_gloss_weight: -1.0, ..cfg.clone() }.validate().is_err());
     // A code weight without a teacher is refused.
     assert!(TrainConfig { weight_code: 1.0, ..tiny_config() }.validate().is_err());
 }
