@@ -151,13 +151,14 @@ CODE_UNTIL="${FLASHMAT_GPU_CODE_UNTIL:-20000}"
 # lobe share when trained on the device (6,500 steps at 0.5 made the CPU
 # teacher T3: lobe 1.08, rest 1.11 from the true maps), M_est's learning
 # rate, the code term's weight (constant) and its glossy pixels' extra
-# weight (--code-gloss-weight).
+# weight (--code-gloss-weight; 4 drew the most lobe of the CPU runs at
+# crop 128, reports/highlights-experiments.md section 5, E12).
 DISTILL_PRESET="${FLASHMAT_GPU_DISTILL_PRESET:-compact}"
 DISTILL_TEACHER_STEPS="${FLASHMAT_GPU_DISTILL_TEACHER_STEPS:-6500}"
 DISTILL_TEACHER_LOBE="${FLASHMAT_GPU_DISTILL_TEACHER_LOBE:-0.5}"
 DISTILL_LR="${FLASHMAT_GPU_DISTILL_LR:-3e-4}"
 DISTILL_CODE_WEIGHT="${FLASHMAT_GPU_DISTILL_CODE_WEIGHT:-1}"
-DISTILL_CODE_GLOSS="${FLASHMAT_GPU_DISTILL_CODE_GLOSS:-0}"
+DISTILL_CODE_GLOSS="${FLASHMAT_GPU_DISTILL_CODE_GLOSS:-4}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
 # What the networks compute in (flashmat train --precision): tf32 until
 # the side-by-side benchmark (bench) has measured bf16 on the card.
@@ -760,7 +761,8 @@ cpu_dry_run() {
   done
   grep -q "lobe share 0.5" "$tmp/out6/distill.md" || die "dry run: distill's teacher was not trained with lobe samples"
   grep -q '"freeze_renderer": true' "$tmp/machine/distill/run/config.json" && grep -q '"weight_code": 1' "$tmp/machine/distill/run/config.json" \
-    || die "dry run: distill did not train M_est alone with the code term"
+    && grep -q '"code_gloss_weight": 4' "$tmp/machine/distill/run/config.json" \
+    || die "dry run: distill did not train M_est alone with the code term, glossy pixels weighted"
   grep -q '^## Moved highlights' "$tmp/out6/distill.md" && grep -q 'code error (relative L1)' "$tmp/out6/distill.md" \
     || die "dry run: distill.md lacks the code error or the moved-highlight table"
   echo "== settle the chain's renderer on the CPU"
