@@ -301,7 +301,7 @@ pub fn lobe_pairs<R: rand::Rng>(maps: &Tensor, sampling: &LobeSampling, rng: &mu
     // The spread's roughness: the pixel's own, or the narrower draw.
     let spread = match narrow {
         Some(roughness) => {
-            let own = maps.narrow(1, 6, 1);
+            let own = maps.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1);
             let narrowed = own.minimum(&Tensor::from_slice(&roughness).view([r, 1]).to_device(device));
             Tensor::cat(&[maps.narrow(1, 0, 6), narrowed, maps.narrow(1, 7, 3)], 1)
         }

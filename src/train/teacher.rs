@@ -186,7 +186,7 @@ pub fn pixel_samples(n: i64, lobe_share: f64, device: Device) -> (Tensor, Tensor
 /// wo: `[R, 3]` unit; offsets: `[R, 2]` standard normal draws -> (wi
 /// `[R, 3]`, `[R, 1]` bool: the light is above the surface, z > 0.02).
 pub fn lobe_lights(maps: &Tensor, wo: &Tensor, offsets: &Tensor) -> (Tensor, Tensor) {
-    let alpha = maps.narrow(1, 6, 1).square();
+    let alpha = maps.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1).square();
     let n = maps.size()[0];
     let shift = Tensor::cat(&[offsets * (&alpha * 1.5), Tensor::zeros([n, 1], (offsets.kind(), offsets.device()))], 1);
     let h = normalize_rows(&(maps.narrow(1, 7, 3) + shift));
@@ -393,7 +393,7 @@ mod tests {
             let (maps, wi, wo, _) = pixel_samples(50_000, share, Device::Cpu);
             let h = normalize_rows(&(&wi + &wo));
             let cos = (&h * maps.narrow(1, 7, 3)).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).clamp(-1.0, 1.0);
-            let alpha = maps.narrow(1, 6, 1).squeeze_dim(1).square();
+            let alpha = maps.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1).squeeze_dim(1).square();
             let glossy = alpha.lt(0.05);
             let inside = cos.acos().lt_tensor(&(&alpha * 4.0)).logical_and(&glossy);
             inside.to_kind(Kind::Float).sum(Kind::Float).double_value(&[]) / glossy.to_kind(Kind::Float).sum(Kind::Float).double_value(&[])
