@@ -189,6 +189,7 @@ fn mini_config() -> ModelConfig {
         render_narrow: 4,
         disc_width: 2,
         half_angle_feature: false,
+        ggx_codes: false,
     }
 }
 

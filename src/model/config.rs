@@ -40,6 +40,14 @@ pub struct ModelConfig {
     /// Written only when set, so files without it read as before everywhere.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub half_angle_feature: bool,
+    /// M_est writes the 10 GGX values of each pixel (kd, ks, roughness,
+    /// normal) and a frozen per-pixel encoder of a teacher
+    /// ([`crate::model::ggx_codes`]) turns them into the neural map: every
+    /// code M_est can write is one a GGX pixel has (issue 48). The renderer
+    /// and the neural map are the base preset's; only M_est's head differs.
+    /// Not the paper's. Written only when set.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub ggx_codes: bool,
 }
 
 impl Default for ModelConfig {
@@ -49,7 +57,7 @@ impl Default for ModelConfig {
 }
 
 /// Names accepted by [`ModelConfig::preset`].
-pub const PRESETS: [&str; 6] = ["paper", "compact", "compact-f8", "compact-h", "compact-f8h", "tiny"];
+pub const PRESETS: [&str; 7] = ["paper", "compact", "compact-f8", "compact-h", "compact-f8h", "compact-g", "tiny"];
 
 impl ModelConfig {
     /// The sizes of the paper and the authors' code: M_est 84,008,960
@@ -67,6 +75,7 @@ impl ModelConfig {
             render_narrow: 64,
             disc_width: 64,
             half_angle_feature: false,
+            ggx_codes: false,
         }
     }
 
@@ -135,6 +144,20 @@ impl ModelConfig {
         Self { name: "compact-f8h".into(), half_angle_feature: true, ..Self::compact_f8() }
     }
 
+    /// `compact` whose M_est writes GGX values through a teacher's frozen
+    /// encoder ([`ModelConfig::ggx_codes`]; issue 48's experiment).
+    pub fn compact_g() -> Self {
+        Self { name: "compact-g".into(), ggx_codes: true, ..Self::compact() }
+    }
+
+    /// The same configuration with M_est writing neural codes directly (a
+    /// `-g` suffix dropped from the name): the one a teacher of this
+    /// renderer was trained for.
+    pub fn without_ggx_codes(&self) -> Self {
+        let name = if self.ggx_codes { self.name.strip_suffix("-g").unwrap_or(&self.name) } else { &self.name };
+        Self { name: name.into(), ggx_codes: false, ..self.clone() }
+    }
+
     /// For tests: the same architecture at toy widths (M_est W = 8,
     /// 1,338,176 parameters).
     pub fn tiny() -> Self {
@@ -149,6 +172,7 @@ impl ModelConfig {
             render_narrow: 8,
             disc_width: 8,
             half_angle_feature: false,
+            ggx_codes: false,
         }
     }
 
@@ -160,6 +184,7 @@ impl ModelConfig {
 "compact-f8" => Ok(Self::compact_f8()),
             "compact-h" => Ok(Self::compact_h()),
             "compact-f8h" => Ok(Self::compact_f8h()),
+            "compact-g" => Ok(Self::compact_g()),
             "tiny" => Ok(Self::tiny()),
             other => bail!("unknown model preset '{other}'; available presets: {}", PRESETS.join(", ")),
         }
@@ -239,6 +264,7 @@ impl ModelConfig {
         );
         // Models without the feature keep the identifiers they always had.
         let canonical = if self.half_angle_feature { canonical + ";half_angle_feature=1" } else { canonical };
+        let canonical = if self.ggx_codes { canonical + ";ggx_codes=1" } else { canonical };
         format!("{}-{:016x}", self.name, fnv1a64(canonical.as_bytes()))
     }
 }
@@ -266,7 +292,8 @@ mod tests {
         }
         assert_eq!(ModelConfig::paper().encoding_width(), 297);
         let err = ModelConfig::preset("huge").unwrap_err().to_string();
-        assert!(err.contains("paper, compact, compact-f8, compact-h, compact-f8h, tiny"), "{err}");
+        assert!(err.contains("paper, compact, compact-f8, compact-h, compact-f8h, compact-g, tiny"), "{err}");
+        assert_eq!(ModelConfig::compact_g().without_ggx_codes(), ModelConfig::compact());
         assert_eq!(ModelConfig::compact_f8h().encoding_width(), 154);
         assert_eq!(ModelConfig::compact_f8().encoding_width(), 153);
     }

@@ -55,6 +55,7 @@ macro_rules! avx2_dispatch {
 pub mod config;
 pub mod discriminator;
 pub mod file;
+pub mod ggx_codes;
 pub(crate) mod layers;
 pub mod m_est;
 pub mod m_render;

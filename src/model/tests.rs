@@ -543,3 +543,45 @@ fn half_angle_feature_values_and_a_widened_model_renders_the_same() {
     assert!(!cfg.to_toml_string().unwrap().contains("half_angle"));
     assert!(ModelConfig::compact_f8h().to_toml_string().unwrap().contains("half_angle_feature = true"));
 }
+
+#[test]
+fn ggx_codes_model_writes_its_encoders_codes_on_every_path() {
+    // M_est's head writes 10 GGX values; the frozen encoder behind it makes
+    // the neural map. Training forward, folded inference (whole and layer
+    // by layer over tiles) and a saved-and-loaded model agree.
+    tch::manual_seed(5);
+    let cfg = ModelConfig { ggx_codes: true, ..ModelConfig::tiny() };
+    assert_ne!(cfg.model_id(), ModelConfig::tiny().model_id());
+    assert_eq!(cfg.without_ggx_codes().model_id(), ModelConfig::tiny().model_id());
+    let m = Model::new(&cfg, Device::Cpu).unwrap();
+    randomise_batchnorms(&m.est_vs);
+    assert_eq!(m.est.head.size()[0], crate::model::ggx_codes::GGX_CHANNELS);
+    let frozen: Vec<String> = m.est_vs.variables().into_iter().filter(|(k, t)| k.starts_with("est.codes.") && !t.requires_grad()).map(|(k, _)| k).collect();
+    assert_eq!(frozen.len(), 3, "three frozen encoder layers, got {frozen:?}");
+    let x = Tensor::randn([1, 4, 32, 24], (Kind::Float, Device::Cpu));
+    let mut head_out = None;
+    let eval = tch::no_grad(|| {
+        m.est.forward_traced(&x, false, Some(&mut |name: &str, t: &Tensor| {
+            if name == "head" {
+                head_out = Some(t.shallow_clone());
+            }
+        }))
+    })
+    .unwrap();
+    assert_eq!(eval.size(), [1, cfg.neural_channels, 32, 24]);
+    let codes = m.est.codes.as_ref().unwrap().forward_maps(&head_out.unwrap());
+    assert!((&codes - &eval).abs().max().double_value(&[]) < 1e-6);
+    let scale = eval.abs().max().double_value(&[]).max(1.0);
+    let folded = m.est.fold_batchnorm();
+    let d = (folded.forward(&x).unwrap() - &eval).abs().max().double_value(&[]);
+    assert!(d <= 1e-4 * scale, "folded differs by {d}");
+    let d = (folded.forward_layerwise(&x, 16, || {}).unwrap() - &eval).abs().max().double_value(&[]);
+    assert!(d <= 1e-4 * scale, "layer-wise tiled differs by {d}");
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("g.safetensors");
+    m.save(&path, &ModelInfo::default(), false).unwrap();
+    let (back, _) = Model::load(&path, Device::Cpu).unwrap();
+    assert!(back.config.ggx_codes);
+    let d = (back.est_inference(&x).unwrap() - &eval).abs().max().double_value(&[]);
+    assert!(d <= 1e-4 * scale, "loaded model differs by {d}");
+}

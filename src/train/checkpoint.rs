@@ -81,6 +81,7 @@ impl Trainer {
             let named = model.named_variables().into_iter().collect();
             self.model.load_named(&named).with_context(|| format!("{}: warm start", path.display()))?;
         }
+        self.codes_from_teacher();
         self.step = info.steps;
         Ok(())
     }

@@ -492,6 +492,10 @@ impl TrainConfig {
         anyhow::ensure!(self.weight_code >= 0.0 && self.weight_code.is_finite(), "--code-weight must be a finite number >= 0 (got {})", self.weight_code);
         anyhow::ensure!(self.weight_code == 0.0 || self.teacher.is_some(), "--code-weight needs --teacher FILE");
         anyhow::ensure!(
+            !self.model.ggx_codes || self.teacher.is_some(),
+            "a model whose M_est writes GGX values (compact-g) needs --teacher FILE: the teacher's encoder turns them into codes"
+        );
+        anyhow::ensure!(
             self.code_gloss_weight >= 0.0 && self.code_gloss_weight.is_finite(),
             "--code-gloss-weight must be a finite number >= 0 (got {})",
             self.code_gloss_weight

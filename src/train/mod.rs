@@ -206,7 +206,22 @@ impl Trainer {
             }
             None => None,
         };
-        Ok(Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, anchor, step: 0, two_pass: false, group: None })
+        let trainer = Self { config, model, disc_vs, disc, opt_est, opt_render, opt_disc, lpips, teacher, anchor, step: 0, two_pass: false, group: None };
+        trainer.codes_from_teacher();
+        Ok(trainer)
+    }
+
+    /// A model whose M_est writes GGX values takes the teacher's encoder
+    /// behind its head (the code space of the teacher's renderer), at full
+    /// precision, whatever a warm start's file held.
+    pub(crate) fn codes_from_teacher(&self) {
+        if let (Some(codes), Some(teacher)) = (&self.model.est.codes, &self.teacher) {
+            tch::no_grad(|| {
+                for (mut mine, theirs) in codes.weights().into_iter().zip(teacher.encoder.weights()) {
+                    mine.copy_(&theirs);
+                }
+            });
+        }
     }
 
     /// Joins a data-parallel run: every network's weights and BatchNorm

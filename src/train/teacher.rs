@@ -14,7 +14,6 @@
 
 use crate::optim::Adam;
 use crate::archive::{restore_vars, Archive};
-use crate::model::layers::leaky;
 use crate::model::{Model, ModelConfig};
 use crate::svbrdf::render::render_directions;
 use anyhow::{ensure, Context, Result};
@@ -23,16 +22,14 @@ use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use tch::{nn, nn::Module, Device, Kind, Tensor};
+use tch::{nn, Device, Kind, Tensor};
 
 pub const FORMAT: &str = "flashmat-teacher";
 pub const VERSION: u32 = 1;
 
-/// GGX values per pixel: kd (3), ks (3), roughness (1), normal (3).
-pub const GGX_CHANNELS: i64 = 10;
-
-/// Hidden width of the teacher encoder.
-const HIDDEN: i64 = 128;
+/// The encoder lives in the model layer: a `compact-g` model carries a
+/// frozen copy behind M_est ([`crate::model::ggx_codes`]).
+pub use crate::model::ggx_codes::{GgxEncoder as TeacherEncoder, GGX_CHANNELS};
 
 /// Teacher-stage hyper-parameters.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -77,43 +74,6 @@ impl TeacherConfig {
     }
 }
 
-/// The encoder: 10 GGX values -> 128 -> 128 -> C, LeakyReLU(0.01), no biases.
-#[derive(Debug)]
-pub struct TeacherEncoder {
-    layers: Vec<nn::Linear>,
-}
-
-impl TeacherEncoder {
-    pub fn new(p: &nn::Path, channels: i64) -> Self {
-        let cfg = nn::LinearConfig { bias: false, ..Default::default() };
-        let dims = [GGX_CHANNELS, HIDDEN, HIDDEN, channels];
-        let layers = dims.windows(2).enumerate().map(|(i, d)| nn::linear(p / format!("l{i}"), d[0], d[1], cfg)).collect();
-        Self { layers }
-    }
-
-    /// rows: `[R, 10]` -> codes `[R, C]`.
-    pub fn forward_rows(&self, rows: &Tensor) -> Tensor {
-        let last = self.layers.len() - 1;
-        self.layers.iter().enumerate().fold(rows.shallow_clone(), |x, (i, l)| {
-            let y = l.forward(&x);
-            if i < last {
-                leaky(&y, 0.01)
-            } else {
-                y
-            }
-        })
-    }
-
-    /// maps: `[N, 10, H, W]` -> codes `[N, C, H, W]`.
-    pub fn forward_maps(&self, maps: &Tensor) -> Tensor {
-        let s = maps.size();
-        let rows = maps.permute([0, 2, 3, 1]).reshape([-1, s[1]]);
-        let codes = self.forward_rows(&rows);
-        let c = codes.size()[1];
-        codes.view([s[0], s[2], s[3], c]).permute([0, 3, 1, 2]).contiguous()
-    }
-}
-
 /// A trained teacher loaded for the second stage (frozen).
 pub struct Teacher {
     pub vs: nn::VarStore,
@@ -126,7 +86,9 @@ impl Teacher {
     pub fn load(path: &Path, model: &ModelConfig, device: Device, renderer_vs: Option<&nn::VarStore>) -> Result<Self> {
         let a = Archive::load(path, FORMAT, VERSION)?;
         let theirs = a.meta("model_id")?;
-        ensure!(theirs == model.model_id(), "{}: a teacher of model '{theirs}' cannot train a '{}' model", path.display(), model.model_id());
+        // A compact-g model's renderer and neural map are the compact preset's.
+        let renderer_id = model.without_ggx_codes().model_id();
+        ensure!(theirs == renderer_id, "{}: a teacher of model '{theirs}' cannot train a '{}' model", path.display(), model.model_id());
         let mut vs = nn::VarStore::new(device);
         let encoder = TeacherEncoder::new(&(vs.root() / "teacher"), model.neural_channels as i64);
         restore_vars(&vs.variables(), &a.with_prefix("teacher/"), &format!("{}: teacher encoder", path.display()))?;

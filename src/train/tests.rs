@@ -471,6 +471,22 @@ fn teacher_codes_supervise_m_est_and_fade_out() {
     assert!(TrainConfig { code_gloss_weight: -1.0, ..cfg.clone() }.validate().is_err());
     // A code weight without a teacher is refused.
     assert!(TrainConfig { weight_code: 1.0, ..tiny_config() }.validate().is_err());
+    // An M_est that writes GGX values takes the teacher's encoder behind its
+    // head, which steps leave as it is while the head learns; without a
+    // teacher it is refused (its encoder would be random).
+    let ggx_model = ModelConfig { ggx_codes: true, ..ModelConfig::tiny() };
+    assert!(TrainConfig { model: ggx_model.clone(), ..tiny_config() }.validate().is_err());
+    let ggx_cfg = TrainConfig { model: ggx_model, code_until: 0, weight_l1: 0.0, weight_adv: 0.0, lr: 3e-3, ..cfg.clone() };
+    let mut g = Trainer::new(ggx_cfg, tch::Device::Cpu).unwrap();
+    let encoder = trained_teacher.encoder.weights();
+    let head = g.model.est.head.copy();
+    let first = g.train_step(&batch).unwrap().code;
+    let last = (0..30).map(|_| g.train_step(&batch).unwrap().code).last().unwrap();
+    assert!(last < first, "GGX head: code error {first} -> {last}");
+    assert!(!g.model.est.head.equal(&head));
+    for (mine, theirs) in g.model.est.codes.as_ref().unwrap().weights().iter().zip(&encoder) {
+        assert!(mine.equal(theirs), "the encoder moved");
+    }
 }
 
 #[test]

@@ -32,6 +32,7 @@ impl MEst {
                 .map(|s| FoldedDec { up: s.up.as_ref().map(FoldedUp::new), blocks: s.blocks.iter().map(FoldedRes::new).collect() })
                 .collect(),
             head: self.head.detach().copy(),
+            codes: self.codes.as_ref().map(|e| e.weights().iter().map(|w| w.detach().copy()).collect()).unwrap_or_default(),
             channels_last: false,
         });
         folded.set_winograd(Some(WinogradPolicy::default()));
@@ -47,6 +48,9 @@ pub struct FoldedMEst {
     enc: Vec<Vec<FoldedRes>>,
     dec: Vec<FoldedDec>,
     head: Tensor,
+    /// The GGX encoder's weights after the head, `[out, in]` each (none
+    /// without [`ModelConfig::ggx_codes`]).
+    codes: Vec<Tensor>,
     channels_last: bool,
 }
 
@@ -373,8 +377,18 @@ impl FoldedMEst {
         Ok(tch::no_grad(|| {
             let x = if self.channels_last { to_channels_last(x) } else { x.shallow_clone() };
             let h = self.walk(conv_rep(&x, &self.stem, None, 1), |b, h| b.forward(h, norm), |u, h| u.forward(h));
-            conv_rep(&h, &self.head, None, 1).contiguous()
+            self.to_codes(conv_rep(&h, &self.head, None, 1)).contiguous()
         }))
+    }
+
+    /// The head's output `[N, 10, H, W]` through the GGX encoder where the
+    /// model has one, else unchanged.
+    fn to_codes(&self, head_out: Tensor) -> Tensor {
+        if self.codes.is_empty() {
+            head_out
+        } else {
+            crate::model::ggx_codes::forward_maps_with(&self.codes, &head_out)
+        }
     }
 
     /// The U-Net between stem and head, one way of running a residual block
@@ -448,6 +462,9 @@ impl FoldedMEst {
         let g = |t: &mut Tensor| *t = f(t);
         g(&mut self.stem);
         g(&mut self.head);
+        for t in self.codes.iter_mut() {
+            g(t);
+        }
         let res = |r: &mut FoldedRes| {
             for ha in [&mut r.ha1, &mut r.ha2] {
                 for t in [&mut ha.merged, &mut ha.merged_bias, &mut ha.incep_b, &mut ha.incep_b_bias, &mut ha.feat] {
@@ -614,7 +631,7 @@ impl FoldedMEst {
             };
             // The skips are dropped when `walk` returns, before the head.
             let h = self.walk(stem_out, block, |u, h| map_tiles(&[h], core, (2, 1), |t| u.forward(&t[0])));
-            map_tiles(&[&h], core, (1, 1), |t| conv_rep(&t[0], &self.head, None, 1))
+            map_tiles(&[&h], core, (1, 1), |t| self.to_codes(conv_rep(&t[0], &self.head, None, 1)))
         }))
     }
 }

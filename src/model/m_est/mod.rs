@@ -18,6 +18,10 @@
 //! head   7x7 conv W -> neural_channels, no activation
 //! ```
 //!
+//! With `ggx_codes` (not the paper's) the head writes the 10 GGX values of
+//! each pixel and a frozen per-pixel encoder (`codes`,
+//! [`super::ggx_codes`]) turns them into the neural map.
+//!
 //! How the published parameter counts (84,008,960 / 21,060,608 / 5,294,336 /
 //! 1,338,176 for W = 64/32/16/8) pin this down: they fit exactly
 //! 20,453 W^2 + 3,648 W with no constant term, so no layer has a bias (a
@@ -37,6 +41,7 @@
 //! pass and never receive gradients.
 
 use super::config::ModelConfig;
+use super::ggx_codes::{GgxEncoder, GGX_CHANNELS};
 use super::layers::{conv, conv_init, conv_rep, conv_t, leaky, pad_rep, per_channel, torch_default_init, Bn};
 use anyhow::{ensure, Result};
 use tch::nn::{self, Init};
@@ -260,8 +265,10 @@ pub struct MEst {
     pub enc: Vec<Vec<ResBlock>>,
     /// Decoder stages in execution order: dec4, dec3, dec2, dec1.
     pub dec: Vec<DecStage>,
-    /// `[neural_channels, W, 7, 7]`.
+    /// `[neural_channels, W, 7, 7]` (`[10, W, 7, 7]` with `codes`).
     pub head: Tensor,
+    /// The frozen GGX encoder after the head ([`ModelConfig::ggx_codes`]).
+    pub codes: Option<GgxEncoder>,
     pub width: i64,
     pub out_channels: i64,
 }
@@ -291,14 +298,16 @@ impl MEst {
         }
         let q = p / "dec1";
         dec.push(DecStage { up: None, blocks: vec![ResBlock::new(&(&q / 0), 3 * w, w, 1), ResBlock::new(&(&q / 1), w, w, 1)] });
-        let head = (p / "head").var("weight", &[cfg.neural_channels, w, 7, 7], conv_init());
+        let head_out = if cfg.ggx_codes { GGX_CHANNELS } else { cfg.neural_channels };
+        let head = (p / "head").var("weight", &[head_out, w, 7, 7], conv_init());
+        let codes = cfg.ggx_codes.then(|| GgxEncoder::frozen(&(p / "codes"), cfg.neural_channels));
         // Unused, see the module docs.
         let compat = p / "compat";
         let _ = (&compat / "stem_bn").var("weight", &[w], Init::Const(1.0));
         let _ = (&compat / "stem_bn").var("bias", &[w], Init::Const(0.0));
         let _ = (&compat / "bottleneck_ln").var("weight", &[8 * w], Init::Const(1.0));
         let _ = (&compat / "bottleneck_ln").var("bias", &[8 * w], Init::Const(0.0));
-        Ok(Self { stem, enc, dec, head, width: w, out_channels: cfg.neural_channels })
+        Ok(Self { stem, enc, dec, head, codes, width: w, out_channels: cfg.neural_channels })
     }
 
     /// Projects every upsampling block onto checkerboard-free kernels
@@ -367,7 +376,10 @@ impl MEst {
             }
             let out = conv_rep(&h, &self.head, None, 1);
             record("head", &out);
-            out
+            match &self.codes {
+                Some(e) => e.forward_maps(&out),
+                None => out,
+            }
         });
         Ok(crate::precision::to_f32(out))
     }

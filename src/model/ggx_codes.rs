@@ -1,0 +1,113 @@
+//! The per-pixel GGX encoder: 10 GGX values of a pixel (kd, ks,
+//! roughness, normal: REFERENCE section 2) -> a neural-map code. The
+//! teacher of the training curriculum (`train::teacher`) learns it with its
+//! renderer; a model with [`ModelConfig::ggx_codes`] carries a frozen copy
+//! behind M_est's head, so M_est writes GGX values and the neural map holds
+//! only codes a GGX pixel has (issue 48: M_est's own codes did not tell a
+//! matte pixel from a glossy one, and the teacher's renderer draws the moved
+//! highlight from the teacher's codes).
+//!
+//! [`ModelConfig::ggx_codes`]: super::ModelConfig::ggx_codes
+
+use super::layers::leaky;
+use tch::{nn, nn::Module, Tensor};
+
+/// GGX values per pixel: kd (3), ks (3), roughness (1), normal (3).
+pub const GGX_CHANNELS: i64 = 10;
+
+/// Hidden width of the encoder.
+const HIDDEN: i64 = 128;
+
+/// Slope of the encoder's LeakyReLUs.
+const SLOPE: f64 = 0.01;
+
+/// 10 GGX values -> 128 -> 128 -> C, LeakyReLU(0.01), no biases.
+#[derive(Debug)]
+pub struct GgxEncoder {
+    layers: Vec<nn::Linear>,
+}
+
+impl GgxEncoder {
+    /// Trainable variables `l0`, `l1`, `l2` under `p`.
+    pub fn new(p: &nn::Path, channels: i64) -> Self {
+        let cfg = nn::LinearConfig { bias: false, ..Default::default() };
+        let dims = [GGX_CHANNELS, HIDDEN, HIDDEN, channels];
+        let layers = dims.windows(2).enumerate().map(|(i, d)| nn::linear(p / format!("l{i}"), d[0], d[1], cfg)).collect();
+        Self { layers }
+    }
+
+    /// The same variables, never trained (no gradient, no optimizer): the
+    /// code space a model's renderer was trained on is the teacher's.
+    pub fn frozen(p: &nn::Path, channels: i64) -> Self {
+        let e = Self::new(p, channels);
+        for l in &e.layers {
+            let _ = l.ws.shallow_clone().set_requires_grad(false);
+        }
+        e
+    }
+
+    /// The weights, first layer first: `[out, in]` each.
+    pub fn weights(&self) -> Vec<Tensor> {
+        self.layers.iter().map(|l| l.ws.shallow_clone()).collect()
+    }
+
+    /// rows: `[R, 10]` -> codes `[R, C]`.
+    pub fn forward_rows(&self, rows: &Tensor) -> Tensor {
+        let last = self.layers.len() - 1;
+        self.layers.iter().enumerate().fold(rows.shallow_clone(), |x, (i, l)| {
+            let y = l.forward(&x);
+            if i < last {
+                leaky(&y, SLOPE)
+            } else {
+                y
+            }
+        })
+    }
+
+    /// maps: `[N, 10, H, W]` -> codes `[N, C, H, W]`.
+    pub fn forward_maps(&self, maps: &Tensor) -> Tensor {
+        forward_maps_with(&self.weights(), maps)
+    }
+}
+
+/// The encoder of `weights` (`[out, in]` each, as [`GgxEncoder::weights`])
+/// on maps `[N, 10, H, W]` -> codes `[N, C, H, W]`, as 1x1 convolutions
+/// (any memory order).
+pub fn forward_maps_with(weights: &[Tensor], maps: &Tensor) -> Tensor {
+    let last = weights.len() - 1;
+    weights.iter().enumerate().fold(maps.shallow_clone(), |x, (i, w)| {
+        let s = w.size();
+        let y = x.conv2d(&w.view([s[0], s[1], 1, 1]), None::<Tensor>, [1, 1], [0, 0], [1, 1], 1);
+        if i < last {
+            leaky(&y, SLOPE)
+        } else {
+            y
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::{Device, Kind};
+
+    #[test]
+    fn maps_and_rows_agree_and_frozen_weights_take_no_gradient() {
+        tch::manual_seed(3);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let e = GgxEncoder::frozen(&(vs.root() / "g"), 5);
+        assert_eq!(vs.variables().len(), 3);
+        assert!(vs.variables().values().all(|t| !t.requires_grad()));
+        let maps = Tensor::randn([2, GGX_CHANNELS, 3, 4], (Kind::Float, Device::Cpu));
+        let codes = e.forward_maps(&maps);
+        assert_eq!(codes.size(), [2, 5, 3, 4]);
+        // Pixel (1, :, 2, 3) by rows.
+        let row = maps.select(0, 1).select(1, 2).select(1, 3).view([1, GGX_CHANNELS]);
+        let by_row = e.forward_rows(&row).view([5]);
+        let d = (by_row - codes.select(0, 1).select(1, 2).select(1, 3)).abs().max().double_value(&[]);
+        assert!(d < 1e-5, "1x1 convs and rows differ by {d}");
+        // Linear in a positive scale of its input (no biases, LeakyReLU).
+        let twice = e.forward_maps(&(&maps * 2.0));
+        assert!((twice - &codes * 2.0).abs().max().double_value(&[]) < 1e-4);
+    }
+}
