@@ -4,7 +4,9 @@
 //! `--code-weight` term's measure; zero codes score 1), over pixels with
 //! roughness below 0.35 (`train::losses::GLOSSY_ROUGHNESS`: glossy) and the rest, by the material's glossiness
 //! tercile (`eval::highlights::glossiness`). Section 5 of
-//! reports/highlights-experiments.md.
+//! reports/highlights-experiments.md. For a `compact-g` model (M_est writes
+//! GGX values) a second table reads its head on the glossy pixels: the
+//! roughness and specular albedo it writes against the true ones (section 7).
 //!
 //! ```sh
 //! cargo run --release --example code_error_by_gloss -- TEACHER MODEL [MODEL ...]
@@ -28,17 +30,43 @@ fn main() -> Result<()> {
     let models = args[2..].iter().map(|p| Ok((p.as_str(), Model::load(p, dev)?.0))).collect::<Result<Vec<_>>>()?;
     // Per material: glossiness, and per model the error over glossy and matte pixels (None under 50 pixels).
     let mut rows: Vec<(f64, Vec<[Option<f64>; 2]>)> = vec![];
+    // Per material and compact-g model, over the glossy pixels (None under 50):
+    // mean roughness written / true, mean ks written / true, mean |roughness error|.
+    let mut heads: Vec<Vec<Option<[f64; 5]>>> = vec![];
     for i in 0..procedural::TEST_SET_SIZE {
         let m = procedural::test_material(i, 128);
         let x = samples::photo_est_input(&flashmat::eval::colocated_render(&m), true, dev);
         let maps = m.stacked().to_tensor().unsqueeze(0); // [1, 10, H, W]
         let y = tch::no_grad(|| teacher.encoder.forward_maps(&maps));
         let glossy = maps.narrow(1, flashmat::svbrdf::ROUGHNESS_CHANNEL, 1).lt(flashmat::train::losses::GLOSSY_ROUGHNESS).to_kind(Kind::Float); // [1, 1, H, W]
-        let masks = [glossy.shallow_clone(), 1.0 - glossy];
+        let masks = [glossy.shallow_clone(), 1.0 - &glossy];
         let scale = y.abs().mean(Kind::Float).double_value(&[]);
         let mut per_model = vec![];
+        let mut per_head = vec![];
         for (_, model) in &models {
-            let codes = tch::no_grad(|| model.est.forward_t(&x, false))?;
+            let mut head = None;
+            let codes = tch::no_grad(|| {
+                model.est.forward_traced(&x, false, Some(&mut |name: &str, t: &tch::Tensor| {
+                    if name == "head" {
+                        head = Some(t.shallow_clone());
+                    }
+                }))
+            })?;
+            if model.config.ggx_codes {
+                let head = head.expect("M_est traces its head");
+                let n = glossy.sum(Kind::Float).double_value(&[]);
+                let mean = |t: &tch::Tensor| (t * &glossy).sum(Kind::Float).double_value(&[]) / n / t.size()[1] as f64;
+                let r = flashmat::svbrdf::ROUGHNESS_CHANNEL;
+                per_head.push((n >= 50.0).then(|| {
+                    [
+                        mean(&head.narrow(1, r, 1)),
+                        mean(&maps.narrow(1, r, 1)),
+                        mean(&head.narrow(1, 3, 3)),
+                        mean(&maps.narrow(1, 3, 3)),
+                        mean(&(head.narrow(1, r, 1) - maps.narrow(1, r, 1)).abs()),
+                    ]
+                }));
+            }
             let err = (codes - &y).abs().mean_dim([1i64].as_slice(), true, Kind::Float);
             per_model.push(masks.each_ref().map(|mask| {
                 let n = mask.sum(Kind::Float).double_value(&[]);
@@ -46,6 +74,7 @@ fn main() -> Result<()> {
             }));
         }
         rows.push((flashmat::eval::highlights::glossiness(&m), per_model));
+        heads.push(per_head);
     }
     let tercile = flashmat::eval::highlights::terciles(&rows.iter().map(|r| r.0).collect::<Vec<_>>());
     println!("| tercile | model | glossy pixels (materials) | matte pixels (materials) |\n|---|---|---|---|");
@@ -57,6 +86,21 @@ fn main() -> Result<()> {
                 if v.is_empty() { "-".to_string() } else { format!("{:.3} ({})", v.iter().sum::<f64>() / v.len() as f64, v.len()) }
             };
             println!("| {name} | {path} | {} | {} |", cell(0), cell(1));
+        }
+    }
+    let ggx: Vec<&str> = models.iter().filter(|m| m.1.config.ggx_codes).map(|m| m.0).collect();
+    if !ggx.is_empty() {
+        println!("\nGGX head on the glossy pixels (materials with 50 or more):\n");
+        println!("| tercile | model | roughness written / true | mean abs roughness error | ks written / true |\n|---|---|---|---|---|");
+        for (k, name) in flashmat::eval::highlights::TERCILES.iter().enumerate() {
+            for (j, path) in ggx.iter().enumerate() {
+                let v: Vec<[f64; 5]> = heads.iter().zip(&tercile).filter(|(_, &t)| t == k).filter_map(|(h, _)| h[j]).collect();
+                if v.is_empty() {
+                    continue;
+                }
+                let m = |c: usize| v.iter().map(|a| a[c]).sum::<f64>() / v.len() as f64;
+                println!("| {name} | {path} | {:.3} / {:.3} | {:.3} | {:.3} / {:.3} ({}) |", m(0), m(1), m(4), m(2), m(3), v.len());
+            }
         }
     }
     Ok(())

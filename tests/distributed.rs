@@ -60,8 +60,8 @@ fn bundled_model() -> PathBuf {
 /// materials as 2 ranks x --batch 1 and as 1 rank x --batch 2, three steps
 /// from the bundled model, every network's gradient averaged over the
 /// ranks. Every logged loss agrees to float rounding at every step, and
-/// every weight after the three updates to a few 1e-6 (the learning rate
-/// is 1e-4: a missed or doubled gradient moves weights by that much). The
+/// every weight after the three updates to within half the learning rate
+/// (1e-4: a missed or doubled gradient moves weights by that much). The
 /// per-rank shares run M_est's convolutions at another batch size, whose
 /// kernels round differently; nothing else differs. BatchNorm runs on its
 /// running statistics (`--frozen-bn-from 0`) and the adversarial term is
@@ -111,7 +111,12 @@ fn two_ranks_train_as_one_process_with_their_global_batch() {
             largest_move = largest_move.max(moved(n2, t1).unwrap_or(0.0));
         }
     }
-    assert!(worst < 1e-5, "weights differ by {worst}");
+    // Adam divides each gradient by its own running magnitude, so a weight
+    // whose gradient is at rounding level can move by a good part of the
+    // learning rate on rounding alone (1.8e-5 on an AVX-512 machine, a few
+    // 1e-6 on others); a missed or doubled rank's share flips the direction
+    // of many updates, 2e-4 apart. Half the learning rate tells them apart.
+    assert!(worst < 5e-5, "weights differ by {worst}");
     // The steps moved M_est's weights by the learning rate's order: the match is not that of untouched weights.
     assert!(largest_move > 1e-4, "M_est moved by {largest_move}");
 }
