@@ -10,7 +10,8 @@
 //! The second stage trains M_est with the teacher's codes of the true maps
 //! as a dense 64-channel target (`TrainConfig::teacher`, `weight_code`)
 //! beside the paper's losses, starting from the teacher's renderer. The
-//! shipped architecture stays the paper's: the encoder is training-only.
+//! shipped architecture stays the paper's: the encoder is training-only,
+//! except behind M_est in the experimental `compact-g` preset.
 
 use crate::optim::Adam;
 use crate::archive::{restore_vars, Archive};
