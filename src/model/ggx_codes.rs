@@ -10,7 +10,7 @@
 //! [`ModelConfig::ggx_codes`]: super::ModelConfig::ggx_codes
 
 use super::layers::leaky;
-use tch::{nn, nn::Module, Tensor};
+use tch::{nn, Tensor};
 
 /// GGX values per pixel: kd (3), ks (3), roughness (1), normal (3).
 pub const GGX_CHANNELS: i64 = 10;
@@ -53,15 +53,7 @@ impl GgxEncoder {
 
     /// rows: `[R, 10]` -> codes `[R, C]`.
     pub fn forward_rows(&self, rows: &Tensor) -> Tensor {
-        let last = self.layers.len() - 1;
-        self.layers.iter().enumerate().fold(rows.shallow_clone(), |x, (i, l)| {
-            let y = l.forward(&x);
-            if i < last {
-                leaky(&y, SLOPE)
-            } else {
-                y
-            }
-        })
+        layers(&self.weights(), rows, |x, w| x.matmul(&w.tr()))
     }
 
     /// maps: `[N, 10, H, W]` -> codes `[N, C, H, W]`.
@@ -74,10 +66,18 @@ impl GgxEncoder {
 /// on maps `[N, 10, H, W]` -> codes `[N, C, H, W]`, as 1x1 convolutions
 /// (any memory order).
 pub fn forward_maps_with(weights: &[Tensor], maps: &Tensor) -> Tensor {
-    let last = weights.len() - 1;
-    weights.iter().enumerate().fold(maps.shallow_clone(), |x, (i, w)| {
+    layers(weights, maps, |x, w| {
         let s = w.size();
-        let y = x.conv2d(&w.view([s[0], s[1], 1, 1]), None::<Tensor>, [1, 1], [0, 0], [1, 1], 1);
+        x.conv2d(&w.view([s[0], s[1], 1, 1]), None::<Tensor>, [1, 1], [0, 0], [1, 1], 1)
+    })
+}
+
+/// The encoder's layers on `x`, each applied by `linear(x, w)` (rows or
+/// 1x1 convs), LeakyReLU between them.
+fn layers(weights: &[Tensor], x: &Tensor, linear: impl Fn(&Tensor, &Tensor) -> Tensor) -> Tensor {
+    let last = weights.len() - 1;
+    weights.iter().enumerate().fold(x.shallow_clone(), |x, (i, w)| {
+        let y = linear(&x, w);
         if i < last {
             leaky(&y, SLOPE)
         } else {

@@ -6,7 +6,7 @@
 
 use super::{TrainConfig, Trainer};
 use crate::archive::{restore_vars, Archive};
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, ensure, Context, Result};
 use std::path::Path;
 use tch::Device;
 
@@ -67,6 +67,13 @@ impl Trainer {
             crate::model::Model::load_expecting(path, device, &self.model.model_id())?
         };
         let estimator_only = model.model_id() != self.model.model_id();
+        ensure!(
+            !estimator_only || model.config.ggx_codes == self.model.config.ggx_codes,
+            "{}: M_est writes {} there and {} in this run: a compact-g run starts from a compact-g model (`examples/code_adapter.rs ... ggx` makes one from a compact model)",
+            path.display(),
+            if model.config.ggx_codes { "GGX values" } else { "neural codes" },
+            if self.model.config.ggx_codes { "GGX values" } else { "neural codes" }
+        );
         if info.ldr_input != self.config.ldr_input {
             bail!(
                 "{}: a model trained on {} photos cannot warm-start a run on {} photos (--ldr)",

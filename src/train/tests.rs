@@ -487,6 +487,9 @@ fn teacher_codes_supervise_m_est_and_fade_out() {
     for (mine, theirs) in g.model.est.codes.as_ref().unwrap().weights().iter().zip(&encoder) {
         assert!(mine.equal(theirs), "the encoder moved");
     }
+    // A warm start from a model whose M_est writes codes is refused in one line that says what starts one.
+    let err = g.warm_start_from(&model_file).unwrap_err().to_string();
+    assert!(err.contains("a compact-g run starts from a compact-g model"), "{err}");
 }
 
 #[test]
