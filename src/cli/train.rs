@@ -65,6 +65,10 @@ pub struct TrainArgs {
     /// 1 + K * max(0, 1 - r / 0.35) times (0: all alike).
     #[arg(long, default_value_t = 0.0, value_name = "K", requires = "teacher")]
     pub code_gloss_weight: f64,
+    /// Weight of the GGX-value term: L1 of the GGX values M_est's head writes (--preset compact-g) against the
+    /// true maps, glossy pixels weighted as in the code term (0: none).
+    #[arg(long, default_value_t = 0.0, value_name = "W", requires = "teacher")]
+    pub ggx_value_weight: f64,
     /// The code term fades linearly to zero at step N (0: constant).
     #[arg(long, default_value_t = 0, value_name = "N", requires = "teacher")]
     pub code_until: u64,
@@ -388,6 +392,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         teacher: a.teacher.as_ref().map(|p| p.display().to_string()),
         weight_code: if a.teacher.is_some() { a.code_weight } else { 0.0 },
         code_gloss_weight: a.code_gloss_weight,
+        weight_ggx_values: a.ggx_value_weight,
         code_until: a.code_until,
         bank: a.bank,
         lr: a.lr.unwrap_or(TrainConfig::default().lr),

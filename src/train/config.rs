@@ -84,6 +84,12 @@ pub struct TrainConfig {
     /// every pixel alike).
     #[serde(default)]
     pub code_gloss_weight: f64,
+    /// Weight of the GGX-value term (`losses::ggx_value_l1`, glossy pixels
+    /// weighted by `code_gloss_weight`; 0: none): a model whose M_est writes
+    /// GGX values (`ModelConfig::ggx_codes`) learns them from the true maps
+    /// directly, beside the code term behind the encoder.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub weight_ggx_values: f64,
     /// The code term fades linearly to 0 at this step (0: constant weight),
     /// leaving the paper's losses alone for the rest of the run.
     #[serde(default)]
@@ -316,6 +322,7 @@ impl Default for TrainConfig {
             teacher: None,
             weight_code: 0.0,
             code_gloss_weight: 0.0,
+            weight_ggx_values: 0.0,
             code_until: 0,
             lr: 1e-4,
             lr_decay: 0.985,
@@ -500,8 +507,18 @@ impl TrainConfig {
             "--code-gloss-weight must be a finite number >= 0 (got {})",
             self.code_gloss_weight
         );
+        anyhow::ensure!(
+            self.weight_ggx_values >= 0.0 && self.weight_ggx_values.is_finite(),
+            "--ggx-value-weight must be a finite number >= 0 (got {})",
+            self.weight_ggx_values
+        );
+        anyhow::ensure!(
+            self.weight_ggx_values == 0.0 || self.model.ggx_codes,
+            "--ggx-value-weight needs a model whose M_est writes GGX values (--preset compact-g)"
+        );
         anyhow::ensure!(!self.freeze_estimator || self.method.is_flashmat(), "--freeze-estimator applies to --method flashmat only");
         anyhow::ensure!(!self.freeze_estimator || self.weight_code == 0.0, "--freeze-estimator excludes --code-weight (the teacher's code term trains M_est)");
+        anyhow::ensure!(!self.freeze_estimator || self.weight_ggx_values == 0.0, "--freeze-estimator excludes --ggx-value-weight (the term trains M_est)");
         anyhow::ensure!(
             !self.freeze_estimator || (self.init_from.is_some() || self.warm_start.is_some()),
             "--freeze-estimator needs a trained M_est: give --warm-start or --init-from"
@@ -596,6 +613,7 @@ mod tests {
         obj.remove("weight_code");
         obj.remove("code_until");
         obj.remove("code_gloss_weight");
+        obj.remove("weight_ggx_values");
         let c: TrainConfig = serde_json::from_value(v).unwrap();
         assert_eq!(c, TrainConfig::default());
     }

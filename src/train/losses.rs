@@ -87,13 +87,33 @@ pub const GLOSSY_ROUGHNESS: f64 = 0.35;
 /// section 5). neural, target: `[N, C, H, W]`, roughness: `[N, 1, H, W]`.
 pub fn code_l1(neural: &Tensor, target: &Tensor, roughness: &Tensor, gloss_weight: f64) -> Tensor {
     let scale = target.abs().mean(Kind::Float).clamp_min(1e-6);
-    let err = (neural - target).abs();
+    gloss_weighted_l1(neural, target, roughness, gloss_weight) / scale
+}
+
+/// The GGX-value term of a model whose M_est writes GGX values
+/// (`ModelConfig::ggx_codes`): mean |values - maps| over the 10 values of
+/// every pixel, glossy pixels weighted as in [`code_l1`]. The code term
+/// reaches the head only through the frozen encoder; this one asks the
+/// head for the true roughness and ks directly (section 7 of
+/// reports/highlights-experiments.md: the head wrote glossy pixels a third
+/// too rough). values, maps: `[N, 10, H, W]` (maps as `svbrdf`'s), the
+/// roughness weighting read from `maps`.
+pub fn ggx_value_l1(values: &Tensor, maps: &Tensor, gloss_weight: f64) -> Tensor {
+    let roughness = maps.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1);
+    gloss_weighted_l1(values, maps, &roughness, gloss_weight)
+}
+
+/// Mean |a - b| over channels and pixels; with `gloss_weight` k > 0 a
+/// pixel counts 1 + k * max(0, 1 - r / [`GLOSSY_ROUGHNESS`]) times.
+/// a, b: `[N, C, H, W]`, roughness: `[N, 1, H, W]`.
+fn gloss_weighted_l1(a: &Tensor, b: &Tensor, roughness: &Tensor, gloss_weight: f64) -> Tensor {
+    let err = (a - b).abs();
     if gloss_weight == 0.0 {
-        return err.mean(Kind::Float) / scale;
+        return err.mean(Kind::Float);
     }
     let weight = (roughness.to_kind(Kind::Float) / -GLOSSY_ROUGHNESS + 1.0).clamp_min(0.0) * gloss_weight + 1.0;
     let per_pixel = err.mean_dim([1i64].as_slice(), true, Kind::Float);
-    (per_pixel * &weight).sum(Kind::Float) / weight.sum(Kind::Float) / scale
+    (per_pixel * &weight).sum(Kind::Float) / weight.sum(Kind::Float)
 }
 
 /// Mean L2 norm of the neural parameter vectors. neural: `[N, C, H, W]`.
@@ -347,6 +367,23 @@ mod tests {
         assert!((code(0.175, 2.0) - 5.0 / 6.0).abs() < 1e-6);
         // A matte material is weighted alike everywhere: the plain mean.
         assert!((code(0.5, 2.0) - 1.0).abs() < 1e-6);
+    }
+
+    /// The GGX-value term by hand: two pixels, the head writes zeros, the
+    /// true maps are all 0.5 but for roughness (channel 6), 0 on the left
+    /// pixel and 0.7 on the right. Errors per pixel: (9 * 0.5 + 0) / 10 =
+    /// 0.45 and (9 * 0.5 + 0.7) / 10 = 0.52. Unweighted: 0.485. With weight
+    /// 2 the mirror-smooth left pixel counts 3 times: (3 * 0.45 + 0.52) / 4
+    /// = 0.4675. No scale: a head that writes the truth scores 0.
+    #[test]
+    fn the_ggx_value_term_is_the_glossy_weighted_l1_of_the_values() {
+        let maps = Tensor::full([1, 10, 1, 2], 0.5, (Kind::Float, Device::Cpu));
+        maps.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1).copy_(&Tensor::from_slice(&[0.0f32, 0.7]).view([1, 1, 1, 2]));
+        let values = Tensor::zeros([1, 10, 1, 2], (Kind::Float, Device::Cpu));
+        let term = |k: f64| ggx_value_l1(&values, &maps, k).double_value(&[]);
+        assert!((term(0.0) - 0.485).abs() < 1e-6, "{}", term(0.0));
+        assert!((term(2.0) - 0.4675).abs() < 1e-6, "{}", term(2.0));
+        assert_eq!(ggx_value_l1(&maps, &maps, 2.0).double_value(&[]), 0.0);
     }
 
     /// The lobe term's pairs: with lobe lights only, a near-mirror pixel's

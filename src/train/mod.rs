@@ -53,6 +53,10 @@ pub struct StepLosses {
     /// Shift-consistency term, unweighted (0 without it).
     #[serde(default)]
     pub shift: f64,
+    /// GGX-value term (`losses::ggx_value_l1`), plain mean over all pixels
+    /// (0 without it).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub ggx_values: f64,
     /// Lobe term of the renderer's half, unweighted (0 without it).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub lobe: f64,
@@ -69,6 +73,18 @@ pub struct StepLosses {
 
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
+}
+
+/// M_est's forward on a training batch ([`Trainer::estimate`]).
+struct Estimate {
+    /// The neural map `[N, C, H, W]`.
+    neural: Tensor,
+    /// The weighted shift-consistency term, with the term on and a batch
+    /// that has second photos.
+    shift_term: Option<Tensor>,
+    /// The head's GGX values `[N, 10, H, W]`, for a model that writes them
+    /// and a run with the GGX-value term.
+    ggx_values: Option<Tensor>,
 }
 
 /// All trainable state: networks, their optimizers, the perceptual metric.
@@ -323,7 +339,7 @@ impl Trainer {
 
         // 1. M_est update; the renderer takes part in the graph but is not
         // stepped. Nothing is read back until the step's end (`Readout`).
-        let (neural, shift_term) = self.estimate(b)?;
+        let Estimate { neural, shift_term, ggx_values } = self.estimate(b)?;
         let pred = self.model.renderer.render_code(&neural, &code.detach())?;
         let l1 = (&pred - &truth_log).abs().mean(tch::Kind::Float);
         let lp = losses::perceptual(self.lpips.as_ref(), &pred, &truth_log)?;
@@ -336,6 +352,10 @@ impl Trainer {
         if let Some(t) = shift_term {
             readout.push(|o, v| o.shift = v, t.detach() / cfg.weight_shift);
             loss_est = loss_est + t;
+        }
+        if let Some((term, plain)) = self.ggx_value_term(b, ggx_values.as_ref()) {
+            readout.push(|o, v| o.ggx_values = v, plain);
+            loss_est = loss_est + term;
         }
         if cfg.weight_lobe > 0.0 {
             loss_est = loss_est + self.lobe_term(b, &neural)? * cfg.weight_lobe;
@@ -384,6 +404,18 @@ impl Trainer {
         Some((term, plain))
     }
 
+    /// The GGX-value term of this step on the head's values `[N, 10, H, W]`
+    /// (`losses::ggx_value_l1`, glossy pixels weighted by
+    /// `code_gloss_weight`), weighted, and its plain unweighted-by-gloss
+    /// measure (detached) for the log; None without the term.
+    fn ggx_value_term(&self, b: &TrainingBatch, values: Option<&Tensor>) -> Option<(Tensor, Tensor)> {
+        let values = values.filter(|_| self.config.weight_ggx_values > 0.0)?;
+        let gloss_weight = self.config.code_gloss_weight;
+        let term = losses::ggx_value_l1(values, &b.maps, gloss_weight);
+        let plain = if gloss_weight == 0.0 { term.detach() } else { losses::ggx_value_l1(&values.detach(), &b.maps, 0.0) };
+        Some((term * self.config.weight_ggx_values, plain))
+    }
+
     /// The lobe term (`losses::lobe_l1`) of this step on `neural` `[N, C, H, W]`:
     /// the same pixels and directions in both halves (one stream per step).
     fn lobe_term(&self, b: &TrainingBatch, neural: &Tensor) -> Result<Tensor> {
@@ -414,7 +446,7 @@ impl Trainer {
         self.zero_all();
 
         // Forward, with the graph cut at the neural map and at the prediction.
-        let (neural, shift_term) = self.estimate(b)?;
+        let Estimate { neural, shift_term, ggx_values } = self.estimate(b)?;
         let neural_in = neural.detach().set_requires_grad(true);
         let code = self.model.renderer.encode_maps(&b.out_wi, &b.out_wo)?;
         let rendered = self.model.renderer.render_code(&neural_in, &code)?;
@@ -432,11 +464,9 @@ impl Trainer {
             Some((term, plain)) => (Some(term * cfg.code_weight_at(self.step)), Some(plain)),
             None => (None, None),
         };
+        let (value_term, value_plain) = self.ggx_value_term(b, ggx_values.as_ref()).unzip();
         let mut loss_est = &l1 * cfg.weight_l1 + &shared;
-        if let Some(c) = &code_term {
-            loss_est = loss_est + c;
-        }
-        if let Some(t) = &shift_term {
+        for t in [&code_term, &shift_term, &value_term].into_iter().flatten() {
             loss_est = loss_est + t;
         }
         let loss_render = &l1_r * cfg.weight_l1 + &shared;
@@ -446,6 +476,9 @@ impl Trainer {
         }
         if let Some(t) = &shift_term {
             readout.push(|o, v| o.shift = v, t.detach() / cfg.weight_shift);
+        }
+        if let Some(plain) = value_plain {
+            readout.push(|o, v| o.ggx_values = v, plain);
         }
         readout.push(|o, v| o.l1 = v, l1.detach());
         readout.push(|o, v| o.lpips = v, lp.detach());
@@ -469,7 +502,7 @@ impl Trainer {
         // M_est: through the renderer's input side only, then into M_est.
         let grad_neural = Tensor::run_backward(&[(&rendered * &grad_est).sum(Kind::Float)], &[&neural_in], true, false).remove(0);
         let mut est_objective = (&neural * &grad_neural).sum(Kind::Float);
-        for term in [code_term, shift_term].into_iter().flatten() {
+        for term in [code_term, shift_term, value_term].into_iter().flatten() {
             est_objective = est_objective + term;
         }
         // Three independent backward passes at once: M_est's here, the
@@ -510,22 +543,33 @@ impl Trainer {
         Ok(out)
     }
 
-    /// M_est's neural map of the batch `[N, C, H, W]` and, with the
+    /// M_est's neural map of the batch `[N, C, H, W]`; with the
     /// shift-consistency term on and a batch that has second photos, the
-    /// weighted term (`losses::shift_consistency`): both photos go through
-    /// one forward.
-    fn estimate(&self, b: &TrainingBatch) -> Result<(Tensor, Option<Tensor>)> {
+    /// weighted term (`losses::shift_consistency`: both photos go through
+    /// one forward); with the GGX-value term, the head's values.
+    fn estimate(&self, b: &TrainingBatch) -> Result<Estimate> {
         let batch_stats = self.config.est_batch_stats_at(self.step);
-        match (&b.shifted, self.config.weight_shift > 0.0) {
-            (Some(second), true) => {
-                let n = b.est_input.size()[0];
-                let both = self.model.est.forward_t(&Tensor::cat(&[&b.est_input, &second.est_input], 0), batch_stats)?;
-                let (first, shifted) = (both.narrow(0, 0, n), both.narrow(0, n, n));
-                let term = losses::shift_consistency(&first, &shifted, &second.offsets, self.config.shift_scale_free) * self.config.weight_shift;
-                Ok((first, Some(term)))
+        let n = b.est_input.size()[0];
+        let input = match (&b.shifted, self.config.weight_shift > 0.0) {
+            (Some(second), true) => Tensor::cat(&[&b.est_input, &second.est_input], 0),
+            _ => b.est_input.shallow_clone(),
+        };
+        // The head's GGX values, kept from the forward when a term reads them.
+        let mut head = None;
+        let mut keep_head = |stage: &str, t: &Tensor| {
+            if stage == "head" {
+                head = Some(crate::precision::to_f32(t.narrow(0, 0, n)));
             }
-            _ => Ok((self.model.est.forward_t(&b.est_input, batch_stats)?, None)),
-        }
+        };
+        let wants_head = self.model.config.ggx_codes && self.config.weight_ggx_values > 0.0;
+        let all = self.model.est.forward_traced(&input, batch_stats, if wants_head { Some(&mut keep_head as &mut dyn FnMut(&str, &Tensor)) } else { None })?;
+        let neural = all.narrow(0, 0, n);
+        let shift_term = (all.size()[0] > n).then(|| {
+            let shifted = all.narrow(0, n, n);
+            losses::shift_consistency(&neural, &shifted, &b.shifted.as_ref().expect("a second photo").offsets, self.config.shift_scale_free)
+                * self.config.weight_shift
+        });
+        Ok(Estimate { neural, shift_term, ggx_values: head })
     }
 
     /// M_est as at inference (`TrainConfig::freeze_estimator`): no

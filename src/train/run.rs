@@ -600,12 +600,12 @@ fn flush(log: &mut Option<std::fs::File>) -> Result<()> {
 /// stop, and rank 0's time box (`timed_out` is only ever true there).
 fn agree_on_step(group: &Group, losses: &mut StepLosses, stop: bool, timed_out: bool) -> Result<(bool, bool)> {
     let l = &*losses;
-    let values = [l.l1, l.lpips, l.adv, l.loss_est, l.l1_render, l.loss_render, l.loss_disc, l.code, l.shift, l.param_norm, stop as u8 as f64, timed_out as u8 as f64];
+    let values = [l.l1, l.lpips, l.adv, l.loss_est, l.l1_render, l.loss_render, l.loss_disc, l.code, l.shift, l.ggx_values, l.param_norm, stop as u8 as f64, timed_out as u8 as f64];
     let sum = group.sum_f64(&values)?;
     let mean: Vec<f64> = sum.iter().map(|v| v / group.world as f64).collect();
     let l = losses;
-    [l.l1, l.lpips, l.adv, l.loss_est, l.l1_render, l.loss_render, l.loss_disc, l.code, l.shift, l.param_norm] = mean[..10].try_into().expect("ten losses");
-    Ok((sum[10] > 0.0, sum[11] > 0.0))
+    [l.l1, l.lpips, l.adv, l.loss_est, l.l1_render, l.loss_render, l.loss_disc, l.code, l.shift, l.ggx_values, l.param_norm] = mean[..11].try_into().expect("eleven losses");
+    Ok((sum[11] > 0.0, sum[12] > 0.0))
 }
 
 /// Whether `ok` holds on every rank (a plain run: `ok`).

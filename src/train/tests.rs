@@ -477,15 +477,31 @@ fn teacher_codes_supervise_m_est_and_fade_out() {
     let ggx_model = ModelConfig { ggx_codes: true, ..ModelConfig::tiny() };
     assert!(TrainConfig { model: ggx_model.clone(), ..tiny_config() }.validate().is_err());
     let ggx_cfg = TrainConfig { model: ggx_model, code_until: 0, weight_l1: 0.0, weight_adv: 0.0, lr: 3e-3, ..cfg.clone() };
-    let mut g = Trainer::new(ggx_cfg, tch::Device::Cpu).unwrap();
+    let mut g = Trainer::new(ggx_cfg.clone(), tch::Device::Cpu).unwrap();
     let encoder = trained_teacher.encoder.weights();
     let head = g.model.est.head.copy();
-    let first = g.train_step(&batch).unwrap().code;
+    let first_step = g.train_step(&batch).unwrap();
+    assert_eq!(first_step.ggx_values, 0.0, "no GGX-value term asked for, none logged");
+    let first = first_step.code;
     let last = (0..30).map(|_| g.train_step(&batch).unwrap().code).last().unwrap();
     assert!(last < first, "GGX head: code error {first} -> {last}");
     assert!(!g.model.est.head.equal(&head));
     for (mine, theirs) in g.model.est.codes.as_ref().unwrap().weights().iter().zip(&encoder) {
         assert!(mine.equal(theirs), "the encoder moved");
+    }
+    // The GGX-value term asks the head for the true maps directly: alone (no
+    // code term) on one batch, the value error falls, in the shared-forward
+    // step and in the alternating one; refused for an M_est that writes codes.
+    assert!(TrainConfig { weight_ggx_values: 1.0, ..cfg.clone() }.validate().is_err());
+    for freeze_renderer in [false, true] {
+        // Trainer::new does not read the warm start; validate wants one with a frozen renderer.
+        let warm_start = freeze_renderer.then(|| "trained.safetensors".to_string());
+        let values_only = TrainConfig { weight_code: 0.0, weight_ggx_values: 1.0, code_gloss_weight: 4.0, freeze_renderer, warm_start, ..ggx_cfg.clone() };
+        values_only.validate().unwrap();
+        let mut v = Trainer::new(values_only, tch::Device::Cpu).unwrap();
+        let first = v.train_step(&batch).unwrap().ggx_values;
+        let last = (0..30).map(|_| v.train_step(&batch).unwrap().ggx_values).last().unwrap();
+        assert!(first > 0.0 && last < 0.5 * first, "freeze_renderer {freeze_renderer}: GGX values' error {first} -> {last}");
     }
     // A warm start from a model whose M_est writes codes is refused in one line that says what starts one.
     let err = g.warm_start_from(&model_file).unwrap_err().to_string();
