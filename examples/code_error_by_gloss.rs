@@ -6,7 +6,10 @@
 //! tercile (`eval::highlights::glossiness`). Section 5 of
 //! reports/highlights-experiments.md. For a `compact-g` model (M_est writes
 //! GGX values) a second table reads its head on the glossy pixels: the
-//! roughness and specular albedo it writes against the true ones (section 7).
+//! roughness and specular albedo it writes against the true ones (section 7),
+//! and a third the diffuse albedo it writes inside the photo's own highlight
+//! (the eval's S_in, from the unclamped photo), where a head that reads the flash as colour writes a
+//! bright kd: the ghost (section 8).
 //!
 //! ```sh
 //! cargo run --release --example code_error_by_gloss -- TEACHER MODEL [MODEL ...]
@@ -14,9 +17,13 @@
 
 use anyhow::{ensure, Result};
 use flashmat::data::{procedural, samples};
+use flashmat::eval::highlights;
 use flashmat::model::{Model, ModelConfig};
 use flashmat::train::teacher::{self, Teacher};
 use tch::{Device, Kind};
+
+/// The eval's 50 pixels of a region at 256x256, scaled to these 128x128 photos.
+const MIN_HIGHLIGHT_PIXELS: f64 = 13.0;
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
@@ -33,9 +40,15 @@ fn main() -> Result<()> {
     // Per material and compact-g model, over the glossy pixels (None under 50):
     // mean roughness written / true, mean ks written / true, mean |roughness error|.
     let mut heads: Vec<Vec<Option<[f64; 5]>>> = vec![];
+    // Per material and compact-g model, over the photo's highlight (None
+    // under MIN_HIGHLIGHT_PIXELS): mean kd written / true.
+    let mut in_highlight: Vec<Vec<Option<[f64; 2]>>> = vec![];
     for i in 0..procedural::TEST_SET_SIZE {
         let m = procedural::test_material(i, 128);
-        let x = samples::photo_est_input(&flashmat::eval::colocated_render(&m), true, dev);
+        let photo = flashmat::eval::colocated_render(&m);
+        let x = samples::photo_est_input(&photo, true, dev);
+        let s_in = highlights::highlight_mask(&highlights::luminance(&photo)?, highlights::HIGHLIGHT_THRESHOLD);
+        let s_in = tch::Tensor::from_slice(&s_in).to_kind(Kind::Float).view([1, 1, 128, 128]);
         let maps = m.stacked().to_tensor().unsqueeze(0); // [1, 10, H, W]
         let y = tch::no_grad(|| teacher.encoder.forward_maps(&maps));
         let glossy = maps.narrow(1, flashmat::svbrdf::ROUGHNESS_CHANNEL, 1).lt(flashmat::train::losses::GLOSSY_ROUGHNESS).to_kind(Kind::Float); // [1, 1, H, W]
@@ -43,6 +56,7 @@ fn main() -> Result<()> {
         let scale = y.abs().mean(Kind::Float).double_value(&[]);
         let mut per_model = vec![];
         let mut per_head = vec![];
+        let mut per_highlight = vec![];
         for (_, model) in &models {
             let mut head = None;
             let codes = tch::no_grad(|| {
@@ -66,6 +80,9 @@ fn main() -> Result<()> {
                         mean(&(head.narrow(1, r, 1) - maps.narrow(1, r, 1)).abs()),
                     ]
                 }));
+                let n_in = s_in.sum(Kind::Float).double_value(&[]);
+                let kd_in = |t: &tch::Tensor| (t.narrow(1, 0, 3) * &s_in).sum(Kind::Float).double_value(&[]) / n_in / 3.0;
+                per_highlight.push((n_in >= MIN_HIGHLIGHT_PIXELS).then(|| [kd_in(&head), kd_in(&maps)]));
             }
             let err = (codes - &y).abs().mean_dim([1i64].as_slice(), true, Kind::Float);
             per_model.push(masks.each_ref().map(|mask| {
@@ -75,6 +92,7 @@ fn main() -> Result<()> {
         }
         rows.push((flashmat::eval::highlights::glossiness(&m), per_model));
         heads.push(per_head);
+        in_highlight.push(per_highlight);
     }
     let tercile = flashmat::eval::highlights::terciles(&rows.iter().map(|r| r.0).collect::<Vec<_>>());
     println!("| tercile | model | glossy pixels (materials) | matte pixels (materials) |\n|---|---|---|---|");
@@ -100,6 +118,17 @@ fn main() -> Result<()> {
                 }
                 let m = |c: usize| v.iter().map(|a| a[c]).sum::<f64>() / v.len() as f64;
                 println!("| {name} | {path} | {:.3} / {:.3} | {:.3} | {:.3} / {:.3} ({}) |", m(0), m(1), m(4), m(2), m(3), v.len());
+            }
+        }
+        println!("\nGGX head inside the photo's highlight (S_in, materials with {MIN_HIGHLIGHT_PIXELS} or more of its pixels):\n");
+        println!("| tercile | model | kd written / true |\n|---|---|---|");
+        for (k, name) in flashmat::eval::highlights::TERCILES.iter().enumerate() {
+            for (j, path) in ggx.iter().enumerate() {
+                let v: Vec<[f64; 2]> = in_highlight.iter().zip(&tercile).filter(|(_, &t)| t == k).filter_map(|(h, _)| h[j]).collect();
+                if !v.is_empty() {
+                    let m = |c: usize| v.iter().map(|a| a[c]).sum::<f64>() / v.len() as f64;
+                    println!("| {name} | {path} | {:.3} / {:.3} ({}) |", m(0), m(1), v.len());
+                }
             }
         }
     }

@@ -159,6 +159,12 @@ DISTILL_TEACHER_LOBE="${FLASHMAT_GPU_DISTILL_TEACHER_LOBE:-0.5}"
 DISTILL_LR="${FLASHMAT_GPU_DISTILL_LR:-3e-4}"
 DISTILL_CODE_WEIGHT="${FLASHMAT_GPU_DISTILL_CODE_WEIGHT:-1}"
 DISTILL_CODE_GLOSS="${FLASHMAT_GPU_DISTILL_CODE_GLOSS:-4}"
+# With FLASHMAT_GPU_DISTILL_PRESET=compact-g (M_est writes GGX values behind
+# the teacher's frozen encoder; the teacher and a compact-g start carried,
+# docs/GPU.md), the weight of the L1 on those values (--ggx-value-weight;
+# 0: none; 4 took the CPU run's ghost from 1.78 to 1.32 at equal steps,
+# reports/highlights-experiments.md section 8).
+DISTILL_VALUE_WEIGHT="${FLASHMAT_GPU_DISTILL_VALUE_WEIGHT:-0}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
 # What the networks compute in (flashmat train --precision): tf32 until
 # the side-by-side benchmark (bench) has measured bf16 on the card.
@@ -473,6 +479,7 @@ distill() {
     --lr "$DISTILL_LR" --warmup-steps 50 --straight-through-output --checkerboard-free --lpips-weight 0.1 --chroma-weight 1
     --dark-share "$DARK_SHARE" --bank "$BANK" --steps 100000000 --minutes "$minutes" --checkpoint-every "$FROZEN_EVERY"
     --preview-every 1000000 --keep-exports --device "$DEVICE" --precision "$PRECISION" --seed "$((SEED + 30))")
+  [ "$DISTILL_VALUE_WEIGHT" = 0 ] || args+=(--ggx-value-weight "$DISTILL_VALUE_WEIGHT")
   start_util_sampler "$dir/gpu-util.csv"
   local t1; t1=$(date +%s)
   "$BIN" train --out "$dir/run" "${args[@]}" --export-dir "$dir/exports" >"$dir/train.log" 2>&1 \
@@ -492,6 +499,8 @@ first, last = steps[:100], steps[-100:]
 mean = lambda rows, k: sum(r[k] for r in rows) / len(rows)
 print(f"- steps {steps[0]['step']} to {steps[-1]['step']}, {len(steps) / seconds:.2f} steps/s ({len(steps) * int(sys.argv[2]) / seconds:.1f} materials/s); "
       f"code error (relative L1) {mean(first, 'code'):.3f} -> {mean(last, 'code'):.3f}, L1 {mean(first, 'l1'):.4f} -> {mean(last, 'l1'):.4f} (first and last 100 steps)")
+if all("ggx_values" in s for s in first + last):
+    print(f"- GGX values' error (L1) {mean(first, 'ggx_values'):.4f} -> {mean(last, 'ggx_values'):.4f} (first and last 100 steps)")
 PY
     echo "- averaged: ${LATE_EXPORTS[*]}"
     [ -s "$dir/gpu-util.csv" ] && awk -F, '$1 ~ /^ *[0-9]/ { s += $1; n++ } END { if (n) printf "- GPU busy: %.0f%% (mean of %d samples)\n", s / n, n }' "$dir/gpu-util.csv"
