@@ -162,8 +162,9 @@ DISTILL_CODE_GLOSS="${FLASHMAT_GPU_DISTILL_CODE_GLOSS:-4}"
 # With FLASHMAT_GPU_DISTILL_PRESET=compact-g (M_est writes GGX values behind
 # the teacher's frozen encoder; the teacher and a compact-g start carried,
 # docs/GPU.md), the weight of the L1 on those values (--ggx-value-weight;
-# 0: none; 4 took the CPU run's ghost from 1.78 to 1.32 at equal steps,
-# reports/highlights-experiments.md section 8).
+# 0: none; 4 took one CPU run's ghost from 1.78 to 1.32 at equal steps,
+# not repeated at twice the steps; reports/highlights-experiments.md
+# section 8).
 DISTILL_VALUE_WEIGHT="${FLASHMAT_GPU_DISTILL_VALUE_WEIGHT:-0}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
 # What the networks compute in (flashmat train --precision): tf32 until

@@ -42,8 +42,9 @@ pub struct ModelConfig {
     pub half_angle_feature: bool,
     /// M_est writes the 10 GGX values of each pixel (kd, ks, roughness,
     /// normal) and a frozen per-pixel encoder of a teacher
-    /// ([`crate::model::ggx_codes`]) turns them into the neural map: every
-    /// code M_est can write is one a GGX pixel has (issue 48). The renderer
+    /// ([`crate::model::ggx_codes`]) turns them, projected onto valid GGX
+    /// values, into the neural map: every code M_est can write is one a
+    /// GGX pixel has (issue 48). The renderer
     /// and the neural map are the base preset's; only M_est's head differs.
     /// Not the paper's. Written only when set.
     #[serde(skip_serializing_if = "std::ops::Not::not")]

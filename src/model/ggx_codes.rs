@@ -62,6 +62,28 @@ impl GgxEncoder {
     }
 }
 
+/// The least normal z [`valid_values`] leaves: a normal kept facing the
+/// camera, as every normal of the data is.
+const MIN_NORMAL_Z: f64 = 0.1;
+
+/// GGX values projected onto the data's ranges: kd and ks clamped to
+/// [0, 1], roughness to [`MIN_ROUGHNESS`], 1], the normal's z to at least
+/// [`MIN_NORMAL_Z`] and the normal made unit length. M_est's head is an
+/// unbounded convolution, and trained heads write values no GGX pixel has
+/// (held-out photos: roughness up to 2.5 and below 0, ks below 0, normals
+/// of length 3; reports/highlights-experiments.md section 8), where the
+/// encoder can only extrapolate. Values in range pass unchanged.
+/// values: `[N, 10, ...]` (rows `[R, 10]` or maps `[N, 10, H, W]`).
+///
+/// [`MIN_ROUGHNESS`]: crate::data::procedural::MIN_ROUGHNESS
+pub fn valid_values(values: &Tensor) -> Tensor {
+    let albedos = values.narrow(1, 0, 6).clamp(0.0, 1.0);
+    let roughness = values.narrow(1, 6, 1).clamp(crate::data::procedural::MIN_ROUGHNESS as f64, 1.0);
+    let normal = Tensor::cat(&[values.narrow(1, 7, 2), values.narrow(1, 9, 1).clamp_min(MIN_NORMAL_Z)], 1);
+    let length = normal.square().sum_dim_intlist([1i64].as_slice(), true, normal.kind()).sqrt();
+    Tensor::cat(&[albedos, roughness, normal / length], 1)
+}
+
 /// The encoder of `weights` (`[out, in]` each, as [`GgxEncoder::weights`])
 /// on maps `[N, 10, H, W]` -> codes `[N, C, H, W]`, as 1x1 convolutions
 /// (any memory order).
@@ -106,6 +128,17 @@ mod tests {
         let by_row = e.forward_rows(&row).view([5]);
         let d = (by_row - codes.select(0, 1).select(1, 2).select(1, 3)).abs().max().double_value(&[]);
         assert!(d < 1e-5, "1x1 convs and rows differ by {d}");
+        // Projection: values in range pass; out of range they are brought in.
+        let inside = Tensor::from_slice(&[0.2f32, 0.3, 0.4, 0.04, 0.04, 1.0, 0.02, 0.6, 0.0, 0.8]).view([1, GGX_CHANNELS]);
+        assert!((valid_values(&inside) - &inside).abs().max().double_value(&[]) < 1e-7);
+        let outside = Tensor::from_slice(&[-0.2f32, 0.3, 1.4, 0.04, -0.1, 1.2, -0.07, 0.0, 0.0, 2.0]).view([1, GGX_CHANNELS]);
+        let want = Tensor::from_slice(&[0.0f32, 0.3, 1.0, 0.04, 0.0, 1.0, 0.02, 0.0, 0.0, 1.0]).view([1, GGX_CHANNELS]);
+        assert!((valid_values(&outside) - want).abs().max().double_value(&[]) < 1e-7);
+        // A normal pointing away: z raised to 0.1, then unit: (0.6, 0, 0.1) / |.|.
+        let away = Tensor::from_slice(&[0.5f32, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5, 0.6, 0.0, -0.8]).view([1, GGX_CHANNELS]);
+        let n = valid_values(&away).narrow(1, 7, 3);
+        let len = (0.36f64 + 0.01).sqrt();
+        assert!((n - Tensor::from_slice(&[(0.6 / len) as f32, 0.0, (0.1 / len) as f32]).view([1, 3])).abs().max().double_value(&[]) < 1e-6);
         // Linear in a positive scale of its input (no biases, LeakyReLU).
         let twice = e.forward_maps(&(&maps * 2.0));
         assert!((twice - &codes * 2.0).abs().max().double_value(&[]) < 1e-4);

@@ -556,6 +556,13 @@ fn ggx_codes_model_writes_its_encoders_codes_on_every_path() {
     let m = Model::new(&cfg, Device::Cpu).unwrap();
     randomise_batchnorms(&m.est_vs);
     assert_eq!(m.est.head.size()[0], crate::model::ggx_codes::GGX_CHANNELS);
+    // With these random statistics the untrained head writes values in the
+    // thousands; scaled to a trained head's (units), the paths' rounding
+    // (Winograd's grows with the largest input) stays below the tolerance
+    // once the projection has clamped the values to [0, 1].
+    tch::no_grad(|| {
+        let _ = m.est.head.shallow_clone().g_mul_scalar_(1e-3);
+    });
     let frozen: Vec<String> = m.est_vs.variables().into_iter().filter(|(k, t)| k.starts_with("est.codes.") && !t.requires_grad()).map(|(k, _)| k).collect();
     assert_eq!(frozen.len(), 3, "three frozen encoder layers, got {frozen:?}");
     let x = Tensor::randn([1, 4, 32, 24], (Kind::Float, Device::Cpu));
@@ -569,7 +576,7 @@ fn ggx_codes_model_writes_its_encoders_codes_on_every_path() {
     })
     .unwrap();
     assert_eq!(eval.size(), [1, cfg.neural_channels, 32, 24]);
-    let codes = m.est.codes.as_ref().unwrap().forward_maps(&head_out.unwrap());
+    let codes = m.est.codes.as_ref().unwrap().forward_maps(&crate::model::ggx_codes::valid_values(&head_out.unwrap()));
     assert!((&codes - &eval).abs().max().double_value(&[]) < 1e-6);
     let scale = eval.abs().max().double_value(&[]).max(1.0);
     let folded = m.est.fold_batchnorm();

@@ -381,13 +381,14 @@ impl FoldedMEst {
         }))
     }
 
-    /// The head's output `[N, 10, H, W]` through the GGX encoder where the
-    /// model has one, else unchanged.
+    /// The head's output `[N, 10, H, W]`, brought into range
+    /// (`ggx_codes::valid_values`), through the GGX encoder where the model
+    /// has one, else unchanged.
     fn to_codes(&self, head_out: Tensor) -> Tensor {
         if self.codes.is_empty() {
             head_out
         } else {
-            crate::model::ggx_codes::forward_maps_with(&self.codes, &head_out)
+            crate::model::ggx_codes::forward_maps_with(&self.codes, &crate::model::ggx_codes::valid_values(&head_out))
         }
     }
 

@@ -20,7 +20,8 @@
 //!
 //! With `ggx_codes` (not the paper's) the head writes the 10 GGX values of
 //! each pixel and a frozen per-pixel encoder (`codes`,
-//! [`super::ggx_codes`]) turns them into the neural map.
+//! [`super::ggx_codes`]) turns them, projected onto the ranges it was
+//! trained on (`ggx_codes::valid_values`), into the neural map.
 //!
 //! How the published parameter counts (84,008,960 / 21,060,608 / 5,294,336 /
 //! 1,338,176 for W = 64/32/16/8) pin this down: they fit exactly
@@ -377,7 +378,7 @@ impl MEst {
             let out = conv_rep(&h, &self.head, None, 1);
             record("head", &out);
             match &self.codes {
-                Some(e) => e.forward_maps(&out),
+                Some(e) => e.forward_maps(&super::ggx_codes::valid_values(&out)),
                 None => out,
             }
         });
