@@ -8,8 +8,8 @@
 //! GGX values) a second table reads its head on the glossy pixels: the
 //! roughness and specular albedo it writes against the true ones (section 7),
 //! and a third the diffuse albedo it writes inside the photo's own highlight
-//! (the eval's S_in, from the unclamped photo), where a head that reads the flash as colour writes a
-//! bright kd: the ghost (section 8).
+//! (the eval's S_in, from the unclamped photo), where a head that reads the
+//! flash as colour writes a bright kd (section 8).
 //!
 //! ```sh
 //! cargo run --release --example code_error_by_gloss -- TEACHER MODEL [MODEL ...]

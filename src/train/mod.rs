@@ -550,9 +550,10 @@ impl Trainer {
     fn estimate(&self, b: &TrainingBatch) -> Result<Estimate> {
         let batch_stats = self.config.est_batch_stats_at(self.step);
         let n = b.est_input.size()[0];
-        let input = match (&b.shifted, self.config.weight_shift > 0.0) {
-            (Some(second), true) => Tensor::cat(&[&b.est_input, &second.est_input], 0),
-            _ => b.est_input.shallow_clone(),
+        let second = b.shifted.as_ref().filter(|_| self.config.weight_shift > 0.0);
+        let input = match second {
+            Some(second) => Tensor::cat(&[&b.est_input, &second.est_input], 0),
+            None => b.est_input.shallow_clone(),
         };
         // The head's GGX values, kept from the forward when a term reads them.
         let mut head = None;
@@ -564,10 +565,8 @@ impl Trainer {
         let wants_head = self.model.config.ggx_codes && self.config.weight_ggx_values > 0.0;
         let all = self.model.est.forward_traced(&input, batch_stats, if wants_head { Some(&mut keep_head as &mut dyn FnMut(&str, &Tensor)) } else { None })?;
         let neural = all.narrow(0, 0, n);
-        let shift_term = (all.size()[0] > n).then(|| {
-            let shifted = all.narrow(0, n, n);
-            losses::shift_consistency(&neural, &shifted, &b.shifted.as_ref().expect("a second photo").offsets, self.config.shift_scale_free)
-                * self.config.weight_shift
+        let shift_term = second.map(|second| {
+            losses::shift_consistency(&neural, &all.narrow(0, n, n), &second.offsets, self.config.shift_scale_free) * self.config.weight_shift
         });
         Ok(Estimate { neural, shift_term, ggx_values: head })
     }
