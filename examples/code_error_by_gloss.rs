@@ -58,16 +58,8 @@ fn main() -> Result<()> {
         let mut per_head = vec![];
         let mut per_highlight = vec![];
         for (_, model) in &models {
-            let mut head = None;
-            let codes = tch::no_grad(|| {
-                model.est.forward_traced(&x, false, Some(&mut |name: &str, t: &tch::Tensor| {
-                    if name == "head" {
-                        head = Some(t.shallow_clone());
-                    }
-                }))
-            })?;
+            let (codes, head) = tch::no_grad(|| model.est.forward_with_head(&x, false))?;
             if model.config.ggx_codes {
-                let head = head.expect("M_est traces its head");
                 let n = glossy.sum(Kind::Float).double_value(&[]);
                 let mean = |t: &tch::Tensor| (t * &glossy).sum(Kind::Float).double_value(&[]) / n / t.size()[1] as f64;
                 let r = flashmat::svbrdf::ROUGHNESS_CHANNEL;

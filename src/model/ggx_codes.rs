@@ -77,9 +77,10 @@ const MIN_NORMAL_Z: f64 = 0.1;
 ///
 /// [`MIN_ROUGHNESS`]: crate::data::procedural::MIN_ROUGHNESS
 pub fn valid_values(values: &Tensor) -> Tensor {
-    let albedos = values.narrow(1, 0, 6).clamp(0.0, 1.0);
-    let roughness = values.narrow(1, 6, 1).clamp(crate::data::procedural::MIN_ROUGHNESS as f64, 1.0);
-    let normal = Tensor::cat(&[values.narrow(1, 7, 2), values.narrow(1, 9, 1).clamp_min(MIN_NORMAL_Z)], 1);
+    let r = crate::svbrdf::ROUGHNESS_CHANNEL; // kd and ks before it, the normal after
+    let albedos = values.narrow(1, 0, r).clamp(0.0, 1.0);
+    let roughness = values.narrow(1, r, 1).clamp(crate::data::procedural::MIN_ROUGHNESS as f64, 1.0);
+    let normal = Tensor::cat(&[values.narrow(1, r + 1, 2), values.narrow(1, r + 3, 1).clamp_min(MIN_NORMAL_Z)], 1);
     let length = normal.square().sum_dim_intlist([1i64].as_slice(), true, normal.kind()).sqrt();
     Tensor::cat(&[albedos, roughness, normal / length], 1)
 }

@@ -566,17 +566,9 @@ fn ggx_codes_model_writes_its_encoders_codes_on_every_path() {
     let frozen: Vec<String> = m.est_vs.variables().into_iter().filter(|(k, t)| k.starts_with("est.codes.") && !t.requires_grad()).map(|(k, _)| k).collect();
     assert_eq!(frozen.len(), 3, "three frozen encoder layers, got {frozen:?}");
     let x = Tensor::randn([1, 4, 32, 24], (Kind::Float, Device::Cpu));
-    let mut head_out = None;
-    let eval = tch::no_grad(|| {
-        m.est.forward_traced(&x, false, Some(&mut |name: &str, t: &Tensor| {
-            if name == "head" {
-                head_out = Some(t.shallow_clone());
-            }
-        }))
-    })
-    .unwrap();
+    let (eval, head_out) = tch::no_grad(|| m.est.forward_with_head(&x, false)).unwrap();
     assert_eq!(eval.size(), [1, cfg.neural_channels, 32, 24]);
-    let codes = m.est.codes.as_ref().unwrap().forward_maps(&crate::model::ggx_codes::valid_values(&head_out.unwrap()));
+    let codes = m.est.codes.as_ref().unwrap().forward_maps(&crate::model::ggx_codes::valid_values(&head_out));
     assert!((&codes - &eval).abs().max().double_value(&[]) < 1e-6);
     let scale = eval.abs().max().double_value(&[]).max(1.0);
     let folded = m.est.fold_batchnorm();

@@ -555,20 +555,15 @@ impl Trainer {
             Some(second) => Tensor::cat(&[&b.est_input, &second.est_input], 0),
             None => b.est_input.shallow_clone(),
         };
-        // The head's GGX values, kept from the forward when a term reads them.
-        let mut head = None;
-        let mut keep_head = |stage: &str, t: &Tensor| {
-            if stage == "head" {
-                head = Some(crate::precision::to_f32(t.narrow(0, 0, n)));
-            }
-        };
+        let (all, head) = self.model.est.forward_with_head(&input, batch_stats)?;
+        // The head's GGX values, for the term that reads them.
         let wants_head = self.model.config.ggx_codes && self.config.weight_ggx_values > 0.0;
-        let all = self.model.est.forward_traced(&input, batch_stats, if wants_head { Some(&mut keep_head as &mut dyn FnMut(&str, &Tensor)) } else { None })?;
+        let ggx_values = wants_head.then(|| crate::precision::to_f32(head.narrow(0, 0, n)));
         let neural = all.narrow(0, 0, n);
         let shift_term = second.map(|second| {
             losses::shift_consistency(&neural, &all.narrow(0, n, n), &second.offsets, self.config.shift_scale_free) * self.config.weight_shift
         });
-        Ok(Estimate { neural, shift_term, ggx_values: head })
+        Ok(Estimate { neural, shift_term, ggx_values })
     }
 
     /// M_est as at inference (`TrainConfig::freeze_estimator`): no

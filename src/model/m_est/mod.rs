@@ -339,6 +339,20 @@ impl MEst {
         self.forward_traced(x, train, None)
     }
 
+    /// [`Self::forward_t`] and the head's output `[N, 10 or C, H, W]` (in
+    /// the forward's precision): with [`ModelConfig::ggx_codes`] the GGX
+    /// values the head writes, before their projection and the encoder;
+    /// otherwise the neural map itself.
+    pub fn forward_with_head(&self, x: &Tensor, train: bool) -> Result<(Tensor, Tensor)> {
+        let mut head = None;
+        let neural = self.forward_traced(x, train, Some(&mut |stage: &str, t: &Tensor| {
+            if stage == "head" {
+                head = Some(t.shallow_clone());
+            }
+        }))?;
+        Ok((neural, head.ok_or_else(|| anyhow::anyhow!("M_est's forward traced no head"))?))
+    }
+
     /// [`Self::forward_t`], also handing every stage's output to `trace`
     /// as (stage name, `[N, C', H', W']`): the stem, each encoder block,
     /// each decoder stage and the head. For probes of what the stages
