@@ -149,13 +149,16 @@ CODE_UNTIL="${FLASHMAT_GPU_CODE_UNTIL:-20000}"
 # The distill job (issue 48): the teacher's preset (its M_est layout must be
 # the starting model's: compact for the bundled compact-f8), its steps and
 # lobe share when trained on the device (6,500 steps at 0.5 made the CPU
-# teacher T3: lobe 1.08, rest 1.11 from the true maps), M_est's learning
+# teacher T3: lobe 1.08, rest 1.11 from the true maps), its dark floor
+# (--dark-floor: 0.01 took the dark metals T3 drew 2.4x too bright to
+# 0.6-1.0, reports/highlights-experiments.md section 9), M_est's learning
 # rate, the code term's weight (constant) and its glossy pixels' extra
 # weight (--code-gloss-weight; 4 drew the most lobe of the CPU runs at
 # crop 128, reports/highlights-experiments.md section 5, E12).
 DISTILL_PRESET="${FLASHMAT_GPU_DISTILL_PRESET:-compact}"
 DISTILL_TEACHER_STEPS="${FLASHMAT_GPU_DISTILL_TEACHER_STEPS:-6500}"
 DISTILL_TEACHER_LOBE="${FLASHMAT_GPU_DISTILL_TEACHER_LOBE:-0.5}"
+DISTILL_TEACHER_DARK="${FLASHMAT_GPU_DISTILL_TEACHER_DARK:-0.01}"
 DISTILL_LR="${FLASHMAT_GPU_DISTILL_LR:-3e-4}"
 DISTILL_CODE_WEIGHT="${FLASHMAT_GPU_DISTILL_CODE_WEIGHT:-1}"
 DISTILL_CODE_GLOSS="${FLASHMAT_GPU_DISTILL_CODE_GLOSS:-4}"
@@ -469,11 +472,11 @@ distill() {
     how="the carried teacher $(basename "$teacher")"
   else
     "$BIN" train-teacher --preset "$DISTILL_PRESET" --out "$dir/teacher" --steps "$DISTILL_TEACHER_STEPS" \
-      --pixels "$TEACHER_PIXELS" --lobe-share "$DISTILL_TEACHER_LOBE" --seed "$SEED" --device "$DEVICE" >"$dir/teacher.log" 2>&1 \
+      --pixels "$TEACHER_PIXELS" --lobe-share "$DISTILL_TEACHER_LOBE" --dark-floor "$DISTILL_TEACHER_DARK" --seed "$SEED" --device "$DEVICE" >"$dir/teacher.log" 2>&1 \
       || die "distill: the teacher failed: $(grep -m 1 '^error' "$dir/teacher.log")"
     teacher="$dir/teacher/teacher.safetensors"
     cp "$teacher" "$out/teacher.safetensors"
-    how="trained here, $DISTILL_TEACHER_STEPS steps at lobe share $DISTILL_TEACHER_LOBE, $TEACHER_PIXELS pixels a step, $(($(date +%s) - t0)) s; $(grep held_out "$dir/teacher/log.jsonl" | tail -n 1)"
+    how="trained here, $DISTILL_TEACHER_STEPS steps at lobe share $DISTILL_TEACHER_LOBE, dark floor $DISTILL_TEACHER_DARK, $TEACHER_PIXELS pixels a step, $(($(date +%s) - t0)) s; $(grep held_out "$dir/teacher/log.jsonl" | tail -n 1)"
   fi
   local args=(--preset "$DISTILL_PRESET" --ldr --teacher "$teacher" --code-weight "$DISTILL_CODE_WEIGHT" --code-gloss-weight "$DISTILL_CODE_GLOSS" --warm-start "$base"
     --freeze-renderer --adv-weight 0 --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --colocated-outputs "$FROZEN_COLOCATED"

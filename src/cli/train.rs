@@ -252,6 +252,10 @@ pub struct TeacherArgs {
     /// near the normal; default 0, the committed teacher's recipe: glossy lobes are then almost never sampled).
     #[arg(long, default_value_t = 0.0, value_parser = super::fraction)]
     pub lobe_share: f64,
+    /// Adds the L1 of ln(F + R) to the loss, so dark pixels (a metal's diffuse) are fitted relative to their
+    /// radiance; default 0, the committed teacher's recipe: ln(1 + R) alone.
+    #[arg(long, value_name = "F", default_value_t = 0.0, value_parser = super::fraction)]
+    pub dark_floor: f64,
     /// cpu or cuda.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -270,6 +274,7 @@ pub fn train_teacher(a: &TeacherArgs) -> Result<()> {
         checkpoint_every: a.checkpoint_every,
         seed: a.seed,
         lobe_share: a.lobe_share,
+        dark_floor: a.dark_floor,
     };
     let t = flashmat::train::teacher::run(config, &a.out, device, a.minutes, true)?;
     eprintln!(

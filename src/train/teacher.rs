@@ -47,11 +47,17 @@ pub struct TeacherConfig {
     /// lights, which almost never meet a glossy pixel's mirror direction.
     #[serde(default)]
     pub lobe_share: f64,
+    /// With F > 0, the loss adds the L1 of ln(F + R): the errors of dark
+    /// pixels counted relative to their radiance, not absolutely as ln(1 + R)
+    /// does for R << 1 (a dark metal's diffuse, R ~ 0.006, drawn twice too
+    /// bright costs ln(1 + R) 0.006). 0 (the committed recipe): ln(1 + R) alone.
+    #[serde(default)]
+    pub dark_floor: f64,
 }
 
 impl Default for TeacherConfig {
     fn default() -> Self {
-        Self { model: ModelConfig::compact(), pixels: 16_384, lr: 1e-3, steps: 5_000, checkpoint_every: 250, seed: 1, lobe_share: 0.0 }
+        Self { model: ModelConfig::compact(), pixels: 16_384, lr: 1e-3, steps: 5_000, checkpoint_every: 250, seed: 1, lobe_share: 0.0, dark_floor: 0.0 }
     }
 }
 
@@ -70,6 +76,7 @@ impl TeacherConfig {
         check("--lr", self.lr.to_string(), given.lr.to_string());
         check("--seed", self.seed.to_string(), given.seed.to_string());
         check("--lobe-share", self.lobe_share.to_string(), given.lobe_share.to_string());
+        check("--dark-floor", self.dark_floor.to_string(), given.dark_floor.to_string());
         check("--checkpoint-every", self.checkpoint_every.to_string(), given.checkpoint_every.to_string());
         out
     }
@@ -171,6 +178,18 @@ pub fn ggx_log_rows(maps: &Tensor, wi: &Tensor, wo: &Tensor) -> Tensor {
     r.reshape([3, n]).transpose(0, 1).clamp_min(0.0).log1p()
 }
 
+/// The teacher's loss: the L1 of ln(1 + R), plus with `dark_floor` F > 0 the
+/// L1 of ln(F + R) (the prediction's radiance clamped at 0 there; the first
+/// term still pulls a negative one up). pred, target: ln(1 + R) `[R, 3]` -> scalar.
+pub fn teacher_loss(pred: &Tensor, target: &Tensor, dark_floor: f64) -> Tensor {
+    let l1 = (pred - target).abs().mean(Kind::Float);
+    if dark_floor <= 0.0 {
+        return l1;
+    }
+    let relative = |log1p: &Tensor| (log1p.expm1().clamp_min(0.0) + dark_floor).log();
+    l1 + (relative(pred) - relative(target)).abs().mean(Kind::Float)
+}
+
 /// The teacher's training state.
 pub struct TeacherTrainer {
     pub config: TeacherConfig,
@@ -201,6 +220,7 @@ impl TeacherTrainer {
         ensure!(config.pixels >= 16, "--pixels must be at least 16");
         crate::limits::STEP_PIXELS.check("--pixels", config.pixels as u64)?;
         ensure!(config.lr > 0.0 && config.lr.is_finite(), "learning rate must be positive");
+        ensure!(config.dark_floor >= 0.0 && config.dark_floor.is_finite(), "--dark-floor must be a number >= 0, got {}", config.dark_floor);
         tch::manual_seed(config.seed as i64);
         let model = Model::new(&config.model, device)?;
         model.renderer.m_render.straight_through_output.store(true, std::sync::atomic::Ordering::Relaxed);
@@ -218,7 +238,7 @@ impl TeacherTrainer {
         let (maps, wi, wo, target) = tch::no_grad(|| pixel_samples(self.config.pixels as i64, self.config.lobe_share, device));
         self.opt.zero_grad();
         let pred = self.model.renderer.forward_rows(&self.encoder.forward_rows(&maps), &wi, &wo)?;
-        let loss = (pred - target).abs().mean(Kind::Float);
+        let loss = teacher_loss(&pred, &target, self.config.dark_floor);
         let l1 = loss.double_value(&[]);
         ensure!(l1.is_finite(), "teacher step {}: the loss is {l1}", self.step + 1);
         loss.backward();
@@ -366,9 +386,23 @@ mod tests {
     }
 
     #[test]
+    fn the_dark_floor_counts_a_dark_pixels_error_relative_to_its_radiance() {
+        // Rows (prediction, truth) as radiance R: a dark pixel drawn twice too
+        // bright, and one predicted below zero (clamped to 0 in the second term).
+        let as_log1p = |r: [f32; 2]| Tensor::from_slice(&r).view([2, 1]).expand([2, 3], false).log1p();
+        let (pred, target) = (as_log1p([0.012, -0.005]), as_log1p([0.006, 0.006]));
+        let log1p_l1 = ((1.012f64 / 1.006).ln() + (1.006f64 / 0.995).ln()) / 2.0; // 0.005947, 0.010995
+        let relative = ((0.022f64 / 0.016).ln() + (0.016f64 / 0.010).ln()) / 2.0; // 0.318454, 0.470004
+        let loss = |f: f64| teacher_loss(&pred, &target, f).double_value(&[]);
+        assert!((loss(0.0) - log1p_l1).abs() < 1e-6, "{} against {log1p_l1}", loss(0.0));
+        assert!((loss(0.01) - (log1p_l1 + relative)).abs() < 1e-5, "{} against {}", loss(0.01), log1p_l1 + relative);
+        assert!(teacher_loss(&target, &target, 0.01).double_value(&[]).abs() < 1e-7);
+    }
+
+    #[test]
     fn teacher_learns_and_resumes_exactly() {
         let dir = tempfile::tempdir().unwrap();
-        let cfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 2048, steps: 60, checkpoint_every: 30, lr: 3e-3, seed: 2, lobe_share: 0.0 };
+        let cfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 2048, steps: 60, checkpoint_every: 30, lr: 3e-3, seed: 2, lobe_share: 0.0, dark_floor: 0.0 };
         let fresh = TeacherTrainer::new(cfg.clone(), Device::Cpu).unwrap();
         let before = fresh.held_out_l1().unwrap();
         let full = run(cfg.clone(), &dir.path().join("a"), Device::Cpu, None, false).unwrap();
@@ -380,8 +414,8 @@ mod tests {
         assert_eq!(resumed.step, 60);
         // A continued teacher keeps its recipe; what a caller gave otherwise is named.
         assert!(cfg.ignored_on_continue(&TeacherConfig { steps: 90, ..cfg.clone() }).is_empty());
-        let ignored = cfg.ignored_on_continue(&TeacherConfig { lr: 3e-4, lobe_share: 0.5, ..cfg.clone() });
-        assert_eq!(ignored, vec!["--lr 0.003 (given 0.0003)".to_string(), "--lobe-share 0 (given 0.5)".to_string()]);
+        let ignored = cfg.ignored_on_continue(&TeacherConfig { lr: 3e-4, lobe_share: 0.5, dark_floor: 0.01, ..cfg.clone() });
+        assert_eq!(ignored, ["--lr 0.003 (given 0.0003)", "--lobe-share 0 (given 0.5)", "--dark-floor 0 (given 0.01)"].map(String::from));
         let theirs = resumed.model.renderer_vs.variables();
         for (name, a) in full.model.renderer_vs.variables() {
             assert!(a.allclose(&theirs[&name], 1e-6, 1e-7, false), "{name}");
