@@ -49,8 +49,10 @@ pub struct TeacherConfig {
     pub lobe_share: f64,
     /// With F > 0, the loss adds the L1 of ln(F + R): the errors of dark
     /// pixels counted relative to their radiance, not absolutely as ln(1 + R)
-    /// does for R << 1 (a dark metal's diffuse, R ~ 0.006, drawn twice too
-    /// bright costs ln(1 + R) 0.006). 0 (the committed recipe): ln(1 + R) alone.
+    /// does for R << 1 (a dark metal's diffuse, R ~ 0.02, drawn twice too
+    /// bright costs ln(1 + R) 0.02). 0 (the committed recipe): ln(1 + R) alone.
+    /// The log's per-step `l1` is then the whole loss; `held_out_l1` stays
+    /// the L1 of ln(1 + R), so teachers compare.
     #[serde(default)]
     pub dark_floor: f64,
 }
