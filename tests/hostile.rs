@@ -592,6 +592,7 @@ fn build_corpus(root: &Path) -> Vec<Case> {
         ("train-teacher --pixels 10^12", vec!["train-teacher", "--preset", "tiny", "--pixels", "1000000000000", "--out", "{out}/teacher"].into_iter().map(String::from).collect(), error(&["--pixels", "FLASHMAT_MAX_STEP_PIXELS"])),
         ("train-teacher --threads 0", vec!["train-teacher", "--threads", "0", "--out", "{out}/teacher"].into_iter().map(String::from).collect(), usage(&["--threads"])),
         ("train-teacher --dark-floor nan", vec!["train-teacher", "--dark-floor", "nan", "--out", "{out}/teacher"].into_iter().map(String::from).collect(), usage(&["--dark-floor"])),
+        ("train-teacher --min-roughness 0.01", vec!["train-teacher", "--preset", "tiny", "--min-roughness", "0.01", "--out", "{out}/teacher"].into_iter().map(String::from).collect(), error(&["--min-roughness must be from 0.02"])),
         ("nmat-rows --count 10^12", vec!["nmat-rows", "in/m.nmat", "--count", "1000000000000", "-o", "{out}/rows.json"].into_iter().map(String::from).collect(), error(&["--count", "FLASHMAT_MAX_COUNT"])),
         ("nmat-rows --count 0", vec!["nmat-rows", "in/m.nmat", "--count", "0", "-o", "{out}/rows.json"].into_iter().map(String::from).collect(), error(&["--count"])),
         ("eval --limit 0", vec!["eval", "--model", "printout", "--limit", "0", "-o", "{out}/report"].into_iter().map(String::from).collect(), usage(&["--limit"])),

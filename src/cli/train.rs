@@ -256,6 +256,10 @@ pub struct TeacherArgs {
     /// radiance; default 0, the committed teacher's recipe: ln(1 + R) alone.
     #[arg(long, value_name = "F", default_value_t = 0.0, value_parser = super::fraction)]
     pub dark_floor: f64,
+    /// Lowest roughness of the sampled pixels, from 0.02 (the procedural materials' lowest); default 0.05, the
+    /// committed teacher's recipe, whose renderer then never sees the sharpest lobes.
+    #[arg(long, value_name = "R", default_value_t = flashmat::train::teacher::COMMITTED_MIN_ROUGHNESS, value_parser = super::fraction)]
+    pub min_roughness: f64,
     /// cpu or cuda.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -275,6 +279,7 @@ pub fn train_teacher(a: &TeacherArgs) -> Result<()> {
         seed: a.seed,
         lobe_share: a.lobe_share,
         dark_floor: a.dark_floor,
+        min_roughness: a.min_roughness,
     };
     let t = flashmat::train::teacher::run(config, &a.out, device, a.minutes, true)?;
     eprintln!(

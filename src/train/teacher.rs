@@ -55,11 +55,23 @@ pub struct TeacherConfig {
     /// the L1 of ln(1 + R), so teachers compare.
     #[serde(default)]
     pub dark_floor: f64,
+    /// Lowest roughness [`pixel_samples`] draws; the committed recipe's 0.05
+    /// (older teacher files carry none) lies above the procedural materials'
+    /// [`MIN_ROUGHNESS`], so their sharpest lobes are never sampled.
+    #[serde(default = "committed_min_roughness")]
+    pub min_roughness: f64,
+}
+
+/// The committed teacher's lowest sampled roughness.
+pub const COMMITTED_MIN_ROUGHNESS: f64 = 0.05;
+
+fn committed_min_roughness() -> f64 {
+    COMMITTED_MIN_ROUGHNESS
 }
 
 impl Default for TeacherConfig {
     fn default() -> Self {
-        Self { model: ModelConfig::compact(), pixels: 16_384, lr: 1e-3, steps: 5_000, checkpoint_every: 250, seed: 1, lobe_share: 0.0, dark_floor: 0.0 }
+        Self { model: ModelConfig::compact(), pixels: 16_384, lr: 1e-3, steps: 5_000, checkpoint_every: 250, seed: 1, lobe_share: 0.0, dark_floor: 0.0, min_roughness: COMMITTED_MIN_ROUGHNESS }
     }
 }
 
@@ -79,6 +91,7 @@ impl TeacherConfig {
         check("--seed", self.seed.to_string(), given.seed.to_string());
         check("--lobe-share", self.lobe_share.to_string(), given.lobe_share.to_string());
         check("--dark-floor", self.dark_floor.to_string(), given.dark_floor.to_string());
+        check("--min-roughness", self.min_roughness.to_string(), given.min_roughness.to_string());
         check("--checkpoint-every", self.checkpoint_every.to_string(), given.checkpoint_every.to_string());
         out
     }
@@ -113,19 +126,19 @@ impl Teacher {
 /// Random per-pixel samples: GGX values `[R, 10]`, light and view
 /// directions `[R, 3]` each, and the target ln(1 + R) `[R, 3]`.
 /// Diffuse ~ U(0,1)^2.2 per channel; specular 0.04 for 70% of pixels, else
-/// U(0,1)^2.2 per channel; roughness U(0.05, 1); normals tilted by N(0,
+/// U(0,1)^2.2 per channel; roughness U(`min_roughness`, 1); normals tilted by N(0,
 /// 0.25); light and view cosine-distributed over the hemisphere, with a
 /// quarter of the views near the light (the flash configuration). A share
 /// `lobe_share` of the lights is then the view mirrored about a half vector
 /// drawn around the pixel's normal with a spread of 1.5 alpha per tangent
 /// axis (alpha = roughness^2): inside the GGX lobe, where a glossy pixel's
 /// radiance is (kept where the mirrored light stays above the surface).
-pub fn pixel_samples(n: i64, lobe_share: f64, device: Device) -> (Tensor, Tensor, Tensor, Tensor) {
+pub fn pixel_samples(n: i64, lobe_share: f64, min_roughness: f64, device: Device) -> (Tensor, Tensor, Tensor, Tensor) {
     let opts = (Kind::Float, device);
     let kd = Tensor::rand([n, 3], opts).pow_tensor_scalar(2.2);
     let coloured = Tensor::rand([n, 1], opts).lt(0.3).to_kind(Kind::Float);
     let ks = &coloured * Tensor::rand([n, 3], opts).pow_tensor_scalar(2.2) + (1.0 - &coloured) * 0.04;
-    let rough = Tensor::rand([n, 1], opts) * 0.95 + 0.05;
+    let rough = Tensor::rand([n, 1], opts) * (1.0 - min_roughness) + min_roughness;
     let tilt = Tensor::randn([n, 2], opts) * 0.25;
     let normal = normalize_rows(&Tensor::cat(&[tilt, Tensor::ones([n, 1], opts)], 1));
     let cosine = |n: i64| {
@@ -223,6 +236,12 @@ impl TeacherTrainer {
         crate::limits::STEP_PIXELS.check("--pixels", config.pixels as u64)?;
         ensure!(config.lr > 0.0 && config.lr.is_finite(), "learning rate must be positive");
         ensure!(config.dark_floor >= 0.0 && config.dark_floor.is_finite(), "--dark-floor must be a number >= 0, got {}", config.dark_floor);
+        let lowest = crate::data::procedural::MIN_ROUGHNESS; // f32: printed as 0.02, compared as stored
+        ensure!(
+            (lowest as f64..1.0).contains(&config.min_roughness),
+            "--min-roughness must be from {lowest} (the procedural materials' lowest) to below 1, got {}",
+            config.min_roughness
+        );
         tch::manual_seed(config.seed as i64);
         let model = Model::new(&config.model, device)?;
         model.renderer.m_render.straight_through_output.store(true, std::sync::atomic::Ordering::Relaxed);
@@ -237,7 +256,7 @@ impl TeacherTrainer {
     pub fn train_step(&mut self) -> Result<f64> {
         let device = self.model.device();
         tch::manual_seed((self.config.seed ^ self.step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) as i64);
-        let (maps, wi, wo, target) = tch::no_grad(|| pixel_samples(self.config.pixels as i64, self.config.lobe_share, device));
+        let (maps, wi, wo, target) = tch::no_grad(|| pixel_samples(self.config.pixels as i64, self.config.lobe_share, self.config.min_roughness, device));
         self.opt.zero_grad();
         let pred = self.model.renderer.forward_rows(&self.encoder.forward_rows(&maps), &wi, &wo)?;
         let loss = teacher_loss(&pred, &target, self.config.dark_floor);
@@ -256,7 +275,7 @@ impl TeacherTrainer {
         tch::no_grad(|| {
             tch::manual_seed(HELD_OUT_SEED);
             // The committed recipe's distribution, whatever the run trains on: comparable across runs.
-            let (maps, wi, wo, target) = pixel_samples(HELD_OUT_PIXELS, 0.0, device);
+            let (maps, wi, wo, target) = pixel_samples(HELD_OUT_PIXELS, 0.0, COMMITTED_MIN_ROUGHNESS, device);
             let pred = self.model.renderer.forward_rows(&self.encoder.forward_rows(&maps), &wi, &wo)?;
             Ok((pred - target).abs().mean(Kind::Float).double_value(&[]))
         })
@@ -345,7 +364,7 @@ mod tests {
     #[test]
     fn samples_match_the_scalar_ggx_oracle() {
         tch::manual_seed(3);
-        let (maps, wi, wo, target) = pixel_samples(64, 0.5, Device::Cpu);
+        let (maps, wi, wo, target) = pixel_samples(64, 0.5, COMMITTED_MIN_ROUGHNESS, Device::Cpu);
         assert_eq!(maps.size(), [64, 10]);
         for r in [0i64, 17, 63] {
             let v = |t: &Tensor, i: i64| t.double_value(&[r, i]);
@@ -367,7 +386,7 @@ mod tests {
         let z = |t: &Tensor| t.narrow(1, 2, 1).min().double_value(&[]);
         assert!(z(&wi) > 0.0 && z(&wo) > 0.0);
         tch::manual_seed(4);
-        let (_, wi, wo, _) = pixel_samples(20_000, 0.0, Device::Cpu);
+        let (_, wi, wo, _) = pixel_samples(20_000, 0.0, COMMITTED_MIN_ROUGHNESS, Device::Cpu);
         let near = (&wi * &wo).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).gt(0.99).to_kind(Kind::Float).mean(Kind::Float).double_value(&[]);
         assert!((0.2..0.32).contains(&near), "fraction of near-co-located pairs {near}");
         // With a lobe share, about that share of a glossy pixel's pairs (alpha
@@ -375,7 +394,7 @@ mod tests {
         // has its half vector within 4 alpha of the normal; without, few.
         let in_lobe = |share: f64| {
             tch::manual_seed(5);
-            let (maps, wi, wo, _) = pixel_samples(50_000, share, Device::Cpu);
+            let (maps, wi, wo, _) = pixel_samples(50_000, share, COMMITTED_MIN_ROUGHNESS, Device::Cpu);
             let h = normalize_rows(&(&wi + &wo));
             let cos = (&h * maps.narrow(1, 7, 3)).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).clamp(-1.0, 1.0);
             let alpha = maps.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1).squeeze_dim(1).square();
@@ -385,6 +404,25 @@ mod tests {
         };
         let (none, half) = (in_lobe(0.0), in_lobe(0.5));
         assert!(none < 0.05 && (0.35..0.55).contains(&half), "glossy pairs inside the lobe: {none} without, {half} with a share of 0.5");
+    }
+
+    #[test]
+    fn the_sampled_roughness_starts_at_the_recipes_floor() {
+        tch::manual_seed(6);
+        let rough = |floor: f64| pixel_samples(40_000, 0.5, floor, Device::Cpu).0.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1);
+        let below = |r: &Tensor, v: f64| r.lt(v).to_kind(Kind::Float).mean(Kind::Float).double_value(&[]);
+        let committed = rough(COMMITTED_MIN_ROUGHNESS);
+        assert!(committed.min().double_value(&[]) >= COMMITTED_MIN_ROUGHNESS - 1e-7 && below(&committed, COMMITTED_MIN_ROUGHNESS) == 0.0);
+        // From 0.02: uniform on [0.02, 1), so 0.03 / 0.98 = 3.06% of the pixels below 0.05.
+        let low = rough(0.02);
+        assert!(low.min().double_value(&[]) >= 0.02 - 1e-7 && low.max().double_value(&[]) < 1.0);
+        assert!((below(&low, 0.05) - 0.0306).abs() < 0.004, "{}", below(&low, 0.05));
+        // Below the procedural materials' lowest, or at 1, is refused.
+        for floor in [0.01, 1.0] {
+            let cfg = TeacherConfig { model: ModelConfig::tiny(), min_roughness: floor, ..Default::default() };
+            let e = TeacherTrainer::new(cfg, Device::Cpu).err().unwrap();
+            assert!(format!("{e}").contains("--min-roughness must be from 0.02"), "{e}");
+        }
     }
 
     #[test]
@@ -404,7 +442,7 @@ mod tests {
     #[test]
     fn teacher_learns_and_resumes_exactly() {
         let dir = tempfile::tempdir().unwrap();
-        let cfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 2048, steps: 60, checkpoint_every: 30, lr: 3e-3, seed: 2, lobe_share: 0.0, dark_floor: 0.0 };
+        let cfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 2048, steps: 60, checkpoint_every: 30, lr: 3e-3, seed: 2, lobe_share: 0.0, dark_floor: 0.0, min_roughness: COMMITTED_MIN_ROUGHNESS };
         let fresh = TeacherTrainer::new(cfg.clone(), Device::Cpu).unwrap();
         let before = fresh.held_out_l1().unwrap();
         let full = run(cfg.clone(), &dir.path().join("a"), Device::Cpu, None, false).unwrap();
@@ -416,8 +454,9 @@ mod tests {
         assert_eq!(resumed.step, 60);
         // A continued teacher keeps its recipe; what a caller gave otherwise is named.
         assert!(cfg.ignored_on_continue(&TeacherConfig { steps: 90, ..cfg.clone() }).is_empty());
-        let ignored = cfg.ignored_on_continue(&TeacherConfig { lr: 3e-4, lobe_share: 0.5, dark_floor: 0.01, ..cfg.clone() });
-        assert_eq!(ignored, ["--lr 0.003 (given 0.0003)", "--lobe-share 0 (given 0.5)", "--dark-floor 0 (given 0.01)"].map(String::from));
+        let ignored = cfg.ignored_on_continue(&TeacherConfig { lr: 3e-4, lobe_share: 0.5, dark_floor: 0.01, min_roughness: 0.02, ..cfg.clone() });
+        let named = ["--lr 0.003 (given 0.0003)", "--lobe-share 0 (given 0.5)", "--dark-floor 0 (given 0.01)", "--min-roughness 0.05 (given 0.02)"];
+        assert_eq!(ignored, named.map(String::from));
         let theirs = resumed.model.renderer_vs.variables();
         for (name, a) in full.model.renderer_vs.variables() {
             assert!(a.allclose(&theirs[&name], 1e-6, 1e-7, false), "{name}");
