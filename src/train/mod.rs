@@ -62,6 +62,11 @@ pub struct StepLosses {
     pub lobe: f64,
     /// Mean L2 norm of the neural parameters (watch for "garbage" vectors).
     pub param_norm: f64,
+    /// Global L2 norm of M_est's gradients before any `--grad-clip` (what
+    /// a clip value is chosen against; a divergence shows here first); in a
+    /// data-parallel run rank 0's own, before averaging. 0 while M_est is frozen.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub grad_norm_est: f64,
     /// True when the step was skipped because a loss or gradient was NaN/Inf.
     pub skipped: bool,
     pub seconds: f64,
@@ -366,7 +371,7 @@ impl Trainer {
         readout.push(|o, v| o.loss_est = v, loss_est.detach());
         readout.push(|o, v| o.param_norm = v, losses::mean_param_norm_tensor(&neural));
         loss_est.backward();
-        readout.check(self.opt_est.grad_norm_tensor());
+        readout.push(|o, v| o.grad_norm_est = v, self.opt_est.grad_norm_tensor());
         if cfg.freeze_renderer {
             let (out, finite) = readout.read();
             // Every rank's verdict and gradients averaged (one process: as it is).
@@ -529,7 +534,8 @@ impl Trainer {
             discriminator.join().map_err(|_| anyhow::anyhow!("the discriminator's update panicked"))?
         })?;
         readout.push(|o, v| o.loss_disc = v, loss_disc);
-        for norm in [self.opt_est.grad_norm_tensor(), self.opt_render.grad_norm_tensor(), self.opt_disc.grad_norm_tensor()] {
+        readout.push(|o, v| o.grad_norm_est = v, self.opt_est.grad_norm_tensor());
+        for norm in [self.opt_render.grad_norm_tensor(), self.opt_disc.grad_norm_tensor()] {
             readout.check(norm);
         }
         let (out, finite) = readout.read();
@@ -803,8 +809,12 @@ pub(crate) fn combined_update(
         return skip(nets, opt_disc, out);
     }
     loss.backward();
-    if !nets.iter().all(|o| o.grad_norm().is_finite()) {
+    let norms: Vec<f64> = nets.iter().map(|o| o.grad_norm()).collect();
+    if !norms.iter().all(|n| n.is_finite()) {
         return skip(nets, opt_disc, out);
+    }
+    if !cfg.freeze_estimator {
+        out.grad_norm_est = norms[0]; // nets: M_est's first when it trains
     }
     opt_disc.zero_grad();
     let loss_disc = losses::discriminator_loss(disc, &pred.detach(), target_log, photo_log, weight_adv)?;

@@ -784,6 +784,13 @@ fn shared_forward_step_matches_two_passes() {
         for (name, x, y) in [("l1", a.l1, t.l1), ("lpips", a.lpips, t.lpips), ("adv", a.adv, t.adv), ("l1_render", a.l1_render, t.l1_render), ("loss_disc", a.loss_disc, t.loss_disc)] {
             assert!((x - y).abs() <= 1e-5 * y.abs().max(1e-3), "step {s} {name}: {x} vs {y}");
         }
+        if s == 0 {
+            // The logged gradient norm of M_est is that of its first moments / 0.1.
+            let norm = two_pass.opt_est.names().filter_map(|n| two_pass.opt_est.first_moment(n)).map(|m| m.square().sum(tch::Kind::Double).double_value(&[])).sum::<f64>().sqrt() / 0.1;
+            for logged in [a.grad_norm_est, t.grad_norm_est] {
+                assert!(norm > 0.0 && (logged - norm).abs() <= 1e-4 * norm, "logged {logged}, first moments {norm}");
+            }
+        }
         for (x, y) in [(&shared.opt_est, &two_pass.opt_est), (&shared.opt_render, &two_pass.opt_render), (&shared.opt_disc, &two_pass.opt_disc)] {
             for name in x.names() {
                 let (mx, my) = (x.first_moment(name).unwrap(), y.first_moment(name).unwrap());
