@@ -80,6 +80,11 @@ fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
 
+/// Largest change a projection may make to a kernel that counts as
+/// projected already (float rounding is ~1e-8 at these weights' scale; one
+/// update moves a kernel off by ~lr).
+const PROJECTED_TOLERANCE: f64 = 1e-6;
+
 /// M_est's forward on a training batch ([`Trainer::estimate`]).
 struct Estimate {
     /// The neural map `[N, C, H, W]`.
@@ -305,9 +310,11 @@ impl Trainer {
     }
 
     /// Projects the weights onto what the configuration constrains them to
-    /// (`checkerboard_free`); nothing otherwise. Idempotent.
+    /// (`checkerboard_free`); nothing otherwise, nor where they already lie
+    /// there: projecting a projected kernel again moves it by rounding, and
+    /// a resumed run would then drift from the uninterrupted one.
     pub fn apply_weight_constraints(&self) {
-        if self.config.checkerboard_free {
+        if self.config.checkerboard_free && !self.model.est.is_checkerboard_free(PROJECTED_TOLERANCE) {
             self.model.est.project_checkerboard_free();
         }
     }
