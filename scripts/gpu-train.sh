@@ -169,6 +169,11 @@ DISTILL_CODE_GLOSS="${FLASHMAT_GPU_DISTILL_CODE_GLOSS:-4}"
 # not repeated at twice the steps; reports/highlights-experiments.md
 # section 8).
 DISTILL_VALUE_WEIGHT="${FLASHMAT_GPU_DISTILL_VALUE_WEIGHT:-0}"
+# M_est's gradient norm clipped to this (--grad-clip; 0: none). The compact-g
+# student against T4 diverged on the CPU after a single gradient 50x the
+# median; 2x the median of the first steps (22.76 on the CPU) kept it
+# (section 10). The distill report prints the norms to choose it by.
+DISTILL_GRAD_CLIP="${FLASHMAT_GPU_DISTILL_GRAD_CLIP:-0}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
 # What the networks compute in (flashmat train --precision): tf32 until
 # the side-by-side benchmark (bench) has measured bf16 on the card.
@@ -484,6 +489,7 @@ distill() {
     --dark-share "$DARK_SHARE" --bank "$BANK" --steps 100000000 --minutes "$minutes" --checkpoint-every "$FROZEN_EVERY"
     --preview-every 1000000 --keep-exports --device "$DEVICE" --precision "$PRECISION" --seed "$((SEED + 30))")
   [ "$DISTILL_VALUE_WEIGHT" = 0 ] || args+=(--ggx-value-weight "$DISTILL_VALUE_WEIGHT")
+  [ "$DISTILL_GRAD_CLIP" = 0 ] || args+=(--grad-clip "$DISTILL_GRAD_CLIP")
   start_util_sampler "$dir/gpu-util.csv"
   local t1; t1=$(date +%s)
   "$BIN" train --out "$dir/run" "${args[@]}" --export-dir "$dir/exports" >"$dir/train.log" 2>&1 \
@@ -505,6 +511,9 @@ print(f"- steps {steps[0]['step']} to {steps[-1]['step']}, {len(steps) / seconds
       f"code error (relative L1) {mean(first, 'code'):.3f} -> {mean(last, 'code'):.3f}, L1 {mean(first, 'l1'):.4f} -> {mean(last, 'l1'):.4f} (first and last 100 steps)")
 if all("ggx_values" in s for s in first + last):
     print(f"- GGX values' error (L1) {mean(first, 'ggx_values'):.4f} -> {mean(last, 'ggx_values'):.4f} (first and last 100 steps)")
+norms = sorted(s.get("grad_norm_est", 0.0) for s in steps)
+if norms[-1] > 0:
+    print(f"- M_est's gradient norm (before any clip): median {norms[len(norms) // 2]:.3g}, largest {norms[-1]:.3g}")
 PY
     echo "- averaged: ${LATE_EXPORTS[*]}"
     [ -s "$dir/gpu-util.csv" ] && awk -F, '$1 ~ /^ *[0-9]/ { s += $1; n++ } END { if (n) printf "- GPU busy: %.0f%% (mean of %d samples)\n", s / n, n }' "$dir/gpu-util.csv"
@@ -767,7 +776,7 @@ cpu_dry_run() {
   n=$(find "$tmp/out4" -type f | wc -l)
   [ "$n" -le 8 ] || die "dry run: the frozen chain brings back $n files (a job returns at most 8)"
   echo "== distill: a teacher trained with lobe samples, then M_est alone learning its codes"
-  FLASHMAT_GPU_DISTILL_PRESET=tiny FLASHMAT_GPU_DISTILL_TEACHER_STEPS=20 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/no-teacher" \
+  FLASHMAT_GPU_DISTILL_PRESET=tiny FLASHMAT_GPU_DISTILL_TEACHER_STEPS=20 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/no-teacher" FLASHMAT_GPU_DISTILL_GRAD_CLIP=5 \
     FLASHMAT_GPU_FROZEN_EVERY=2 FLASHMAT_GPU_EVAL_EXTRA="--limit 2 --size 64" OUT="$tmp/out6" bash "$self" distill 0.1
   for f in model.safetensors teacher.safetensors distill.md distill.tgz; do
     [ -f "$tmp/out6/$f" ] || die "dry run: distill brought back no $f"
@@ -776,6 +785,8 @@ cpu_dry_run() {
   grep -q '"freeze_renderer": true' "$tmp/machine/distill/run/config.json" && grep -q '"weight_code": 1' "$tmp/machine/distill/run/config.json" \
     && grep -q '"code_gloss_weight": 4' "$tmp/machine/distill/run/config.json" \
     || die "dry run: distill did not train M_est alone with the code term, glossy pixels weighted"
+  grep -q '"grad_clip": 5' "$tmp/machine/distill/run/config.json" && grep -q "M_est's gradient norm (before any clip): median" "$tmp/out6/distill.md" \
+    || die "dry run: distill did not clip at FLASHMAT_GPU_DISTILL_GRAD_CLIP or report the gradient norms"
   grep -q '^## Moved highlights' "$tmp/out6/distill.md" && grep -q 'code error (relative L1)' "$tmp/out6/distill.md" \
     || die "dry run: distill.md lacks the code error or the moved-highlight table"
   echo "== settle the chain's renderer on the CPU"
