@@ -170,7 +170,7 @@ DISTILL_CODE_GLOSS="${FLASHMAT_GPU_DISTILL_CODE_GLOSS:-4}"
 # section 8).
 DISTILL_VALUE_WEIGHT="${FLASHMAT_GPU_DISTILL_VALUE_WEIGHT:-0}"
 # M_est's gradient norm clipped to this (--grad-clip; 0: none). The compact-g
-# student against T4 diverged on the CPU after a single gradient 50x the
+# student against T4 diverged on the CPU after single gradients 50-3,000x the
 # median; 2x the median of the first steps (22.76 on the CPU) kept it
 # (section 10). The distill report prints the norms to choose it by.
 DISTILL_GRAD_CLIP="${FLASHMAT_GPU_DISTILL_GRAD_CLIP:-0}"
