@@ -92,6 +92,11 @@ pub struct EvalArgs {
     /// `copy`: codes copied from beside the highlight, `blend`: interpolated; see `flashmat estimate --help`).
     #[arg(long, value_enum, value_name = "MODE", num_args = 0..=1, default_missing_value = "copy")]
     pub highlight_fill: Option<flashmat::infer::highlight_fill::FillMode>,
+    /// Give the methods phone photos of the held-out materials instead of the exact co-located render: the camera up
+    /// to 0.3 off the centre and 0.85-1.2x the distance, the flash 1-2 cm beside the lens, sensor noise, 8-bit sRGB
+    /// (one draw per material from --seed; needs --ldr-input). The truths are the same.
+    #[arg(long, requires = "ldr_input", conflicts_with_all = ["captures", "uniform", "ceiling"])]
+    pub phone_photos: bool,
 }
 
 impl EvalArgs {
@@ -159,6 +164,7 @@ fn eval_options(args: &EvalArgs) -> Result<EvalOptions> {
         exposures: args.exposures.clone(),
         exposure: args.exposure_mode.config(),
         highlight_fill: args.highlight_fill_config(),
+        phone_photos: args.phone_photos,
     })
 }
 

@@ -150,6 +150,11 @@ pub struct TrainArgs {
     /// default and paper: 0).
     #[arg(long, value_name = "N", conflicts_with = "resume")]
     pub moved_highlight_outputs: Option<usize>,
+    /// Take this fraction of the input photos as a phone takes them: camera off-centre and nearer or
+    /// farther, flash 1-2 cm beside the lens, sensor noise, 8-bit sRGB (issue 48; needs --ldr-input;
+    /// default and paper: 0, the exact co-located render). New runs only.
+    #[arg(long, value_name = "P", value_parser = super::fraction, conflicts_with = "resume")]
+    pub phone_inputs: Option<f64>,
     /// Keep M_est's upsampling kernels checkerboard-free (projected after every update: a flat photo
     /// gives a flat neural map; paper: free). With --resume: from the resumed step on.
     #[arg(long)]
@@ -417,6 +422,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         colocated_outputs: a.colocated_outputs.unwrap_or(0),
         hemisphere_outputs: a.hemisphere_outputs.unwrap_or(0),
         moved_highlight_outputs: a.moved_highlight_outputs.unwrap_or(0),
+        phone_inputs: a.phone_inputs.unwrap_or(0.0),
         checkerboard_free: a.checkerboard_free,
         freeze_estimator: a.freeze_estimator,
         freeze_renderer: a.freeze_renderer,

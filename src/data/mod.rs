@@ -4,4 +4,5 @@
 pub mod captures;
 pub mod loaders;
 pub mod procedural;
+pub mod phone;
 pub mod samples;

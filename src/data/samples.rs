@@ -2,6 +2,7 @@
 //! co-located input render with its direction maps, and K output renders
 //! under "reflect" (or another) sampling with theirs, on the training device.
 
+use crate::data::phone::{exposure_factor, finish_phone_photo, phone_light_view, PhonePhotoConfig};
 use crate::geometry::{config_tensors, sample_configs, LightView, Sampling};
 use crate::spaces;
 use crate::svbrdf::render::{direction_maps_for, half_vector_z};
@@ -58,6 +59,16 @@ pub struct SampleConfig {
     /// Multiplies the height fields for shadows.
     #[serde(default = "unit_height_scale")]
     pub height_scale: f64,
+    /// Share of the materials whose input photo is taken as a phone takes
+    /// it ([`crate::data::phone`]: camera off-centre and at another height,
+    /// flash beside the lens, brought to the model's exposure, noise,
+    /// 8-bit sRGB); M_est is still given the co-located h_z. 0: the
+    /// paper's exact co-located render.
+    #[serde(default)]
+    pub phone_inputs: f64,
+    /// How far those photos stray.
+    #[serde(default)]
+    pub phone: PhonePhotoConfig,
 }
 
 fn unit_height_scale() -> f64 {
@@ -76,6 +87,8 @@ impl Default for SampleConfig {
             moved_highlight_outputs: 0,
             shadows: false,
             height_scale: 1.0,
+            phone_inputs: 0.0,
+            phone: PhonePhotoConfig::default(),
         }
     }
 }
@@ -177,35 +190,39 @@ pub fn input_directions(h: usize, w: usize, fov_deg: f64, device: Device) -> (Te
     (wi.squeeze_dim(1), wo.squeeze_dim(1))
 }
 
-/// Renders each material's co-located input and its K outputs, with their
-/// direction maps, with the CPU renderer (shadowed when `shadows` is given);
-/// returns (input `[N, 3, H, W]`, outputs, wi, wo `[N, K, 3, H, W]`) on `device`.
+/// Renders each material's input (under `inputs[i]`) and its K outputs,
+/// with their direction maps, with the CPU renderer (shadowed when
+/// `shadows` is given); `finish(i, photo)` then edits material i's input
+/// render (`[3, H, W]` values) in place. Returns (input `[N, 3, H, W]`,
+/// outputs, wi, wo `[N, K, 3, H, W]`) on `device`.
 fn render_on_cpu(
     materials: &[Svbrdf],
+    inputs: &[LightView],
     configs: &[LightView],
-    fov_deg: f64,
     k: usize,
     shadows: Option<&ShadowOptions>,
+    finish: &mut dyn FnMut(usize, &mut [f32]),
     device: Device,
 ) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
     let (h, w) = (materials[0].height() as i64, materials[0].width() as i64);
-    let (mut inputs, mut outputs, mut wis, mut wos) = (vec![], vec![], vec![], vec![]);
+    let (mut input_renders, mut outputs, mut wis, mut wos) = (vec![], vec![], vec![], vec![]);
     for (i, m) in materials.iter().enumerate() {
-        let mut all = vec![LightView::colocated(fov_deg)];
+        let mut all = vec![inputs[i]];
         all.extend_from_slice(&configs[i * k..(i + 1) * k]);
-        let (r, wi, wo) = match shadows {
+        let (mut r, wi, wo) = match shadows {
             Some(options) => crate::svbrdf::cpu::render_with_directions_shadowed(m, &all, options)?,
             None => crate::svbrdf::cpu::render_with_directions(m, &all),
         };
+        finish(i, &mut r[..(3 * h * w) as usize]);
         let shape = [1 + k as i64, 3, h, w];
         let r = Tensor::from_slice(&r).view(shape);
-        inputs.push(r.get(0));
+        input_renders.push(r.get(0));
         outputs.push(r.narrow(0, 1, k as i64));
         wis.push(Tensor::from_slice(&wi).view(shape).narrow(0, 1, k as i64));
         wos.push(Tensor::from_slice(&wo).view(shape).narrow(0, 1, k as i64));
     }
     let stack = |v: &[Tensor]| Tensor::stack(v, 0).to_device(device);
-    Ok((stack(&inputs), stack(&outputs), stack(&wis), stack(&wos)))
+    Ok((stack(&input_renders), stack(&outputs), stack(&wis), stack(&wos)))
 }
 
 /// Replaces the last `colocated` of every `k` configurations with co-located
@@ -288,11 +305,20 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
     with_colocated_outputs(&mut configs, k as usize, cfg.colocated_outputs, cfg.fov_deg, rng)?;
     with_hemisphere_outputs(&mut configs, k as usize, cfg.hemisphere_outputs, cfg.colocated_outputs, rng)?;
     with_moved_highlight_outputs(&mut configs, k as usize, cfg.moved_highlight_outputs, cfg.hemisphere_outputs + cfg.colocated_outputs, cfg.fov_deg, rng)?;
+    // Drawn after the outputs (and not at all without phone inputs), so a
+    // run without them draws what it always drew.
+    let phone: Vec<Option<LightView>> = (0..n).map(|_| (cfg.phone_inputs > 0.0 && rng.random_bool(cfg.phone_inputs)).then(|| phone_light_view(rng, cfg.fov_deg, &cfg.phone))).collect();
+    let inputs: Vec<LightView> = phone.iter().map(|p| p.unwrap_or_else(|| LightView::colocated(cfg.fov_deg))).collect();
+    let mut finish = |i: usize, photo: &mut [f32]| {
+        if let Some(p) = phone[i] {
+            finish_phone_photo(photo, exposure_factor(p.light, cfg.fov_deg), &cfg.phone, rng);
+        }
+    };
     // Input and outputs are rendered together by the f32 CPU renderer (much
     // faster than tensor ops on a CPU), then moved to the device.
     let shadows = ShadowOptions { height_scale: cfg.height_scale, ..Default::default() };
     let shadows = cfg.shadows.then_some(&shadows);
-    let (rendered_input, targets, out_wi, out_wo) = render_on_cpu(materials, &configs, cfg.fov_deg, k as usize, shadows, device)?;
+    let (rendered_input, targets, out_wi, out_wo) = render_on_cpu(materials, &inputs, &configs, k as usize, shadows, &mut finish, device)?;
     let (input_linear, est) = training_est_input(rendered_input, cfg, device);
     Ok(TrainingBatch { maps, input_linear, est_input: est, out_wi, out_wo, targets, configs, shifted: None })
 }
@@ -315,7 +341,8 @@ fn training_est_input(rendered: Tensor, cfg: &SampleConfig, device: Device) -> (
 pub fn input_only(materials: &[Svbrdf], cfg: &SampleConfig, device: Device) -> Result<Tensor> {
     ensure!(!materials.is_empty(), "empty material batch");
     let shadows = ShadowOptions { height_scale: cfg.height_scale, ..Default::default() };
-    let (input, ..) = render_on_cpu(materials, &[], cfg.fov_deg, 0, cfg.shadows.then_some(&shadows), device)?;
+    let inputs = vec![LightView::colocated(cfg.fov_deg); materials.len()];
+    let (input, ..) = render_on_cpu(materials, &inputs, &[], 0, cfg.shadows.then_some(&shadows), &mut |_, _| {}, device)?;
     Ok(training_est_input(input, cfg, device).1)
 }
 
@@ -459,6 +486,43 @@ mod tests {
         let too_many = SampleConfig { moved_highlight_outputs: 3, ..plain };
         let err = make_batch(&mats, &too_many, &mut Pcg64::seed_from_u64(9), Device::Cpu).err().unwrap();
         assert!(err.to_string().contains("3 moved-highlight outputs and 2 others asked of 4"), "{err}");
+    }
+
+    #[test]
+    fn phone_inputs_are_8_bit_photos_from_elsewhere_with_the_same_outputs() {
+        // A glossy material, so where the flash highlight lands shows.
+        let mats = vec![Svbrdf::uniform(32, 32, [0.2, 0.2, 0.2], [0.5; 3], 0.2), Svbrdf::uniform(32, 32, [0.4, 0.3, 0.2], [0.5; 3], 0.2)];
+        let plain = SampleConfig { outputs_per_material: 2, ldr_input: true, ..Default::default() };
+        let phone = SampleConfig { phone_inputs: 1.0, ..plain.clone() };
+        let a = make_batch(&mats, &plain, &mut Pcg64::seed_from_u64(9), Device::Cpu).unwrap();
+        let b = make_batch(&mats, &phone, &mut Pcg64::seed_from_u64(9), Device::Cpu).unwrap();
+        // The outputs are drawn first: the same configurations and targets.
+        assert_eq!(a.configs, b.configs);
+        assert_eq!(f64::try_from((&a.targets - &b.targets).abs().max()).unwrap(), 0.0);
+        // M_est is told the co-located geometry either way.
+        assert_eq!(f64::try_from((a.est_input.narrow(1, 3, 1) - b.est_input.narrow(1, 3, 1)).abs().max()).unwrap(), 0.0);
+        // The plain photo's highlight (its centroid, weighted by radiance^4)
+        // is at the centre; the phone's is not (the camera moved), and every
+        // value lies on the 8-bit sRGB grid.
+        let off_centre = |t: &Tensor| {
+            let w = t.sum_dim_intlist([0i64].as_slice(), false, Kind::Double).pow_tensor_scalar(4);
+            let at = Tensor::arange(32, (Kind::Double, Device::Cpu)) - 15.5;
+            let total = w.sum(Kind::Double);
+            let (y, x) = ((&w * at.unsqueeze(1)).sum(Kind::Double) / &total, (&w * at.unsqueeze(0)).sum(Kind::Double) / &total);
+            f64::try_from(y).unwrap().hypot(f64::try_from(x).unwrap())
+        };
+        for i in 0..2 {
+            assert!(off_centre(&a.input_linear.get(i)) < 1e-3);
+        }
+        assert!(off_centre(&b.input_linear.get(0)).max(off_centre(&b.input_linear.get(1))) > 0.5);
+        let values = Vec::<f32>::try_from(b.input_linear.flatten(0, -1)).unwrap();
+        for v in values {
+            let code = (crate::spaces::photo_encode(v) * 255.0).round();
+            assert!((crate::spaces::photo_decode(code / 255.0) - v).abs() < 1e-6, "{v} is off the 8-bit grid");
+        }
+        // Brought to the co-located photo's exposure: the means agree within the highlight's move.
+        let ratio = f64::try_from(b.input_linear.mean(Kind::Float) / a.input_linear.mean(Kind::Float)).unwrap();
+        assert!((0.8..1.25).contains(&ratio), "{ratio}");
     }
 
     #[test]

@@ -443,14 +443,14 @@ pub const PICTURE_MATERIALS: usize = 4;
 /// materials a row photo | truth | each method under the first moved
 /// light, then truth | each method under the second (display images), and
 /// a note of what it shows. Each method is prepared again on the photo
-/// (clamped when `ldr`). `None` for no materials.
-pub fn picture(methods: &mut [Box<dyn Method>], materials: &[(String, Svbrdf)], ldr: bool, cfg: &HighlightConfig) -> Result<Option<(Image, String)>> {
+/// the evaluation gave it ([`super::material_photo`]). `None` for no materials.
+pub fn picture(methods: &mut [Box<dyn Method>], materials: &[(String, Svbrdf)], opts: &super::EvalOptions, cfg: &HighlightConfig) -> Result<Option<(Image, String)>> {
     let gloss: Vec<f64> = materials.iter().map(|(_, m)| glossiness(m)).collect();
     let picks = glossiest(&gloss, PICTURE_MATERIALS);
     let configs: Vec<LightView> = cfg.configs().into_iter().take(2).collect();
     let mut rows = vec![];
     for &i in &picks {
-        let photo = super::input_photo(&materials[i].1, ldr);
+        let photo = super::material_photo(&materials[i].1, i, opts).1;
         let truth = super::reference_renders(&materials[i].1, &configs);
         let mut preds = vec![];
         for method in methods.iter_mut() {

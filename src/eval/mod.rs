@@ -29,6 +29,7 @@ pub use methods::{open_methods, open_model_file, AnalyticMethod, Method, ModelMe
 pub use metrics::{mean_ci95, mean_scores, score_renders, score_renders_on, LpipsOn, Scores, PSNR_CAP_DB};
 
 use crate::data::loaders::{center_crop, open_dataset};
+use crate::data::phone::{exposure_factor, finish_phone_photo, phone_light_view, PhonePhotoConfig};
 use crate::data::procedural;
 use crate::geometry::{sample_hemisphere, sample_reflect, fov_to_distance, LightView, Sampling, HEMISPHERE_RADIUS, MODEL_FOV_DEG};
 use crate::infer::refine::RefineConfig;
@@ -125,6 +126,8 @@ pub struct EvalOptions {
     /// Also score every flashmat model with its photographed highlight
     /// filled (`--highlight-fill`; rows `NAME+fill`).
     pub highlight_fill: Option<crate::infer::highlight_fill::HighlightFillConfig>,
+    /// Photos taken as a phone takes them (`--phone-photos`, [`material_photo`]).
+    pub phone_photos: bool,
 }
 
 /// One line of a method's CSV.
@@ -212,6 +215,33 @@ pub fn input_photo(m: &Svbrdf, ldr: bool) -> Tensor {
     exposure::exposed(&colocated_render(m), 0.0, ldr)
 }
 
+/// The photo methods estimate material `index` from (`[3, H, W]` linear),
+/// with the linear render it was made of (the moved-highlight test's S_in
+/// and the exposure curve read that one): the co-located GGX render,
+/// clamped when `opts.ldr_input`; with `opts.phone_photos` a phone's 8-bit
+/// photo instead ([`crate::data::phone`]: camera, flash and noise drawn from
+/// the seed and the index; the render brought to the co-located photo's
+/// exposure). -> (linear render, photo).
+pub fn material_photo(m: &Svbrdf, index: usize, opts: &EvalOptions) -> (Tensor, Tensor) {
+    if !opts.phone_photos {
+        let linear = colocated_render(m);
+        let photo = exposure::exposed(&linear, 0.0, opts.ldr_input);
+        return (linear, photo);
+    }
+    let cfg = PhonePhotoConfig::default();
+    let mut rng = Pcg64::seed_from_u64(case_seed(opts.seed, index, Sampling::Identity) ^ PHONE_STREAM);
+    let config = phone_light_view(&mut rng, MODEL_FOV_DEG, &cfg);
+    let gain = exposure_factor(config.light, MODEL_FOV_DEG);
+    let mut values = crate::svbrdf::cpu::render(m, &[config]);
+    let shape = [3, m.height() as i64, m.width() as i64];
+    let linear = Tensor::from_slice(&values).view(shape) * gain;
+    finish_phone_photo(&mut values, gain, &cfg, &mut rng);
+    (linear, Tensor::from_slice(&values).view(shape))
+}
+
+/// Tells a phone photo's random stream from the identity case's.
+const PHONE_STREAM: u64 = 0x5048_4f4e_4521;
+
 /// Scores every method on every material and case; returns rows per method.
 pub fn evaluate(
     methods: &mut [Box<dyn Method>],
@@ -225,8 +255,7 @@ pub fn evaluate(
     let bar = if opts.progress { ProgressBar::new((materials.len() * methods.len()) as u64) } else { ProgressBar::hidden() };
     bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} material x method, {elapsed} (eta {eta}) {msg}").expect("valid template"));
     for (mi, (name, m)) in materials.iter().enumerate() {
-        let linear = colocated_render(m);
-        let photo = exposure::exposed(&linear, 0.0, opts.ldr_input);
+        let (linear, photo) = material_photo(m, mi, opts);
         let moved_truth = reference_renders(m, &moved.configs());
         let glossiness = highlights::glossiness(m);
         let cases: Vec<(Sampling, Vec<LightView>, Tensor)> = opts
@@ -271,6 +300,7 @@ pub fn check_eval_size(size: usize) -> Result<()> {
 pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     ensure!(!opts.cases.is_empty(), "give at least one case with --cases (reflect, identity, hemisphere)");
     ensure!(opts.configs > 0, "--configs must be at least 1");
+    ensure!(!opts.phone_photos || opts.ldr_input, "--phone-photos needs --ldr-input (a phone writes 8-bit photos)");
     check_eval_size(opts.size)?;
     let mut cases = opts.cases.clone();
     cases.dedup();

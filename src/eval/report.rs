@@ -3,7 +3,7 @@
 //! and worst materials.
 
 use super::methods::split_refined;
-use super::{case_configs, case_name, case_title, input_photo, mean_ci95, reference_renders, EvalOptions, Method, MethodResults};
+use super::{case_configs, case_name, case_title, material_photo, mean_ci95, reference_renders, EvalOptions, Method, MethodResults};
 use crate::image::Image;
 use crate::svbrdf::Svbrdf;
 use anyhow::Result;
@@ -119,7 +119,11 @@ pub fn summary_markdown(opts: &EvalOptions, results: &[MethodResults]) -> String
         opts.size,
         opts.seed,
         opts.configs,
-        if opts.ldr_input { "LDR (clamped)" } else { "HDR" }
+        match (opts.phone_photos, opts.ldr_input) {
+            (true, _) => "phone (8-bit sRGB, camera off-centre, flash beside the lens, noise: `--phone-photos`)",
+            (false, true) => "LDR (clamped)",
+            (false, false) => "HDR",
+        }
     );
     let metrics: [(&str, fn(&super::Scores) -> f64, usize); 3] = [
         ("LPIPS (AlexNet, linear renders clamped to [0,1]; lower is better)", |x| x.lpips, 3),
@@ -192,7 +196,7 @@ pub fn write_reports(opts: &EvalOptions, results: &[MethodResults]) -> Result<()
 /// test's picture of the glossiest materials ([`super::highlights::picture`]).
 pub fn write_highlight_picture(opts: &EvalOptions, methods: &mut [Box<dyn Method>], materials: &[(String, Svbrdf)]) -> Result<()> {
     let cfg = super::highlights::HighlightConfig::default();
-    let Some((grid, note)) = super::highlights::picture(methods, materials, opts.ldr_input, &cfg)? else { return Ok(()) };
+    let Some((grid, note)) = super::highlights::picture(methods, materials, opts, &cfg)? else { return Ok(()) };
     let dir = opts.out.join(HIGHLIGHTS_DIR);
     std::fs::create_dir_all(&dir).map_err(|e| anyhow::anyhow!("cannot create {}: {e}", dir.display()))?;
     // Half size: the 256-pixel panels of a 50-material run made a 1824x1044
@@ -248,7 +252,7 @@ pub fn rank_materials(results: &[MethodResults], materials: usize) -> Vec<usize>
 /// Grid for one material: a row per case (its first configuration):
 /// input photo | GGX reference | each method.
 pub fn material_grid(opts: &EvalOptions, methods: &mut [Box<dyn Method>], index: usize, m: &Svbrdf) -> Result<Image> {
-    let photo = input_photo(m, opts.ldr_input);
+    let photo = material_photo(m, index, opts).1;
     for method in methods.iter_mut() {
         method.prepare(&photo)?;
     }

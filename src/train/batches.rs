@@ -168,6 +168,7 @@ pub fn batch_for_step(cfg: &TrainConfig, materials: &[Svbrdf], step: u64, device
         colocated_outputs: cfg.colocated_outputs,
         hemisphere_outputs: cfg.hemisphere_outputs,
         moved_highlight_outputs: cfg.moved_highlight_outputs,
+        phone_inputs: cfg.phone_inputs,
         ldr_input: cfg.ldr_input,
         shadows: cfg.shadows,
         height_scale: cfg.height_scale,
