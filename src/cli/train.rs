@@ -151,7 +151,7 @@ pub struct TrainArgs {
     #[arg(long, value_name = "N", conflicts_with = "resume")]
     pub moved_highlight_outputs: Option<usize>,
     /// Take this fraction of the input photos as a phone takes them: camera off-centre and nearer or
-    /// farther, flash 1-2 cm beside the lens, sensor noise, 8-bit sRGB (issue 48; needs --ldr-input;
+    /// farther, flash 1-2 cm beside the lens, sensor noise, 8-bit sRGB (issue 48; needs --ldr;
     /// default and paper: 0, the exact co-located render). New runs only.
     #[arg(long, value_name = "P", value_parser = super::fraction, conflicts_with = "resume")]
     pub phone_inputs: Option<f64>,

@@ -498,7 +498,7 @@ impl TrainConfig {
             self.outputs_per_material
         );
         anyhow::ensure!((0.0..=1.0).contains(&self.phone_inputs), "--phone-inputs must lie in [0, 1], got {}", self.phone_inputs);
-        anyhow::ensure!(self.phone_inputs == 0.0 || self.ldr_input, "--phone-inputs needs --ldr-input (a phone writes 8-bit photos)");
+        anyhow::ensure!(self.phone_inputs == 0.0 || self.ldr_input, "--phone-inputs needs --ldr (a phone writes 8-bit photos)");
         anyhow::ensure!(self.pixel_fraction > 0.0 && self.pixel_fraction <= 1.0, "pixel fraction must be in (0, 1]");
         anyhow::ensure!(self.lr > 0.0 && self.lr.is_finite(), "learning rate must be positive");
         anyhow::ensure!(self.init_from.is_none() || self.warm_start.is_none(), "--init-from and --warm-start exclude each other");
@@ -593,7 +593,7 @@ mod tests {
         assert!(e.contains("--hemisphere-outputs 7 and --colocated-outputs 2 are more than the 8 outputs"), "{e}");
         // So do the moved-highlight outputs.
         let e = TrainConfig { phone_inputs: 0.5, ..Default::default() }.validate().unwrap_err().to_string();
-        assert!(e.contains("--phone-inputs needs --ldr-input"), "{e}");
+        assert!(e.contains("--phone-inputs needs --ldr "), "{e}");
         assert!(TrainConfig { phone_inputs: 0.5, ldr_input: true, ..Default::default() }.validate().is_ok());
         assert!(TrainConfig { moved_highlight_outputs: 2, hemisphere_outputs: 4, colocated_outputs: 2, ..Default::default() }.validate().is_ok());
         let e = TrainConfig { moved_highlight_outputs: 3, hemisphere_outputs: 4, colocated_outputs: 2, ..Default::default() }.validate().unwrap_err().to_string();
