@@ -174,6 +174,11 @@ DISTILL_VALUE_WEIGHT="${FLASHMAT_GPU_DISTILL_VALUE_WEIGHT:-0}"
 # median; 2x the median of the first steps (22.76 on the CPU) kept it
 # (section 10). The distill report prints the norms to choose it by.
 DISTILL_GRAD_CLIP="${FLASHMAT_GPU_DISTILL_GRAD_CLIP:-0}"
+# Share of the student's input photos taken as a phone takes them
+# (--phone-inputs; 0: the exact co-located render). On the CPU (section 11,
+# one run each) it cost no photo fit and raised the lobe at equal steps:
+# 0.20 -> 0.27 on the exact photos, 0.25 -> 0.31 on phone photos.
+DISTILL_PHONE="${FLASHMAT_GPU_DISTILL_PHONE:-0.5}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
 # What the networks compute in (flashmat train --precision): tf32 until
 # the side-by-side benchmark (bench) has measured bf16 on the card.
@@ -490,6 +495,7 @@ distill() {
     --preview-every 1000000 --keep-exports --device "$DEVICE" --precision "$PRECISION" --seed "$((SEED + 30))")
   [ "$DISTILL_VALUE_WEIGHT" = 0 ] || args+=(--ggx-value-weight "$DISTILL_VALUE_WEIGHT")
   [ "$DISTILL_GRAD_CLIP" = 0 ] || args+=(--grad-clip "$DISTILL_GRAD_CLIP")
+  [ "$DISTILL_PHONE" = 0 ] || args+=(--phone-inputs "$DISTILL_PHONE")
   start_util_sampler "$dir/gpu-util.csv"
   local t1; t1=$(date +%s)
   "$BIN" train --out "$dir/run" "${args[@]}" --export-dir "$dir/exports" >"$dir/train.log" 2>&1 \
@@ -785,6 +791,7 @@ cpu_dry_run() {
   grep -q '"freeze_renderer": true' "$tmp/machine/distill/run/config.json" && grep -q '"weight_code": 1' "$tmp/machine/distill/run/config.json" \
     && grep -q '"code_gloss_weight": 4' "$tmp/machine/distill/run/config.json" \
     || die "dry run: distill did not train M_est alone with the code term, glossy pixels weighted"
+  grep -q '"phone_inputs": 0.5' "$tmp/machine/distill/run/config.json" || die "dry run: distill's inputs were not phone photos (FLASHMAT_GPU_DISTILL_PHONE)"
   grep -q '"grad_clip": 5' "$tmp/machine/distill/run/config.json" && grep -q "M_est's gradient norm (before any clip): median" "$tmp/out6/distill.md" \
     || die "dry run: distill did not clip at FLASHMAT_GPU_DISTILL_GRAD_CLIP or report the gradient norms"
   grep -q '^## Moved highlights' "$tmp/out6/distill.md" && grep -q 'code error (relative L1)' "$tmp/out6/distill.md" \

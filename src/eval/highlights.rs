@@ -387,7 +387,7 @@ pub fn markdown(methods: &[(String, Vec<MaterialHighlights>)], cfg: &HighlightCo
     let lights: Vec<String> = cfg.lights.iter().map(|l| format!("({}, {}, {})", l[0], l[1], l[2])).collect();
     let _ = writeln!(
         s,
-        "Camera fixed at the photo's, lights {}. S_in: pixels of the co-located truth (the photo before the 8-bit clamp) brighter than {}x its median (RGB mean); S_gt: the same of the truth under the new light. \
+        "Camera fixed at the photo's, lights {}. S_in: pixels of the photo's render before the 8-bit clamp (the co-located truth; with `--phone-photos` the phone's) brighter than {}x its median (RGB mean); S_gt: the same of the truth under the new light. \
          Ratios of mean linear radiance, method over truth: **ghost** on S_in \\ S_gt (1 = the photographed highlight is gone), **lobe** on S_gt \\ S_in \
          (1 = the new highlight at full strength), **rest** elsewhere; per material the mean over the lights leaving more than {} pixels (at 256x256) in the region. \
          Cells: geometric mean | median | materials past {GHOST_PAST}x (ghost), below {LOBE_BELOW}x (lobe), outside 0.9-1.1 (rest) / materials with the region. \
