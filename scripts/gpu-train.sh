@@ -176,8 +176,8 @@ DISTILL_VALUE_WEIGHT="${FLASHMAT_GPU_DISTILL_VALUE_WEIGHT:-0}"
 DISTILL_GRAD_CLIP="${FLASHMAT_GPU_DISTILL_GRAD_CLIP:-0}"
 # Share of the student's input photos taken as a phone takes them
 # (--phone-inputs; 0: the exact co-located render). On the CPU (section 11,
-# one run each) it cost no photo fit and raised the lobe at equal steps:
-# 0.20 -> 0.27 on the exact photos, 0.25 -> 0.31 on phone photos.
+# two seeds) it cost no photo fit and raised the lobe at equal steps:
+# +0.03-0.07 on the exact photos, +0.05-0.06 on phone photos.
 DISTILL_PHONE="${FLASHMAT_GPU_DISTILL_PHONE:-0.5}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
 # What the networks compute in (flashmat train --precision): tf32 until
