@@ -520,6 +520,15 @@ pub fn write_jpeg(path: &Path, image: &Image, quality: u8) -> Result<()> {
     })
 }
 
+/// Encodes 8-bit RGB (`[H, W, 3]` interleaved) as a JPEG at `quality`
+/// (1-100) in memory and decodes it again: what a phone's file keeps
+/// (`data::phone`). -> the decoded `[H, W, 3]` bytes.
+pub fn jpeg_round_trip(rgb: &[u8], width: usize, height: usize, quality: u8) -> Result<Vec<u8>> {
+    let mut file = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut file, quality.clamp(1, 100)).encode(rgb, width as u32, height as u32, image::ExtendedColorType::Rgb8)?;
+    Ok(image::load_from_memory_with_format(&file, image::ImageFormat::Jpeg)?.to_rgb8().into_raw())
+}
+
 /// Writes an uncompressed-precision (float32, lossless compression) OpenEXR
 /// file: 1 channel as Y, 2 as Y, A, 3 as R, G, B, 4 as R, G, B, A. Values
 /// are stored exactly (Inf allowed, NaN an error). Replaced atomically.

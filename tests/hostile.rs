@@ -596,6 +596,7 @@ fn build_corpus(root: &Path) -> Vec<Case> {
         ("nmat-rows --count 10^12", vec!["nmat-rows", "in/m.nmat", "--count", "1000000000000", "-o", "{out}/rows.json"].into_iter().map(String::from).collect(), error(&["--count", "FLASHMAT_MAX_COUNT"])),
         ("nmat-rows --count 0", vec!["nmat-rows", "in/m.nmat", "--count", "0", "-o", "{out}/rows.json"].into_iter().map(String::from).collect(), error(&["--count"])),
         ("train --phone-inputs without --ldr", vec!["train", "--preset", "tiny", "--phone-inputs", "0.5", "--out", "{out}/run"].into_iter().map(String::from).collect(), error(&["--phone-inputs needs --ldr "])),
+        ("train --phone-jpeg without --phone-inputs", vec!["train", "--preset", "tiny", "--ldr", "--phone-jpeg", "--out", "{out}/run"].into_iter().map(String::from).collect(), usage(&["required arguments were not provided"])),
         ("eval --phone-photos without --ldr-input", vec!["eval", "--model", "printout", "--phone-photos", "-o", "{out}/report"].into_iter().map(String::from).collect(), usage(&["required arguments were not provided"])),
         ("eval --limit 0", vec!["eval", "--model", "printout", "--limit", "0", "-o", "{out}/report"].into_iter().map(String::from).collect(), usage(&["--limit"])),
         ("eval --configs 0", vec!["eval", "--model", "printout", "--configs", "0", "-o", "{out}/report"].into_iter().map(String::from).collect(), usage(&["--configs"])),

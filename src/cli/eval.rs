@@ -3,6 +3,7 @@
 
 use flashmat::eval::captures::CaptureEvalOptions;
 use flashmat::eval::shadows::ShadowEvalOptions;
+use flashmat::data::phone::{PhonePhotoConfig, PHONE_JPEG_QUALITY};
 use flashmat::eval::{self, EvalOptions, DEFAULT_CONFIGS, PROCEDURAL_TEST};
 use flashmat::svbrdf::shadow::ShadowOptions;
 use flashmat::geometry::Sampling;
@@ -97,6 +98,9 @@ pub struct EvalArgs {
     /// (one draw per material from --seed; needs --ldr-input). The truths are the same.
     #[arg(long, requires = "ldr_input", conflicts_with_all = ["captures", "uniform", "ceiling"])]
     pub phone_photos: bool,
+    /// Save those phone photos as JPEGs, at a quality drawn from 85-95 per photo (needs --phone-photos).
+    #[arg(long, requires = "phone_photos")]
+    pub phone_jpeg: bool,
 }
 
 impl EvalArgs {
@@ -164,7 +168,7 @@ fn eval_options(args: &EvalArgs) -> Result<EvalOptions> {
         exposures: args.exposures.clone(),
         exposure: args.exposure_mode.config(),
         highlight_fill: args.highlight_fill_config(),
-        phone_photos: args.phone_photos,
+        phone_photos: args.phone_photos.then(|| PhonePhotoConfig { jpeg_quality: args.phone_jpeg.then_some(PHONE_JPEG_QUALITY), ..Default::default() }),
     })
 }
 

@@ -155,6 +155,10 @@ pub struct TrainArgs {
     /// default and paper: 0, the exact co-located render). New runs only.
     #[arg(long, value_name = "P", value_parser = super::fraction, conflicts_with = "resume")]
     pub phone_inputs: Option<f64>,
+    /// Save those phone photos as JPEGs, at a quality drawn from 85-95 per photo (needs --phone-inputs). New runs
+    /// only.
+    #[arg(long, requires = "phone_inputs", conflicts_with = "resume")]
+    pub phone_jpeg: bool,
     /// Keep M_est's upsampling kernels checkerboard-free (projected after every update: a flat photo
     /// gives a flat neural map; paper: free). With --resume: from the resumed step on.
     #[arg(long)]
@@ -423,6 +427,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         hemisphere_outputs: a.hemisphere_outputs.unwrap_or(0),
         moved_highlight_outputs: a.moved_highlight_outputs.unwrap_or(0),
         phone_inputs: a.phone_inputs.unwrap_or(0.0),
+        phone_jpeg: a.phone_jpeg,
         checkerboard_free: a.checkerboard_free,
         freeze_estimator: a.freeze_estimator,
         freeze_renderer: a.freeze_renderer,

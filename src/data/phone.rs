@@ -2,7 +2,7 @@
 //! as colour"): the camera not exactly above the material's centre (the flash
 //! highlight off-centre, the view a little oblique), nearer or farther, the
 //! flash beside the lens instead of in it, and the picture an 8-bit sRGB
-//! file with sensor noise. M_est is still told the model's co-located
+//! file (optionally a JPEG) with sensor noise. M_est is still told the model's co-located
 //! overhead geometry (its h_z channel), as at inference, where the photo's
 //! true geometry is unknown.
 
@@ -30,11 +30,18 @@ pub struct PhonePhotoConfig {
     pub shot_noise: f64,
     /// Read noise: the standard deviation at black.
     pub read_noise: f64,
+    /// The file a JPEG at a quality drawn from this range (inclusive);
+    /// None: a lossless 8-bit file.
+    #[serde(default)]
+    pub jpeg_quality: Option<(u8, u8)>,
 }
+
+/// The JPEG qualities phones' cameras save at (`--phone-jpeg`).
+pub const PHONE_JPEG_QUALITY: (u8, u8) = (85, 95);
 
 impl Default for PhonePhotoConfig {
     fn default() -> Self {
-        Self { camera_offset: 0.3, height: (0.85, 1.2), flash_offset: (0.1, 0.3), shot_noise: 1e-4, read_noise: 0.002 }
+        Self { camera_offset: 0.3, height: (0.85, 1.2), flash_offset: (0.1, 0.3), shot_noise: 1e-4, read_noise: 0.002, jpeg_quality: None }
     }
 }
 
@@ -62,16 +69,33 @@ pub fn exposure_factor(light: [f64; 3], fov_deg: f64) -> f64 {
 
 /// Makes a linear render a phone's picture, in place: times `exposure`,
 /// noise of variance shot x max(v, 0) + read^2 per value, then the 8-bit
-/// sRGB file read back as `flashmat estimate` reads it (clamped to [0, 1],
-/// sRGB-encoded, rounded to 1/255, decoded). photo: any layout of linear values.
-pub fn finish_phone_photo<R: Rng>(photo: &mut [f32], exposure: f64, cfg: &PhonePhotoConfig, rng: &mut R) {
+/// sRGB file (a JPEG with `cfg.jpeg_quality`) read back as `flashmat
+/// estimate` reads it (clamped to [0, 1], sRGB-encoded, rounded to 1/255,
+/// decoded). photo: `[3, H, W]` linear values, W = `width`.
+pub fn finish_phone_photo<R: Rng>(photo: &mut [f32], width: usize, exposure: f64, cfg: &PhonePhotoConfig, rng: &mut R) -> anyhow::Result<()> {
     let read = cfg.read_noise * cfg.read_noise;
-    for v in photo.iter_mut() {
-        let x = *v as f64 * exposure;
-        let z: f64 = rng.sample(StandardNormal);
-        let noisy = x + (cfg.shot_noise * x.max(0.0) + read).sqrt() * z;
-        *v = photo_decode(quantize_u8(photo_encode(noisy as f32)) as f32 / 255.0);
+    let mut codes: Vec<u8> = photo
+        .iter()
+        .map(|&v| {
+            let x = v as f64 * exposure;
+            let z: f64 = rng.sample(StandardNormal);
+            quantize_u8(photo_encode((x + (cfg.shot_noise * x.max(0.0) + read).sqrt() * z) as f32))
+        })
+        .collect();
+    // Drawn after the noise, so photos without JPEG draw what they always drew.
+    if let Some((lo, hi)) = cfg.jpeg_quality {
+        let plane = photo.len() / 3;
+        let height = plane / width;
+        let interleaved: Vec<u8> = (0..plane * 3).map(|i| codes[(i % 3) * plane + i / 3]).collect();
+        let decoded = crate::io::jpeg_round_trip(&interleaved, width, height, rng.random_range(lo..=hi))?;
+        for (i, &c) in decoded.iter().enumerate() {
+            codes[(i % 3) * plane + i / 3] = c;
+        }
     }
+    for (v, c) in photo.iter_mut().zip(codes) {
+        *v = photo_decode(c as f32 / 255.0);
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -116,8 +140,8 @@ mod tests {
         let quiet = PhonePhotoConfig { shot_noise: 0.0, read_noise: 0.0, ..Default::default() };
         let mut rng = Pcg64::seed_from_u64(5);
         // Without noise: exposure applied, clipped at 1, on the 8-bit sRGB grid.
-        let mut v = vec![0.2f32, 0.9, -0.1, 0.5];
-        finish_phone_photo(&mut v, 2.0, &quiet, &mut rng);
+        let mut v = vec![0.2f32, 0.9, -0.1, 0.5, 0.0, 0.0];
+        finish_phone_photo(&mut v, 2, 2.0, &quiet, &mut rng).unwrap();
         assert_eq!(v[1], 1.0);
         assert_eq!(v[2], 0.0);
         assert_eq!(v[3], 1.0);
@@ -126,8 +150,8 @@ mod tests {
         // With noise, at 0.2: standard deviation sqrt(1e-4 x 0.2 + 0.002^2) = 0.00490;
         // the rounding adds the 8-bit step's square / 12 (0.0036 in linear near 0.2).
         let cfg = PhonePhotoConfig::default();
-        let mut grey = vec![0.2f32; 40_000];
-        finish_phone_photo(&mut grey, 1.0, &cfg, &mut rng);
+        let mut grey = vec![0.2f32; 3 * 200 * 200];
+        finish_phone_photo(&mut grey, 200, 1.0, &cfg, &mut rng).unwrap();
         let n = grey.len() as f64;
         let mean = grey.iter().map(|&v| v as f64).sum::<f64>() / n;
         let sd = (grey.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
@@ -136,5 +160,37 @@ mod tests {
         let expected = (1e-4 * 0.2 + 0.002f64.powi(2) + step * step / 12.0).sqrt();
         assert!((mean - 0.2).abs() < 2e-4, "{mean}");
         assert!((sd / expected - 1.0).abs() < 0.05, "{sd} against {expected}");
+    }
+
+    #[test]
+    fn a_jpeg_photo_stays_near_the_lossless_one_and_loses_more_at_lower_quality() {
+        // [3, 32, 48]: a smooth ramp with a 4-pixel checker on the red channel.
+        let (h, w) = (32, 48);
+        let photo: Vec<f32> = (0..3 * h * w)
+            .map(|i| {
+                let (c, y, x) = (i / (h * w), i / w % h, i % w);
+                0.05 + 0.4 * x as f32 / w as f32 + if c == 0 && (x / 4 + y / 4) % 2 == 0 { 0.3 } else { 0.0 }
+            })
+            .collect();
+        let quiet = PhonePhotoConfig { shot_noise: 0.0, read_noise: 0.0, ..Default::default() };
+        let finish = |jpeg_quality| {
+            let mut v = photo.clone();
+            finish_phone_photo(&mut v, w, 1.0, &PhonePhotoConfig { jpeg_quality, ..quiet.clone() }, &mut Pcg64::seed_from_u64(1)).unwrap();
+            v
+        };
+        let lossless = finish(None);
+        // Mean absolute error in sRGB codes against the lossless file.
+        let error = |v: &[f32]| {
+            let codes = |x: &[f32]| x.iter().map(|&x| photo_encode(x) * 255.0).collect::<Vec<_>>();
+            codes(v).iter().zip(codes(&lossless)).map(|(a, b)| (a - b).abs() as f64).sum::<f64>() / v.len() as f64
+        };
+        let (fine, coarse) = (finish(Some((95, 95))), finish(Some((30, 30))));
+        for v in fine.iter().chain(&coarse) {
+            let code = photo_encode(*v) * 255.0;
+            assert!((code - code.round()).abs() < 1e-3, "{code} is off the 8-bit grid");
+        }
+        let (e_fine, e_coarse) = (error(&fine), error(&coarse));
+        assert!(e_fine > 0.05 && e_fine < 3.0, "{e_fine}");
+        assert!(e_coarse > 1.5 * e_fine, "{e_coarse} against {e_fine}");
     }
 }

@@ -201,7 +201,7 @@ fn render_on_cpu(
     configs: &[LightView],
     k: usize,
     shadows: Option<&ShadowOptions>,
-    finish: &mut dyn FnMut(usize, &mut [f32]),
+    finish: &mut dyn FnMut(usize, &mut [f32]) -> Result<()>,
     device: Device,
 ) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
     let (h, w) = (materials[0].height() as i64, materials[0].width() as i64);
@@ -213,7 +213,7 @@ fn render_on_cpu(
             Some(options) => crate::svbrdf::cpu::render_with_directions_shadowed(m, &all, options)?,
             None => crate::svbrdf::cpu::render_with_directions(m, &all),
         };
-        finish(i, &mut r[..(3 * h * w) as usize]);
+        finish(i, &mut r[..(3 * h * w) as usize])?;
         let shape = [1 + k as i64, 3, h, w];
         let r = Tensor::from_slice(&r).view(shape);
         input_renders.push(r.get(0));
@@ -309,10 +309,9 @@ pub fn make_batch<R: Rng>(materials: &[Svbrdf], cfg: &SampleConfig, rng: &mut R,
     // run without them draws what it always drew.
     let phone: Vec<Option<LightView>> = (0..n).map(|_| (cfg.phone_inputs > 0.0 && rng.random_bool(cfg.phone_inputs)).then(|| phone_light_view(rng, cfg.fov_deg, &cfg.phone))).collect();
     let inputs: Vec<LightView> = phone.iter().map(|p| p.unwrap_or_else(|| LightView::colocated(cfg.fov_deg))).collect();
-    let mut finish = |i: usize, photo: &mut [f32]| {
-        if let Some(p) = phone[i] {
-            finish_phone_photo(photo, exposure_factor(p.light, cfg.fov_deg), &cfg.phone, rng);
-        }
+    let mut finish = |i: usize, photo: &mut [f32]| match phone[i] {
+        Some(p) => finish_phone_photo(photo, materials[i].width(), exposure_factor(p.light, cfg.fov_deg), &cfg.phone, rng),
+        None => Ok(()),
     };
     // Input and outputs are rendered together by the f32 CPU renderer (much
     // faster than tensor ops on a CPU), then moved to the device.
@@ -342,7 +341,7 @@ pub fn input_only(materials: &[Svbrdf], cfg: &SampleConfig, device: Device) -> R
     ensure!(!materials.is_empty(), "empty material batch");
     let shadows = ShadowOptions { height_scale: cfg.height_scale, ..Default::default() };
     let inputs = vec![LightView::colocated(cfg.fov_deg); materials.len()];
-    let (input, ..) = render_on_cpu(materials, &inputs, &[], 0, cfg.shadows.then_some(&shadows), &mut |_, _| {}, device)?;
+    let (input, ..) = render_on_cpu(materials, &inputs, &[], 0, cfg.shadows.then_some(&shadows), &mut |_, _| Ok(()), device)?;
     Ok(training_est_input(input, cfg, device).1)
 }
 
@@ -523,6 +522,13 @@ mod tests {
         // Brought to the co-located photo's exposure: the means agree within the highlight's move.
         let ratio = f64::try_from(b.input_linear.mean(Kind::Float) / a.input_linear.mean(Kind::Float)).unwrap();
         assert!((0.8..1.25).contains(&ratio), "{ratio}");
+        // As JPEGs: the same draws (the quality comes after the noise), so
+        // the same targets and a photo near the lossless one, but not it.
+        let jpeg = SampleConfig { phone: PhonePhotoConfig { jpeg_quality: Some((85, 95)), ..Default::default() }, ..phone };
+        let c = make_batch(&mats, &jpeg, &mut Pcg64::seed_from_u64(9), Device::Cpu).unwrap();
+        assert_eq!(f64::try_from((&c.targets - &b.targets).abs().max()).unwrap(), 0.0);
+        let gap = f64::try_from((&c.input_linear - &b.input_linear).abs().mean(Kind::Float)).unwrap();
+        assert!(gap > 0.0 && gap < 0.01, "{gap}");
     }
 
     #[test]

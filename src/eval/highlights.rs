@@ -450,7 +450,7 @@ pub fn picture(methods: &mut [Box<dyn Method>], materials: &[(String, Svbrdf)], 
     let configs: Vec<LightView> = cfg.configs().into_iter().take(2).collect();
     let mut rows = vec![];
     for &i in &picks {
-        let photo = super::material_photo(&materials[i].1, i, opts).1;
+        let photo = super::material_photo(&materials[i].1, i, opts)?.1;
         let truth = super::reference_renders(&materials[i].1, &configs);
         let mut preds = vec![];
         for method in methods.iter_mut() {

@@ -126,8 +126,9 @@ pub struct EvalOptions {
     /// Also score every flashmat model with its photographed highlight
     /// filled (`--highlight-fill`; rows `NAME+fill`).
     pub highlight_fill: Option<crate::infer::highlight_fill::HighlightFillConfig>,
-    /// Photos taken as a phone takes them (`--phone-photos`, [`material_photo`]).
-    pub phone_photos: bool,
+    /// Photos taken as a phone takes them, so far astray (`--phone-photos`,
+    /// `--phone-jpeg`, [`material_photo`]); None: the exact co-located render.
+    pub phone_photos: Option<PhonePhotoConfig>,
 }
 
 /// One line of a method's CSV.
@@ -222,21 +223,20 @@ pub fn input_photo(m: &Svbrdf, ldr: bool) -> Tensor {
 /// photo instead ([`crate::data::phone`]: camera, flash and noise drawn from
 /// the seed and the index; the render brought to the co-located photo's
 /// exposure). -> (linear render, photo).
-pub fn material_photo(m: &Svbrdf, index: usize, opts: &EvalOptions) -> (Tensor, Tensor) {
-    if !opts.phone_photos {
+pub fn material_photo(m: &Svbrdf, index: usize, opts: &EvalOptions) -> Result<(Tensor, Tensor)> {
+    let Some(cfg) = &opts.phone_photos else {
         let linear = colocated_render(m);
         let photo = exposure::exposed(&linear, 0.0, opts.ldr_input);
-        return (linear, photo);
-    }
-    let cfg = PhonePhotoConfig::default();
+        return Ok((linear, photo));
+    };
     let mut rng = Pcg64::seed_from_u64(case_seed(opts.seed, index, Sampling::Identity) ^ PHONE_STREAM);
-    let config = phone_light_view(&mut rng, MODEL_FOV_DEG, &cfg);
+    let config = phone_light_view(&mut rng, MODEL_FOV_DEG, cfg);
     let gain = exposure_factor(config.light, MODEL_FOV_DEG);
     let mut values = crate::svbrdf::cpu::render(m, &[config]);
     let shape = [3, m.height() as i64, m.width() as i64];
     let linear = Tensor::from_slice(&values).view(shape) * gain;
-    finish_phone_photo(&mut values, gain, &cfg, &mut rng);
-    (linear, Tensor::from_slice(&values).view(shape))
+    finish_phone_photo(&mut values, m.width(), gain, cfg, &mut rng)?;
+    Ok((linear, Tensor::from_slice(&values).view(shape)))
 }
 
 /// Tells a phone photo's random stream from the identity case's.
@@ -255,7 +255,7 @@ pub fn evaluate(
     let bar = if opts.progress { ProgressBar::new((materials.len() * methods.len()) as u64) } else { ProgressBar::hidden() };
     bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} material x method, {elapsed} (eta {eta}) {msg}").expect("valid template"));
     for (mi, (name, m)) in materials.iter().enumerate() {
-        let (linear, photo) = material_photo(m, mi, opts);
+        let (linear, photo) = material_photo(m, mi, opts)?;
         let moved_truth = reference_renders(m, &moved.configs());
         let glossiness = highlights::glossiness(m);
         let cases: Vec<(Sampling, Vec<LightView>, Tensor)> = opts
@@ -300,7 +300,7 @@ pub fn check_eval_size(size: usize) -> Result<()> {
 pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     ensure!(!opts.cases.is_empty(), "give at least one case with --cases (reflect, identity, hemisphere)");
     ensure!(opts.configs > 0, "--configs must be at least 1");
-    ensure!(!opts.phone_photos || opts.ldr_input, "--phone-photos needs --ldr-input (a phone writes 8-bit photos)");
+    ensure!(opts.phone_photos.is_none() || opts.ldr_input, "--phone-photos needs --ldr-input (a phone writes 8-bit photos)");
     check_eval_size(opts.size)?;
     let mut cases = opts.cases.clone();
     cases.dedup();

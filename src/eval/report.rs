@@ -119,10 +119,11 @@ pub fn summary_markdown(opts: &EvalOptions, results: &[MethodResults]) -> String
         opts.size,
         opts.seed,
         opts.configs,
-        match (opts.phone_photos, opts.ldr_input) {
-            (true, _) => "phone (8-bit sRGB, camera off-centre, flash beside the lens, noise: `--phone-photos`)",
-            (false, true) => "LDR (clamped)",
-            (false, false) => "HDR",
+        match (&opts.phone_photos, opts.ldr_input) {
+            (Some(p), _) if p.jpeg_quality.is_some() => "phone (JPEG, camera off-centre, flash beside the lens, noise: `--phone-photos --phone-jpeg`)",
+            (Some(_), _) => "phone (8-bit sRGB, camera off-centre, flash beside the lens, noise: `--phone-photos`)",
+            (None, true) => "LDR (clamped)",
+            (None, false) => "HDR",
         }
     );
     let metrics: [(&str, fn(&super::Scores) -> f64, usize); 3] = [
@@ -252,7 +253,7 @@ pub fn rank_materials(results: &[MethodResults], materials: usize) -> Vec<usize>
 /// Grid for one material: a row per case (its first configuration):
 /// input photo | GGX reference | each method.
 pub fn material_grid(opts: &EvalOptions, methods: &mut [Box<dyn Method>], index: usize, m: &Svbrdf) -> Result<Image> {
-    let photo = material_photo(m, index, opts).1;
+    let photo = material_photo(m, index, opts)?.1;
     for method in methods.iter_mut() {
         method.prepare(&photo)?;
     }

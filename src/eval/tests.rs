@@ -22,7 +22,7 @@ fn small_eval(models: Vec<String>, out: &std::path::Path) -> EvalOptions {
         exposures: vec![0.0],
         exposure: crate::infer::ExposureConfig::default(),
         highlight_fill: None,
-        phone_photos: false,
+        phone_photos: None,
     }
 }
 
@@ -312,20 +312,20 @@ fn the_one_csv_of_an_eval_folder_is_found_and_ambiguity_refused() {
 #[test]
 fn phone_photos_are_drawn_per_material_and_scored_against_the_same_truths() {
     let t = tempfile::tempdir().unwrap();
-    let opts = EvalOptions { ldr_input: true, phone_photos: true, cases: vec![Sampling::Identity], ..small_eval(vec![PRINTOUT.into()], t.path()) };
+    let opts = EvalOptions { ldr_input: true, phone_photos: Some(Default::default()), cases: vec![Sampling::Identity], ..small_eval(vec![PRINTOUT.into()], t.path()) };
     let m = crate::data::procedural::test_material(0, 32);
-    let (linear, photo) = material_photo(&m, 0, &opts);
-    let (again_linear, again) = material_photo(&m, 0, &opts);
+    let (linear, photo) = material_photo(&m, 0, &opts).unwrap();
+    let (again_linear, again) = material_photo(&m, 0, &opts).unwrap();
     assert_eq!(f64::try_from((&photo - &again).abs().max()).unwrap(), 0.0, "one draw per material and seed");
     assert_eq!(f64::try_from((&linear - &again_linear).abs().max()).unwrap(), 0.0);
-    let other = material_photo(&m, 1, &opts).1;
+    let other = material_photo(&m, 1, &opts).unwrap().1;
     assert!(f64::try_from((&photo - &other).abs().max()).unwrap() > 0.0, "another index draws another photo");
     // The photo is the render, noised and on the 8-bit sRGB grid.
     for v in Vec::<f32>::try_from(photo.flatten(0, -1)).unwrap() {
         let code = (crate::spaces::photo_encode(v) * 255.0).round();
         assert!((crate::spaces::photo_decode(code / 255.0) - v).abs() < 1e-6, "{v}");
     }
-    let plain = material_photo(&m, 0, &EvalOptions { phone_photos: false, ..opts.clone() });
+    let plain = material_photo(&m, 0, &EvalOptions { phone_photos: None, ..opts.clone() }).unwrap();
     assert!(f64::try_from((&plain.0 - &linear).abs().max()).unwrap() > 0.0, "the phone's render is not the co-located one");
     let mean_gap = f64::try_from((crate::spaces::ldr_clamp(&linear) - &photo).abs().mean(tch::Kind::Float)).unwrap();
     assert!(mean_gap < 0.02, "{mean_gap}");

@@ -149,6 +149,10 @@ pub struct TrainConfig {
     /// it (`SampleConfig::phone_inputs`; needs `ldr_input`); 0 is the paper's.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub phone_inputs: f64,
+    /// Those photos saved as JPEGs (`PhonePhotoConfig::jpeg_quality`,
+    /// at the qualities phones use); needs `phone_inputs`.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub phone_jpeg: bool,
     /// Keep M_est's upsampling kernels checkerboard-free: projected
     /// (`MEst::project_checkerboard_free`) when the run starts or resumes
     /// and after every update, so a flat photo gives a flat neural map
@@ -341,6 +345,7 @@ impl Default for TrainConfig {
             hemisphere_outputs: 0,
             moved_highlight_outputs: 0,
             phone_inputs: 0.0,
+            phone_jpeg: false,
             checkerboard_free: false,
             freeze_estimator: false,
             freeze_renderer: false,
@@ -499,6 +504,7 @@ impl TrainConfig {
         );
         anyhow::ensure!((0.0..=1.0).contains(&self.phone_inputs), "--phone-inputs must lie in [0, 1], got {}", self.phone_inputs);
         anyhow::ensure!(self.phone_inputs == 0.0 || self.ldr_input, "--phone-inputs needs --ldr (a phone writes 8-bit photos)");
+        anyhow::ensure!(!self.phone_jpeg || self.phone_inputs > 0.0, "--phone-jpeg needs --phone-inputs");
         anyhow::ensure!(self.pixel_fraction > 0.0 && self.pixel_fraction <= 1.0, "pixel fraction must be in (0, 1]");
         anyhow::ensure!(self.lr > 0.0 && self.lr.is_finite(), "learning rate must be positive");
         anyhow::ensure!(self.init_from.is_none() || self.warm_start.is_none(), "--init-from and --warm-start exclude each other");
@@ -595,6 +601,8 @@ mod tests {
         let e = TrainConfig { phone_inputs: 0.5, ..Default::default() }.validate().unwrap_err().to_string();
         assert!(e.contains("--phone-inputs needs --ldr "), "{e}");
         assert!(TrainConfig { phone_inputs: 0.5, ldr_input: true, ..Default::default() }.validate().is_ok());
+        let e = TrainConfig { phone_jpeg: true, ldr_input: true, ..Default::default() }.validate().unwrap_err().to_string();
+        assert!(e.contains("--phone-jpeg needs --phone-inputs"), "{e}");
         assert!(TrainConfig { moved_highlight_outputs: 2, hemisphere_outputs: 4, colocated_outputs: 2, ..Default::default() }.validate().is_ok());
         let e = TrainConfig { moved_highlight_outputs: 3, hemisphere_outputs: 4, colocated_outputs: 2, ..Default::default() }.validate().unwrap_err().to_string();
         assert!(e.contains("--moved-highlight-outputs 3, --hemisphere-outputs 4 and --colocated-outputs 2 are more than the 8 outputs"), "{e}");
