@@ -179,6 +179,10 @@ DISTILL_GRAD_CLIP="${FLASHMAT_GPU_DISTILL_GRAD_CLIP:-0}"
 # two seeds) it cost no photo fit and raised the lobe at equal steps:
 # +0.03-0.07 on the exact photos, +0.05-0.06 on phone photos.
 DISTILL_PHONE="${FLASHMAT_GPU_DISTILL_PHONE:-0.5}"
+# The student's crop: 256, the size the held-out photos are estimated at.
+# On the CPU (section 12, three runs at equal time) it drew the lobe at
+# 0.33-0.42 against 0.20-0.27 at crop 128.
+DISTILL_CROP="${FLASHMAT_GPU_DISTILL_CROP:-256}"
 DEVICE="${FLASHMAT_GPU_DEVICE:-cuda}"
 # What the networks compute in (flashmat train --precision): tf32 until
 # the side-by-side benchmark (bench) has measured bf16 on the card.
@@ -489,7 +493,7 @@ distill() {
     how="trained here, $DISTILL_TEACHER_STEPS steps at lobe share $DISTILL_TEACHER_LOBE, dark floor $DISTILL_TEACHER_DARK, $TEACHER_PIXELS pixels a step, $(($(date +%s) - t0)) s; $(grep held_out "$dir/teacher/log.jsonl" | tail -n 1)"
   fi
   local args=(--preset "$DISTILL_PRESET" --ldr --teacher "$teacher" --code-weight "$DISTILL_CODE_WEIGHT" --code-gloss-weight "$DISTILL_CODE_GLOSS" --warm-start "$base"
-    --freeze-renderer --adv-weight 0 --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --colocated-outputs "$FROZEN_COLOCATED"
+    --freeze-renderer --adv-weight 0 --crop "$DISTILL_CROP" --batch "$BATCH" --outputs "$OUTPUTS" --colocated-outputs "$FROZEN_COLOCATED"
     --lr "$DISTILL_LR" --warmup-steps 50 --straight-through-output --checkerboard-free --lpips-weight 0.1 --chroma-weight 1
     --dark-share "$DARK_SHARE" --bank "$BANK" --steps 100000000 --minutes "$minutes" --checkpoint-every "$FROZEN_EVERY"
     --preview-every 1000000 --keep-exports --device "$DEVICE" --precision "$PRECISION" --seed "$((SEED + 30))")
@@ -782,7 +786,7 @@ cpu_dry_run() {
   n=$(find "$tmp/out4" -type f | wc -l)
   [ "$n" -le 8 ] || die "dry run: the frozen chain brings back $n files (a job returns at most 8)"
   echo "== distill: a teacher trained with lobe samples, then M_est alone learning its codes"
-  FLASHMAT_GPU_DISTILL_PRESET=tiny FLASHMAT_GPU_DISTILL_TEACHER_STEPS=20 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/no-teacher" FLASHMAT_GPU_DISTILL_GRAD_CLIP=5 \
+  FLASHMAT_GPU_DISTILL_PRESET=tiny FLASHMAT_GPU_DISTILL_CROP=32 FLASHMAT_GPU_DISTILL_TEACHER_STEPS=20 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/no-teacher" FLASHMAT_GPU_DISTILL_GRAD_CLIP=5 \
     FLASHMAT_GPU_FROZEN_EVERY=2 FLASHMAT_GPU_EVAL_EXTRA="--limit 2 --size 64" OUT="$tmp/out6" bash "$self" distill 0.1
   for f in model.safetensors teacher.safetensors distill.md distill.tgz; do
     [ -f "$tmp/out6/$f" ] || die "dry run: distill brought back no $f"
