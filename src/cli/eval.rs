@@ -3,7 +3,7 @@
 
 use flashmat::eval::captures::CaptureEvalOptions;
 use flashmat::eval::shadows::ShadowEvalOptions;
-use flashmat::data::phone::{PhonePhotoConfig, PHONE_JPEG_QUALITY};
+use flashmat::data::phone::PhonePhotoConfig;
 use flashmat::eval::{self, EvalOptions, DEFAULT_CONFIGS, PROCEDURAL_TEST};
 use flashmat::svbrdf::shadow::ShadowOptions;
 use flashmat::geometry::Sampling;
@@ -168,7 +168,7 @@ fn eval_options(args: &EvalArgs) -> Result<EvalOptions> {
         exposures: args.exposures.clone(),
         exposure: args.exposure_mode.config(),
         highlight_fill: args.highlight_fill_config(),
-        phone_photos: args.phone_photos.then(|| PhonePhotoConfig { jpeg_quality: args.phone_jpeg.then_some(PHONE_JPEG_QUALITY), ..Default::default() }),
+        phone_photos: args.phone_photos.then(|| PhonePhotoConfig::saving_jpeg(args.phone_jpeg)),
     })
 }
 

@@ -45,6 +45,14 @@ impl Default for PhonePhotoConfig {
     }
 }
 
+impl PhonePhotoConfig {
+    /// The default phone, its files JPEGs at [`PHONE_JPEG_QUALITY`] when
+    /// `jpeg` (`--phone-jpeg`).
+    pub fn saving_jpeg(jpeg: bool) -> Self {
+        Self { jpeg_quality: jpeg.then_some(PHONE_JPEG_QUALITY), ..Default::default() }
+    }
+}
+
 /// One phone photo's camera and flash: the camera at (x, y, h) with x, y
 /// ~ U[-offset, offset] and h ~ the height range x the distance at
 /// `fov_deg`; the flash beside it in the plane z = h, at a distance drawn

@@ -4,7 +4,7 @@
 
 use super::TrainConfig;
 use crate::data::loaders::{open_dataset, random_crop, SvbrdfSource};
-use crate::data::phone::{PhonePhotoConfig, PHONE_JPEG_QUALITY};
+use crate::data::phone::PhonePhotoConfig;
 use crate::data::procedural;
 use crate::data::samples::{input_only, make_batch, SampleConfig, ShiftedPhotos, TrainingBatch};
 use crate::svbrdf::height::ensure_height_field;
@@ -170,7 +170,7 @@ pub fn batch_for_step(cfg: &TrainConfig, materials: &[Svbrdf], step: u64, device
         hemisphere_outputs: cfg.hemisphere_outputs,
         moved_highlight_outputs: cfg.moved_highlight_outputs,
         phone_inputs: cfg.phone_inputs,
-        phone: PhonePhotoConfig { jpeg_quality: cfg.phone_jpeg.then_some(PHONE_JPEG_QUALITY), ..Default::default() },
+        phone: PhonePhotoConfig::saving_jpeg(cfg.phone_jpeg),
         ldr_input: cfg.ldr_input,
         shadows: cfg.shadows,
         height_scale: cfg.height_scale,
