@@ -35,18 +35,28 @@ fov=(--fov 28)
 for arg in "$@"; do [[ "$arg" == --fov* ]] && fov=(); done
 
 start=$SECONDS
+# Per photo, how well the material gives it back (estimate's last line):
+# the identity render's brightness and R / G / B over the photo's.
+summary=()
 for photo in "${photos[@]}"; do
     [ -e "$photo" ] || continue
     name=$(basename "${photo%.*}")
     dir=out/$name
     mkdir -p "$dir"
     echo "== $photo"
-    $FLASHMAT estimate "$photo" -o "$dir/material.nmat" "${fov[@]}" "$@"
+    $FLASHMAT estimate "$photo" -o "$dir/material.nmat" "${fov[@]}" "$@" 2> >(tee "$dir/estimate.log" >&2)
+    wait $! 2>/dev/null || true  # the tee has written the log
+    check=$(sed -n 's/.*identity render over the photo: //p' "$dir/estimate.log" | tail -n 1)
+    summary+=("$(printf '%-24s %s' "$name" "${check:-(no pixel to compare)}")")
     $FLASHMAT show "$dir/material.nmat" -o "$dir/grid.png"
     $FLASHMAT relight "$dir/material.nmat" --orbit "$FRAMES" -o "$dir/orbit.gif"
     $FLASHMAT view "$dir/material.nmat" -o "$dir/material.html"
 done
 echo "done in $((SECONDS - start)) s: out/<photo>/{material.nmat,grid.png,orbit.gif,material.html}"
+if [ ${#summary[@]} -gt 0 ]; then
+    echo "identity render over each photo (unclipped pixels; 1.00 is the photo, beyond 0.9-1.1 trust it less):"
+    printf '  %s\n' "${summary[@]}"
+fi
 
 # One large non-square photo, as phones take them: a 3:2 flash render of a
 # held-out material (1536x1024, 8-bit), estimated at full resolution as a

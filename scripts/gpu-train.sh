@@ -137,6 +137,10 @@ LOBE="${FLASHMAT_GPU_LOBE:-0}"
 # materials are darker than the families' colours; 0: the paper's data, as
 # the campaigns before 2026-11-27 trained).
 DARK_SHARE="${FLASHMAT_GPU_DARK_SHARE:-0.25}"
+# Share of saturated procedural materials (--saturated-share, issue 69: a
+# full hue with a near-black channel; the bundled model adds blue where real
+# photos have almost none; 0: as the campaigns before 2026-12-04 trained).
+SATURATED_SHARE="${FLASHMAT_GPU_SATURATED_SHARE:-0.1}"
 # Curriculum (docs/TRAINING.md): the committed teacher (trained on the CPU,
 # models/MODEL.md; FLASHMAT_GPU_TEACHER= turns the curriculum off), or
 # teacher steps on the device before a fresh start; then the teacher-code
@@ -220,6 +224,7 @@ recipe() {
   [ "$CHECKERBOARD_FREE" = 1 ] && constraint=(--checkerboard-free)
   [ "$COLOCATED" != 0 ] && constraint+=(--colocated-outputs "$COLOCATED")
   [ "$DARK_SHARE" != 0 ] && constraint+=(--dark-share "$DARK_SHARE")
+  [ "$SATURATED_SHARE" != 0 ] && constraint+=(--saturated-share "$SATURATED_SHARE")
   [ "$MOVED" != 0 ] && constraint+=(--moved-highlight-outputs "$MOVED")
   [ "$LOBE" != 0 ] && constraint+=(--lobe-weight "$LOBE")
   echo --preset "$PRESET" --ldr --crop "$CROP" --batch "$BATCH" --outputs "$OUTPUTS" --lr "$LR" \
@@ -497,6 +502,7 @@ distill() {
     --lr "$DISTILL_LR" --warmup-steps 50 --straight-through-output --checkerboard-free --lpips-weight 0.1 --chroma-weight 1
     --dark-share "$DARK_SHARE" --bank "$BANK" --steps 100000000 --minutes "$minutes" --checkpoint-every "$FROZEN_EVERY"
     --preview-every 1000000 --keep-exports --device "$DEVICE" --precision "$PRECISION" --seed "$((SEED + 30))")
+  [ "$SATURATED_SHARE" = 0 ] || args+=(--saturated-share "$SATURATED_SHARE")
   [ "$DISTILL_VALUE_WEIGHT" = 0 ] || args+=(--ggx-value-weight "$DISTILL_VALUE_WEIGHT")
   [ "$DISTILL_GRAD_CLIP" = 0 ] || args+=(--grad-clip "$DISTILL_GRAD_CLIP")
   [ "$DISTILL_PHONE" = 0 ] || args+=(--phone-inputs "$DISTILL_PHONE")
@@ -748,6 +754,7 @@ cpu_dry_run() {
     "$tmp/out3/log.jsonl" "$FINAL_LR" || die "dry run: the final chunk did not train at FLASHMAT_GPU_FINAL_LR ($FINAL_LR)"
   grep -q '"checkerboard_free": true' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --checkerboard-free"
   grep -q '"dark_share": 0.25' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --dark-share 0.25"
+  grep -q '"saturated_share": 0.1' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --saturated-share 0.1"
   grep -q '"moved_highlight_outputs": 1' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --moved-highlight-outputs 1"
   grep -q '"weight_lobe": 0.1' "$tmp/machine/run/config.json" || die "dry run: the run was not started with --lobe-weight 0.1"
   grep -q "^VERDICT: " "$tmp/out3/verdict/verdict.md" || die "dry run: no verdict"
@@ -796,6 +803,7 @@ cpu_dry_run() {
     && grep -q '"code_gloss_weight": 4' "$tmp/machine/distill/run/config.json" \
     || die "dry run: distill did not train M_est alone with the code term, glossy pixels weighted"
   grep -q '"phone_inputs": 0.5' "$tmp/machine/distill/run/config.json" || die "dry run: distill's inputs were not phone photos (FLASHMAT_GPU_DISTILL_PHONE)"
+  grep -q '"saturated_share": 0.1' "$tmp/machine/distill/run/config.json" || die "dry run: distill did not draw saturated materials (FLASHMAT_GPU_SATURATED_SHARE)"
   grep -q '"grad_clip": 5' "$tmp/machine/distill/run/config.json" && grep -q "M_est's gradient norm (before any clip): median" "$tmp/out6/distill.md" \
     || die "dry run: distill did not clip at FLASHMAT_GPU_DISTILL_GRAD_CLIP or report the gradient norms"
   grep -q '^## Moved highlights' "$tmp/out6/distill.md" && grep -q 'code error (relative L1)' "$tmp/out6/distill.md" \

@@ -26,7 +26,7 @@ def read_nmat(path):
     meta = header.pop("__metadata__")
     if meta.get("flashmat.format") != "flashmat-nmat":
         sys.exit(f"{path}: not a flashmat-nmat file")
-    if meta.get("flashmat.version") not in ("1", "2", "3"):
+    if meta.get("flashmat.version") not in ("1", "2", "3", "4"):
         sys.exit(f"{path}: unsupported version {meta.get('flashmat.version')}")
     body = data[8 + n :]
     crc = 0
@@ -95,8 +95,10 @@ def render(tensors, meta, light, view):
             x = leaky(x, 0.01)
         elif i == 6:
             x = leaky(x, 0.001)
-    # Version 3: the material's exposure gain multiplies the network's radiance (1 before).
-    radiance = np.maximum(np.expm1(np.minimum(x, 80.0)), 0.0) * float(meta.get("gain", "1"))  # [HW, 3]
+    # Version 3: the material's exposure gain multiplies the network's radiance (1 before);
+    # version 4: one per channel, a JSON array [r, g, b].
+    gain = np.broadcast_to(np.asarray(json.loads(meta.get("gain", "1")), np.float64), (3,))
+    radiance = np.maximum(np.expm1(np.minimum(x, 80.0)), 0.0) * gain  # [HW, 3]
     return radiance.T.reshape(3, h, w)
 
 

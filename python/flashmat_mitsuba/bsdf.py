@@ -242,7 +242,7 @@ def neural_brdf_class():
             params = None if self.mode == "pixel" else self._params(si, active)
             out = self.log_radiance(params, light, cam)
             r = dr.maximum(dr.exp(dr.minimum(out, MAX_LOG_RADIANCE)) - 1.0, 0.0)
-            return dr.select(active, r * (INV_PI * self.nmat.gain), 0.0), active
+            return dr.select(active, r * mi.Color3f(*(INV_PI * g for g in self.nmat.gain)), 0.0), active
 
         # ------------------------------------------------------------ BSDF API
         def traverse(self, callback):

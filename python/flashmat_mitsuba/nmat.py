@@ -13,16 +13,17 @@ from dataclasses import dataclass
 import numpy as np
 
 NMAT_FORMAT = "flashmat-nmat"
-NMAT_VERSION = "3"
+NMAT_VERSION = "4"
 # Version 2 allows rectangular maps (a renderer-side geometry change only:
 # per-pixel parameters and the network are read the same way); version 3
-# adds the exposure `gain` (1 when absent), so all three are read.
-NMAT_READABLE_VERSIONS = ("1", "2", "3")
+# adds the exposure `gain` (1 when absent); version 4 makes it one per
+# channel (a JSON array [r, g, b]: the white balance), so all four are read.
+NMAT_READABLE_VERSIONS = ("1", "2", "3", "4")
 CONFIG_INT_KEYS = ("neural_channels", "enc_frequencies", "enc_hidden", "enc_out", "render_hidden", "render_narrow")
 
 
 class NmatError(ValueError):
-    """A file that is not a readable flashmat .nmat (version 1, 2 or 3)."""
+    """A file that is not a readable flashmat .nmat (version 1, 2, 3 or 4)."""
 
 
 @dataclass
@@ -33,7 +34,7 @@ class Nmat:
     m_render: list  # 7 weight matrices [out, in] float32
     config: dict  # the sizes (ints) and "name"
     meta: dict  # all metadata strings
-    gain: float = 1.0  # exposure: renders are the network's radiance times this
+    gain: tuple = (1.0, 1.0, 1.0)  # exposure per channel: renders are the network's radiance times this
 
     @property
     def channels(self):
@@ -162,12 +163,9 @@ def read_nmat(path):
     nmap = tensors.get("neural_map")
     if nmap is None or nmap.ndim != 3 or nmap.shape[0] != c:
         fail(f"missing or malformed `neural_map` (expected [{c}, H, W])")
-    try:
-        gain = float(meta.get("gain", "1"))
-    except ValueError:
-        gain = float("nan")
-    if not (np.isfinite(gain) and gain > 0):
-        fail(f"metadata field 'gain' must be a positive number, got {meta.get('gain')!r}")
+    gain = parse_gain(meta.get("gain", "1"))
+    if gain is None:
+        fail(f"metadata field 'gain' must be a positive number or three of them ([r, g, b]), got {meta.get('gain')!r}")
     return Nmat(
         path=path,
         neural_map=nmap,
@@ -177,6 +175,20 @@ def read_nmat(path):
         meta=meta,
         gain=gain,
     )
+
+
+def parse_gain(text):
+    """The `gain` metadata as (r, g, b): one number (version 3) or a JSON array of three (version 4); None if invalid."""
+    try:
+        value = json.loads(text)
+    except ValueError:
+        return None
+    values = [value] * 3 if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+    if not isinstance(values, list) or len(values) != 3:
+        return None
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0 for v in values):
+        return None
+    return tuple(float(v) for v in values)
 
 
 def leaky(x, slope):

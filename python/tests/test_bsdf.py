@@ -230,18 +230,20 @@ def test_llvm_render_matches_identity_reference():
 
 
 def test_scalar_gain_scales_eval(synthetic_nmat, tmp_path):
-    """A material's exposure gain multiplies eval (and only eval: the network's log radiance is the same)."""
+    """A material's exposure gain multiplies eval, each channel by its own (and only eval: the network's log radiance
+    is the same)."""
     from conftest import write_nmat, synthetic_tensors
 
     mi = set_variant("scalar_rgb")
     t, meta = synthetic_tensors()
     values = {}
-    for gain in ("1", "0.25"):
-        p = tmp_path / f"gain{gain}.nmat"
-        write_nmat(p, t, {**meta, "flashmat.version": "3", "gain": gain})
+    for gain in ("1", "0.25", "[0.5, 2, 0.125]"):
+        p = tmp_path / f"gain{len(values)}.nmat"
+        write_nmat(p, t, {**meta, "flashmat.version": "4", "gain": gain})
         bsdf = mi.load_dict({"type": "neural_brdf", "filename": str(p), "pixel_x": 3, "pixel_y": 2})
         si = mi.SurfaceInteraction3f()
         si.wi = mi.Vector3f(0.3, -0.2, 0.93)
         values[gain] = np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(-0.1, 0.4, 0.91)))
     assert values["1"].max() > 0
     np.testing.assert_allclose(values["0.25"], 0.25 * values["1"], rtol=1e-6)
+    np.testing.assert_allclose(values["[0.5, 2, 0.125]"], np.array([0.5, 2, 0.125]) * values["1"], rtol=1e-6)

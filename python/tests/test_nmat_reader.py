@@ -65,9 +65,9 @@ def test_foreign_files(tmp_path):
 
 def test_other_version_and_shapes(tmp_path):
     t, meta = synthetic_tensors()
-    p = tmp_path / "v4.nmat"
-    write_nmat(p, t, {**meta, "flashmat.version": "4"})
-    expect_error(p, "unsupported .nmat version '4'")
+    p = tmp_path / "v5.nmat"
+    write_nmat(p, t, {**meta, "flashmat.version": "5"})
+    expect_error(p, "unsupported .nmat version '5'")
     t2 = dict(t)
     t2["renderer.m_render.6.weight"] = np.zeros((4, 8), np.float32)
     p = tmp_path / "shape.nmat"
@@ -113,14 +113,17 @@ def test_header_checksum(tmp_path):
         expect_error(renamed, "unknown integrity field")
 
 
-def test_gain_of_version_3(tmp_path):
-    """Version 3's exposure gain is read (1 when absent, as in versions 1 and 2); a gain that is not a positive number is refused."""
+def test_gain_of_versions_3_and_4(tmp_path):
+    """Version 3's exposure gain (one number) and version 4's (one per channel) are read as (r, g, b); 1 when absent,
+    as in versions 1 and 2; a gain that is not a positive number, or three of them, is refused."""
     t, meta = synthetic_tensors()
     p = tmp_path / "v1.nmat"
     write_nmat(p, t, meta)
-    assert read_nmat(p).gain == 1.0
+    assert read_nmat(p).gain == (1.0, 1.0, 1.0)
     write_nmat(p, t, {**meta, "flashmat.version": "3", "gain": "0.0625"})
-    assert read_nmat(p).gain == 0.0625
-    for bad in ("0", "-1", "nan", "inf", "bright"):
-        write_nmat(p, t, {**meta, "flashmat.version": "3", "gain": bad})
+    assert read_nmat(p).gain == (0.0625, 0.0625, 0.0625)
+    write_nmat(p, t, {**meta, "flashmat.version": "4", "gain": "[0.5, 0.25, 0.125]"})
+    assert read_nmat(p).gain == (0.5, 0.25, 0.125)
+    for bad in ("0", "-1", "nan", "inf", "bright", "[1, 2]", "[1, 0, 1]", "[1, true, 1]", '"1"'):
+        write_nmat(p, t, {**meta, "flashmat.version": "4", "gain": bad})
         expect_error(p, "metadata field 'gain' must be a positive number")

@@ -22,8 +22,10 @@ pub struct EvalArgs {
     #[arg(long, conflicts_with_all = ["models", "captures", "uniform"])]
     pub summarize: bool,
     /// `procedural-test` (the 50 held-out procedural materials), `procedural-test:I` (one of them), `procedural-dark-test`
-    /// (30 held-out dark materials: diffuse albedo x0.02-0.35) or a dataset folder/strip file
-    /// (materials centre-cropped to a square and resized to --size).
+    /// (30 held-out dark materials: diffuse albedo x0.02-0.35), `procedural-saturated-test` (30 held-out saturated
+    /// materials: a full hue whose weakest channel is 0.004-0.1 of its strongest) or a dataset folder/strip file
+    /// (materials centre-cropped to a square and resized to --size; one that cannot be read is left out and named in
+    /// summary.md, and the run then exits with 1).
     #[arg(long, default_value = PROCEDURAL_TEST)]
     pub dataset: String,
     /// Score on real captures instead: a folder of photos NN.png of one flat material with camera_pos.txt, light_pos.txt
@@ -146,8 +148,12 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         eval::captures::run(&opts)?;
         return print_summary(&args.output);
     }
-    eval::run(&eval_options(args)?)?;
-    print_summary(&args.output)
+    let run = eval::run(&eval_options(args)?)?;
+    print_summary(&args.output)?;
+    if !run.skipped.is_empty() {
+        return Err(flashmat::data::loaders::unreadable_error(&run.skipped, run.materials + run.skipped.len()));
+    }
+    Ok(())
 }
 
 /// The held-out evaluation's options from the command line.

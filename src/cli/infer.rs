@@ -31,8 +31,9 @@ pub struct EstimateOptions {
     /// How the photo's exposure reaches the material: `calibrated` (a photo darker than M_est's training photos
     /// is brought up toward their brightness, an 8-bit one no further than its highlight reaches white, trying
     /// lifts up to the level where that stops short and keeping the material that gives the photo's mean back;
-    /// the material keeps the exposure as a gain calibrated on the photo),
-    /// `normalized` (the same without the calibration), `calibrated-capped` (an 8-bit photo lifted no further than
+    /// the material keeps the exposure as a gain calibrated on the photo, channel by channel: a white balance of the
+    /// material against its photo), `calibrated-grey` (the same with one factor for all channels, as before the white
+    /// balance), `normalized` (the same without the calibration), `calibrated-capped` (an 8-bit photo lifted no further than
     /// its highlight reaches white, without trying the lifts between that and the level), `calibrated-clipping` (an
     /// 8-bit photo brought up to the level even where that clips its highlight: flashmat before the clip limit) or
     /// `off` (M_est sees the photo as it is, as before version 3 of .nmat).
@@ -108,6 +109,7 @@ impl RefineWeights {
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ExposureMode {
     Calibrated,
+    CalibratedGrey,
     Normalized,
     CalibratedClipping,
     CalibratedCapped,
@@ -118,6 +120,7 @@ impl ExposureMode {
     pub fn config(self) -> infer::ExposureConfig {
         match self {
             ExposureMode::Calibrated => infer::ExposureConfig::default(),
+            ExposureMode::CalibratedGrey => infer::ExposureConfig { white_balance: false, ..Default::default() },
             ExposureMode::Normalized => infer::ExposureConfig { calibrate: false, ..Default::default() },
             ExposureMode::CalibratedClipping => infer::ExposureConfig { clip_share: None, ..Default::default() },
             ExposureMode::CalibratedCapped => infer::ExposureConfig { lift_candidates: 1, ..Default::default() },
@@ -344,7 +347,7 @@ pub fn estimate(a: &EstimateArgs) -> Result<()> {
             let (material, _) = estimate_photo(photo, &a.estimate)?;
             material.save(output)?;
             let (h, w) = material.size();
-            Ok(format!("{w}x{h} map"))
+            Ok(format!("{w}x{h} map{}", identity_note(&material)?))
         });
     }
     let photo = &a.photo[0];
@@ -355,8 +358,14 @@ pub fn estimate(a: &EstimateArgs) -> Result<()> {
     out_dir.keep();
     eprintln!("{summary}");
     let (h, w) = material.size();
-    eprintln!("wrote {} ({}-channel {w}x{h} neural map)", a.output.display(), material.config.neural_channels);
+    eprintln!("wrote {} ({}-channel {w}x{h} neural map){}", a.output.display(), material.config.neural_channels, identity_note(&material)?);
     Ok(())
+}
+
+/// `; identity render over the photo: brightness ..., R / G / B ...` (issue
+/// 69: what to trust at a glance), or nothing where no pixel compares.
+fn identity_note(material: &NeuralMaterial) -> Result<String> {
+    Ok(infer::identity_check(material)?.map(|c| format!("; {}", c.summary())).unwrap_or_default())
 }
 
 pub fn relight(a: &RelightArgs) -> Result<()> {

@@ -1,7 +1,7 @@
 //! `flashmat render` and `flashmat svbrdf generate|preview`.
 
 use super::{light_view, prepare_output, CapturesArgs, GenerateArgs, MaterialArgs, PreviewArgs, RenderArgs, Renderer};
-use flashmat::data::loaders::{open_dataset, write_material_dir, write_matfusion};
+use flashmat::data::loaders::{load_readable, open_dataset, unreadable_error, write_material_dir, write_matfusion, Unreadable};
 use flashmat::data::procedural::{self, Family, ProceduralConfig};
 use flashmat::geometry::LightView;
 use flashmat::image::Image;
@@ -133,22 +133,32 @@ pub fn preview(args: &PreviewArgs) -> Result<()> {
     // The grid holds every cell: count x 5 cells of size^2 pixels.
     flashmat::limits::IMAGE_PIXELS.check_product(format_args!("the preview grid (--count {} x 5 cells of --size {} squared)", args.count, args.size), &[args.count as u64, 5, args.size as u64, args.size as u64])?;
     let out_dir = prepare_output(&args.output)?;
-    let materials: Vec<Svbrdf> = match args.source.as_str() {
+    // A dataset material that cannot be read is left out of the grid, named, and fails the command at the end.
+    let (materials, skipped): (Vec<Svbrdf>, Vec<Unreadable>) = match args.source.as_str() {
         "procedural" => {
             let seeds: Vec<u64> = (0..args.count as u64).map(procedural::training_seed).collect();
-            procedural::generate_many(&seeds, 256)
+            (procedural::generate_many(&seeds, 256), vec![])
         }
-        "procedural-test" => procedural::generate_many(&procedural::test_seeds()[..args.count.min(50)], 256),
+        "procedural-test" => (procedural::generate_many(&procedural::test_seeds()[..args.count.min(50)], 256), vec![]),
         path => {
             let ds = open_dataset(std::path::Path::new(path))?;
-            (0..ds.len().min(args.count)).map(|i| ds.load(i)).collect::<Result<_>>()?
+            let (read, skipped) = load_readable(ds.as_ref(), args.count, Ok)?;
+            (read.into_iter().map(|(_, m)| m).collect(), skipped)
         }
     };
     let rows: Vec<Vec<Image>> = materials.par_iter().map(|m| preview_row(m, args.size)).collect::<Result<_>>()?;
     let grid = flashmat::viz::grid(&rows, 4)?;
     flashmat::io::write_png(&args.output, &grid, flashmat::io::BitDepth::Eight)?;
     out_dir.keep();
-    eprintln!("wrote {} ({} materials: diffuse | specular | roughness | normals | co-located render)", args.output.display(), rows.len());
+    let left_out = if skipped.is_empty() {
+        String::new()
+    } else {
+        format!("; left out, unreadable: {}", skipped.iter().map(|u| u.name.as_str()).collect::<Vec<_>>().join(", "))
+    };
+    eprintln!("wrote {} ({} materials: diffuse | specular | roughness | normals | co-located render{left_out})", args.output.display(), rows.len());
+    if !skipped.is_empty() {
+        return Err(unreadable_error(&skipped, rows.len() + skipped.len()));
+    }
     Ok(())
 }
 

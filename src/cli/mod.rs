@@ -208,7 +208,8 @@ pub struct GenerateArgs {
 #[derive(Args, Debug)]
 pub struct PreviewArgs {
     /// Dataset folder or strip file, or `procedural` for the procedural training stream,
-    /// or `procedural-test` for the held-out set.
+    /// or `procedural-test` for the held-out set. A dataset material that cannot be read is
+    /// left out and named, and the command then exits with 1.
     pub source: String,
     /// Output PNG.
     #[arg(short, long)]

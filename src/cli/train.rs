@@ -136,6 +136,11 @@ pub struct TrainArgs {
     /// the share the next GPU campaign trains with, docs/GPU.md). New runs only.
     #[arg(long, value_name = "P", value_parser = super::fraction, conflicts_with = "resume")]
     pub dark_share: Option<f64>,
+    /// Make this fraction of the procedural training materials saturated (diffuse albedo given a fully
+    /// saturated hue whose weakest channel is 0.004-0.1 of its strongest: orange foam, red paint, green felt;
+    /// default and paper: 0). Held out: `eval --dataset procedural-saturated-test`. New runs only.
+    #[arg(long, value_name = "P", value_parser = super::fraction, conflicts_with = "resume")]
+    pub saturated_share: Option<f64>,
     /// Of each material's output renders, make N co-located: the input's own light and view, then
     /// light and camera together at random points above the material (default and paper: 0, "reflect" only). Trains
     /// the renderer where light and view meet near the normal. With --resume: from the resumed step on.
@@ -423,6 +428,7 @@ pub fn train(a: &TrainArgs) -> Result<()> {
         frozen_bn_from: a.frozen_bn_from,
         colour_augment: a.colour_augment.unwrap_or(0.0),
         dark_share: a.dark_share.unwrap_or(0.0),
+        saturated_share: a.saturated_share.unwrap_or(0.0),
         colocated_outputs: a.colocated_outputs.unwrap_or(0),
         hemisphere_outputs: a.hemisphere_outputs.unwrap_or(0),
         moved_highlight_outputs: a.moved_highlight_outputs.unwrap_or(0),

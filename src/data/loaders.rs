@@ -6,7 +6,8 @@
 //!   linear and are taken as they are;
 //! - roughness is linear; a gray or RGB file gives its first channel;
 //! - normal maps hold (n + 1) / 2 in [0, 1] (in EXR files too) and are
-//!   decoded with [`decode_normal_map`].
+//!   decoded with [`decode_normal_map`]; short normals are normalised, the
+//!   zero vector (as the file stores it) is refused.
 //!
 //! Layouts:
 //! - MatFusion/INRIA training folders ([`MatfusionDataset`]):
@@ -41,6 +42,11 @@ pub trait SvbrdfSource: Send + Sync {
     /// Loads material `i` with linear maps, all `H x W`. Errors (naming the
     /// file) for missing, unreadable or inconsistent maps.
     fn load(&self, i: usize) -> Result<Svbrdf>;
+    /// [`SvbrdfSource::load`] with the material's name leading its error,
+    /// for callers drawing from many (training): `material NAME: ...`.
+    fn load_named(&self, i: usize) -> Result<Svbrdf> {
+        self.load(i).map_err(|e| if i < self.len() { anyhow!("material {}: {e:#}", self.name(i)) } else { e })
+    }
 }
 
 /// The four stored maps, in the order used throughout this module.
@@ -80,10 +86,12 @@ fn extension_rank(path: &Path) -> Option<usize> {
 pub const MAP_RANGE_SLACK: f32 = 0.01;
 
 /// The first value of `image` outside `[lo, hi]` widened by
-/// [`MAP_RANGE_SLACK`], as an error naming the map, the file and the place.
+/// [`MAP_RANGE_SLACK`] (or NaN), as an error naming the map, the file and
+/// the place.
 fn check_range(image: &Image, lo: f32, hi: f32, what: &str, path: &Path) -> Result<()> {
     let n = image.height * image.width;
-    if let Some(i) = image.data.iter().position(|&v| v < lo - MAP_RANGE_SLACK || v > hi + MAP_RANGE_SLACK) {
+    let within = lo - MAP_RANGE_SLACK..=hi + MAP_RANGE_SLACK;
+    if let Some(i) = image.data.iter().position(|v| !within.contains(v)) {
         let (c, y, x) = (i / n, (i % n) / image.width, i % image.width);
         bail!("{what} map {} has the value {} at row {y}, column {x}, channel {c}: {what} values lie in [{lo}, {hi}]", path.display(), image.data[i]);
     }
@@ -114,8 +122,9 @@ fn raise_roughness(rough: &mut Image, path: &Path) {
 /// Converts one stored map to its linear `Svbrdf` form (see the module
 /// docs). Values no material has are refused with one line naming the
 /// file: albedos and roughness outside [0, 1] (float files can hold any
-/// value: -1, 1e30), normals of no direction; roughness below the floor is
-/// raised to it ([`raise_roughness`]).
+/// value: -1, 1e30), NaN, normals of no direction; roughness below the
+/// floor is raised to it ([`raise_roughness`]) and short normals are
+/// normalised ([`warn_short_normals`]).
 fn decode_map(map: Map, image: Image, format: FileFormat, path: &Path) -> Result<Image> {
     Ok(match map {
         Map::Diffuse | Map::Specular => {
@@ -139,6 +148,14 @@ fn decode_map(map: Map, image: Image, format: FileFormat, path: &Path) -> Result
                 bail!("normal map {} has {} channel(s), expected RGB", path.display(), image.channels);
             }
             let encoded = image.channel_range(0, 3)?;
+            let n = encoded.height * encoded.width;
+            let at = |i: usize| (i / encoded.width, i % encoded.width, [0, 1, 2].map(|c| encoded.data[c * n + i]));
+            // The readers refuse NaN/Inf already; a NaN would slip through
+            // the comparisons below, so it is refused here too.
+            if let Some(i) = (0..3 * n).find(|&i| !encoded.data[i].is_finite()) {
+                let (y, x, rgb) = at(i % n);
+                bail!("normal map {} holds a NaN/Inf value at row {y}, column {x} (encoded {rgb:?})", path.display());
+            }
             if format.is_float() {
                 // Integer files cannot leave [0, 1]; a float file that does
                 // probably stores raw vectors, which we do not guess at.
@@ -150,29 +167,53 @@ fn decode_map(map: Map, image: Image, format: FileFormat, path: &Path) -> Result
                     );
                 }
             }
-            // (0.5, 0.5, 0.5) encodes the zero vector: no direction to
-            // normalise (an 8-bit grey pixel is within a code of it).
-            let n = encoded.height * encoded.width;
-            let short = (0..n).find(|&i| {
+            let min_length = if format.is_float() { MIN_FLOAT_NORMAL } else { MIN_CODED_NORMAL };
+            let length = |i: usize| {
                 let v = [0, 1, 2].map(|c| 2.0 * encoded.data[c * n + i] - 1.0);
-                (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt() < MIN_ENCODED_NORMAL
-            });
-            if let Some(i) = short {
-                let (y, x) = (i / encoded.width, i % encoded.width);
-                let rgb = [0, 1, 2].map(|c| encoded.data[c * n + i]);
+                (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+            };
+            if let Some(i) = (0..n).find(|&i| length(i) < min_length) {
+                let (y, x, rgb) = at(i);
                 bail!(
                     "normal map {} holds a zero-length normal at row {y}, column {x} (encoded {rgb:?}; a normal map stores (n + 1) / 2 of unit normals)",
                     path.display()
                 );
             }
+            warn_short_normals((0..n).filter(|&i| length(i) < SHORT_NORMAL).count(), n, path);
             decode_normal_map(&encoded)
         }
     })
 }
 
-/// Shortest decoded normal (2 x code - 1) accepted before normalising:
-/// shorter ones point nowhere in particular.
-const MIN_ENCODED_NORMAL: f32 = 0.1;
+/// Shortest decoded normal (2 x code - 1) of an integer file that is not
+/// the zero vector: an 8-bit file cannot store (0.5, 0.5, 0.5), and its
+/// grey pixel (128, 128, 128) decodes to (1, 1, 1) / 255, of length
+/// sqrt(3) / 255 = 0.0068; the next shortest it can store are
+/// sqrt(11) / 255 = 0.013 and longer. One 8-bit code step, 2 / 255, lies
+/// between: shorter is zero as the file stores it (16-bit files, with
+/// finer steps, are held to the coarsest encoding's).
+const MIN_CODED_NORMAL: f32 = 2.0 / 255.0;
+
+/// The same for float files, which store 0.5 exactly: a few f32 steps at
+/// 0.5 (6e-8 each) around the zero vector, whose direction is rounding.
+const MIN_FLOAT_NORMAL: f32 = 1e-6;
+
+/// Decoded normals shorter than this are counted in a warning: a normal
+/// map stores unit normals, and short ones (probably a tool's averaging or
+/// blending) are normalised like any other, but a user may want to know.
+const SHORT_NORMAL: f32 = 0.1;
+
+/// One warning per process (a dataset has many such maps), with the count
+/// of the first map that has short normals.
+fn warn_short_normals(short: usize, total: usize, path: &Path) {
+    static WARNED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+    if short > 0 && !WARNED.swap(true, std::sync::atomic::Ordering::Relaxed) {
+        eprintln!(
+            "warning: normal map {}: {short} of {total} normals were shorter than {SHORT_NORMAL} and were normalised (other maps like it: in silence)",
+            path.display()
+        );
+    }
+}
 
 /// Loads a material from its four map files (diffuse, specular, roughness,
 /// normals); `None` is a missing file, reported with `expected` paths.
@@ -469,6 +510,50 @@ pub fn open_dataset(path: &Path) -> Result<Box<dyn SvbrdfSource>> {
     )
 }
 
+// ------------------------------------------------- unreadable materials
+
+/// A material of a dataset that could not be read, and why (one line).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Unreadable {
+    pub name: String,
+    pub reason: String,
+}
+
+/// The first `n` materials of `ds` with their names, each passed through
+/// `prepare`, going on past those that cannot be read or prepared: one
+/// published map with a bad pixel should not stop a whole evaluation.
+/// Each one skipped is named in a `warning: skipped material` line once
+/// the others are read; callers report them and end with
+/// [`unreadable_error`]. When none can be read, the error names the first.
+pub fn load_readable(ds: &dyn SvbrdfSource, n: usize, prepare: impl Fn(Svbrdf) -> Result<Svbrdf>) -> Result<(Vec<(String, Svbrdf)>, Vec<Unreadable>)> {
+    let (mut read, mut unreadable) = (Vec::new(), Vec::new());
+    for i in 0..n.min(ds.len()) {
+        let name = ds.name(i);
+        match ds.load(i).and_then(&prepare) {
+            Ok(m) => read.push((name, m)),
+            Err(e) => unreadable.push(Unreadable { name, reason: format!("{e:#}").replace('\n', " ") }),
+        }
+    }
+    if read.is_empty() {
+        match unreadable.as_slice() {
+            [] => bail!("the dataset holds no materials"),
+            [one] => bail!("material {}: {}", one.name, one.reason),
+            [first, ..] => bail!("none of the {} materials could be read; the first, {}: {}", unreadable.len(), first.name, first.reason),
+        }
+    }
+    for u in &unreadable {
+        eprintln!("warning: skipped material {}: {}", u.name, u.reason);
+    }
+    Ok((read, unreadable))
+}
+
+/// The error a command ends with when it skipped `unreadable` of `total`
+/// materials, its outputs written for the others (exit code 1).
+pub fn unreadable_error(unreadable: &[Unreadable], total: usize) -> anyhow::Error {
+    let names: Vec<&str> = unreadable.iter().map(|u| u.name.as_str()).collect();
+    anyhow!("{} of {total} materials could not be read and were skipped: {}", unreadable.len(), names.join(", "))
+}
+
 // ----------------------------------------------------------------- writers
 
 /// The four maps as stored in 8-bit files: diffuse and specular
@@ -744,10 +829,92 @@ mod tests {
         exr("normals", 3, 0.5);
         let e = message(load().unwrap_err());
         assert!(e.contains("normals.exr holds a zero-length normal at row 0, column 0"), "{e}");
-        // An 8-bit grey pixel is within a code of the zero vector.
+        // Short but not zero: normalised.
+        io::write_exr(&m.join("normals.exr"), &Image::from_fn(3, 8, 8, |c, _, _| [0.5, 0.5, 0.52][c])).unwrap();
+        assert!(max_abs_diff(&load().unwrap().normal, &Image::from_fn(3, 8, 8, |c, _, _| [0.0, 0.0, 1.0][c])) < 1e-6);
+        // NaN: refused with the place (by the reader; decode_map too, for
+        // maps from elsewhere, and check_range, which NaN once slipped past).
+        exr::prelude::write_rgb_file(m.join("normals.exr"), 8, 8, |x, y| (0.5f32, if (x, y) == (4, 1) { f32::NAN } else { 0.5 }, 1.0f32)).unwrap();
+        let e = message(load().unwrap_err());
+        assert!(e.contains("normals.exr") && e.contains("NaN/Inf") && e.contains("row 1, column 4"), "{e}");
+        let mut nan = Image::filled(3, 8, 8, 0.5);
+        nan.set(1, 1, 4, f32::NAN);
+        let e = message(decode_map(Map::Normals, nan.clone(), FileFormat::Exr, Path::new("n.exr")).unwrap_err());
+        assert!(e.contains("n.exr holds a NaN/Inf value at row 1, column 4"), "{e}");
+        let e = message(decode_map(Map::Diffuse, nan, FileFormat::Exr, Path::new("d.exr")).unwrap_err());
+        assert!(e.contains("d.exr has the value NaN at row 1, column 4, channel 1"), "{e}");
+        // An 8-bit grey pixel is the zero vector as the file stores it
+        // (length sqrt(3) / 255): refused.
         std::fs::remove_file(m.join("normals.exr")).unwrap();
         save_rgb(&m.join("normals.png"), 8, 8, |x, y| if (x, y) == (3, 2) { [128, 128, 128] } else { [128, 128, 255] });
         assert!(message(load().unwrap_err()).contains("normals.png holds a zero-length normal at row 2, column 3"));
+        // The pixel: codes (130, 139, 131) decode to (5, 23, 7) / 255,
+        // length 0.096; normalised to (5, 23, 7) / sqrt(603).
+        save_rgb(&m.join("normals.png"), 8, 8, |x, y| if (x, y) == (3, 2) { [130, 139, 131] } else { [128, 128, 255] });
+        let normal = load().unwrap().normal;
+        let want = [5.0, 23.0, 7.0].map(|v: f32| v / 603f32.sqrt());
+        // (2 x code - 1 cancels: each component is off by up to 1e-7 before
+        // the division by the length.)
+        for c in 0..3 {
+            assert!(close(normal.get(c, 2, 3), want[c], 1e-5), "{c}: {}", normal.get(c, 2, 3));
+        }
+        // One code step from grey, (129, 128, 128): length sqrt(11) / 255, kept.
+        save_rgb(&m.join("normals.png"), 8, 8, |x, y| if (x, y) == (3, 2) { [129, 128, 128] } else { [128, 128, 255] });
+        let n = load().unwrap().normal;
+        let len = (0..3).map(|c| n.get(c, 2, 3).powi(2)).sum::<f32>().sqrt();
+        assert!(close(len, 1.0, 1e-6) && close(n.get(0, 2, 3), 3.0 / 11f32.sqrt(), 1e-4), "{len} {}", n.get(0, 2, 3));
+    }
+
+    /// An INRIA strip whose normal panel holds one short normal (the
+    /// issue's pixel) loads, that normal unit length and pointing as stored.
+    #[test]
+    fn strip_with_a_short_normal_is_normalised() {
+        let dir = tempfile::tempdir().unwrap();
+        let h = 16u32;
+        // normal | diffuse | roughness | specular
+        save_rgb(&dir.path().join("tile.png"), 4 * h, h, |x, y| match (x / h, x % h, y) {
+            (0, 5, 3) => [130, 139, 131],
+            (0, ..) => [128, 128, 255],
+            (1, ..) => [180, 120, 60],
+            (2, ..) => [100, 100, 100],
+            _ => [40, 40, 40],
+        });
+        let s = open_dataset(dir.path()).unwrap().load(0).unwrap();
+        let n = [0, 1, 2].map(|c| s.normal.get(c, 3, 5));
+        assert!(close((n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt(), 1.0, 1e-6), "{n:?}");
+        let want = [5.0, 23.0, 7.0].map(|v: f32| v / 603f32.sqrt());
+        for c in 0..3 {
+            assert!(close(n[c], want[c], 1e-5), "{n:?} vs {want:?}");
+            assert!(close(s.normal.get(c, 3, 6), decode_normal([128.0 / 255.0, 128.0 / 255.0, 1.0])[c], 1e-6));
+        }
+    }
+
+    /// Going on past unreadable materials: the others with their names,
+    /// the bad ones with theirs and the reason; none readable is an error
+    /// naming the first.
+    #[test]
+    fn unreadable_materials_are_skipped_and_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path();
+        for name in ["a", "b", "c"] {
+            write_material_dir(&root.join(name), &varied(16)).unwrap();
+        }
+        std::fs::write(root.join("b/diffuse.png"), b"not a png").unwrap();
+        let ds = open_dataset(root).unwrap();
+        let (read, skipped) = load_readable(ds.as_ref(), 10, Ok).unwrap();
+        assert_eq!(read.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>(), ["a", "c"]);
+        assert_eq!(skipped.len(), 1);
+        assert!(skipped[0].name == "b" && skipped[0].reason.contains("b/diffuse.png"), "{skipped:?}");
+        assert_eq!(message(unreadable_error(&skipped, 3)), "1 of 3 materials could not be read and were skipped: b");
+        // `prepare` failing counts as unreadable too; only the first n are read.
+        let e = message(load_readable(ds.as_ref(), 1, |m| center_crop(&m, 32)).unwrap_err());
+        assert!(e.starts_with("material a: cannot crop 32x32"), "{e}");
+        std::fs::write(root.join("a/diffuse.png"), b"x").unwrap();
+        std::fs::write(root.join("c/diffuse.png"), b"x").unwrap();
+        let e = message(load_readable(ds.as_ref(), 10, Ok).unwrap_err());
+        assert!(e.starts_with("none of the 3 materials could be read; the first, a: ") && e.contains("a/diffuse.png"), "{e}");
+        let e = message(ds.load_named(2).unwrap_err());
+        assert!(e.starts_with("material c: ") && e.contains("c/diffuse.png"), "{e}");
     }
 
     #[test]

@@ -166,11 +166,18 @@ pub struct ProceduralConfig {
     /// Drawn from its own stream: every other decision of a seed is the
     /// same. 0 (the default, with which the held-out set was fixed): none.
     pub dark_probability: f32,
+    /// Probability that a material is a saturated one (orange foam, red
+    /// paint, green felt...): its diffuse albedo takes a fully saturated
+    /// hue whose weakest channel is near black ([`saturation_tint`]; issue
+    /// 69: the families' colours are muted, and the bundled model adds blue
+    /// where real photos have almost none). Its own stream, like the dark
+    /// one. 0 (the default): none.
+    pub saturated_probability: f32,
 }
 
 impl Default for ProceduralConfig {
     fn default() -> Self {
-        Self { size: 256, mix_probability: 0.3, families: Family::ALL.to_vec(), dark_probability: 0.0 }
+        Self { size: 256, mix_probability: 0.3, families: Family::ALL.to_vec(), dark_probability: 0.0, saturated_probability: 0.0 }
     }
 }
 
@@ -182,6 +189,15 @@ pub const DARK_FACTOR_MAX: f32 = 0.35;
 
 /// Salt of the darkening stream (independent of [`plan`]'s draws).
 const DARK_SALT: u64 = 0xDA4C_0000_5EED_0001;
+
+/// Range of a saturated material's weakest channel, relative to its
+/// strongest (log-uniform): from a colour whose third channel an 8-bit
+/// photo barely records to one a tenth as bright.
+pub const SATURATED_FLOOR_MIN: f32 = 0.004;
+pub const SATURATED_FLOOR_MAX: f32 = 0.1;
+
+/// Salt of the saturation stream.
+const SATURATED_SALT: u64 = 0x5A7C_0000_5EED_0002;
 
 impl ProceduralConfig {
     /// The default configuration at another map size.
@@ -205,6 +221,9 @@ pub struct MaterialInfo {
     pub mixed_with: Option<Family>,
     /// The factor the diffuse albedo was darkened by, if it was.
     pub dark_factor: Option<f32>,
+    /// The hue a saturated material's diffuse albedo took, if it did
+    /// ([`saturation_tint`]).
+    pub saturation_tint: Option<[f32; 3]>,
 }
 
 /// The random decisions taken for one seed before any pixel is computed.
@@ -229,7 +248,7 @@ fn plan(seed: u64, cfg: &ProceduralConfig) -> Plan {
 /// Which families a seed uses under `cfg` (cheap: no maps are generated).
 pub fn describe(seed: u64, cfg: &ProceduralConfig) -> MaterialInfo {
     let p = plan(seed, cfg);
-    MaterialInfo { family: p.family, mixed_with: p.mix.map(|m| m.0), dark_factor: dark_factor(seed, cfg) }
+    MaterialInfo { family: p.family, mixed_with: p.mix.map(|m| m.0), dark_factor: dark_factor(seed, cfg), saturation_tint: saturation_tint(seed, cfg) }
 }
 
 /// The diffuse factor of a dark material, or None (its own random stream:
@@ -238,6 +257,36 @@ fn dark_factor(seed: u64, cfg: &ProceduralConfig) -> Option<f32> {
     let mut rng = Pcg64::seed_from_u64(seed ^ DARK_SALT);
     let (draw, t): (f32, f32) = (rng.random(), rng.random());
     (draw < cfg.dark_probability).then(|| DARK_FACTOR_MIN * (DARK_FACTOR_MAX / DARK_FACTOR_MIN).powf(t))
+}
+
+/// The hue of a saturated material, or None (its own random stream): the
+/// fully saturated colour of a uniform hue (max channel 1, min 0), its
+/// weakest channel raised to a floor log-uniform in
+/// [[`SATURATED_FLOOR_MIN`], [`SATURATED_FLOOR_MAX`]].
+fn saturation_tint(seed: u64, cfg: &ProceduralConfig) -> Option<[f32; 3]> {
+    let mut rng = Pcg64::seed_from_u64(seed ^ SATURATED_SALT);
+    let (draw, hue, t): (f32, f32, f32) = (rng.random(), rng.random(), rng.random());
+    if draw >= cfg.saturated_probability {
+        return None;
+    }
+    let floor = SATURATED_FLOOR_MIN * (SATURATED_FLOOR_MAX / SATURATED_FLOOR_MIN).powf(t);
+    // HSV with S = V = 1: each channel is 1 within 60 degrees of its own
+    // hue, falls linearly to 0 over the next 60, and is 0 on the far side.
+    let channel = |centre: f32| {
+        let d = ((hue - centre).rem_euclid(1.0) * 6.0).min((centre - hue).rem_euclid(1.0) * 6.0);
+        (2.0 - d).clamp(0.0, 1.0)
+    };
+    Some([0.0, 1.0 / 3.0, 2.0 / 3.0].map(|c| channel(c).max(floor)))
+}
+
+/// Gives a diffuse albedo `[3, H, W]` the hue `tint`: each pixel keeps its
+/// RGB mean (the texture) and takes the tint's proportions, clamped to 1.
+fn saturate(diffuse: &Image, tint: [f32; 3]) -> Image {
+    let mean_tint = tint.iter().sum::<f32>() / 3.0;
+    Image::from_fn(3, diffuse.height, diffuse.width, |c, y, x| {
+        let level = (0..3).map(|k| diffuse.get(k, y, x)).sum::<f32>() / 3.0;
+        (level * tint[c] / mean_tint).min(1.0)
+    })
 }
 
 /// Generates the material of `seed` under `cfg`: a family drawn from
@@ -250,6 +299,9 @@ pub fn generate(seed: u64, cfg: &ProceduralConfig) -> Svbrdf {
         mix_layers(&mut layers, &top, mask_seed);
     }
     let mut material = finish(layers);
+    if let Some(tint) = saturation_tint(seed, cfg) {
+        material.diffuse = saturate(&material.diffuse, tint);
+    }
     if let Some(f) = dark_factor(seed, cfg) {
         material.diffuse = material.diffuse.map(|v| v * f);
     }
@@ -310,6 +362,21 @@ pub fn dark_test_set(size: usize) -> Vec<Svbrdf> {
     generate_many_with(&seeds, &ProceduralConfig { dark_probability: 1.0, ..ProceduralConfig::with_size(size) })
 }
 
+/// Number of held-out saturated materials.
+pub const SATURATED_TEST_SET_SIZE: usize = 30;
+
+/// First seed of the held-out saturated set (issue 69): the 30 seeds after
+/// the dark set's, every one saturated. Top bit set: never a training seed.
+pub const SATURATED_TEST_SEED_BASE: u64 = DARK_TEST_SEED_BASE + DARK_TEST_SET_SIZE as u64;
+
+/// The held-out saturated materials at `size`: the families' materials
+/// with their diffuse albedo given a saturated hue
+/// ([`ProceduralConfig::saturated_probability`] 1).
+pub fn saturated_test_set(size: usize) -> Vec<Svbrdf> {
+    let seeds: Vec<u64> = (0..SATURATED_TEST_SET_SIZE as u64).map(|i| SATURATED_TEST_SEED_BASE + i).collect();
+    generate_many_with(&seeds, &ProceduralConfig { saturated_probability: 1.0, ..ProceduralConfig::with_size(size) })
+}
+
 /// Prefix naming one held-out material: `procedural-test:I` is test material
 /// I (0-based), for single-material experiments (the shadow over-fit).
 pub const TEST_MATERIAL_PREFIX: &str = "procedural-test:";
@@ -325,9 +392,10 @@ pub fn parse_test_material(name: &str) -> anyhow::Result<Option<usize>> {
     Ok(Some(i))
 }
 
-/// Whether `seed` belongs to a held-out test set (the classic one or the dark one).
+/// Whether `seed` belongs to a held-out test set (the classic one, the dark
+/// one or the saturated one).
 pub fn is_test_seed(seed: u64) -> bool {
-    seed.wrapping_sub(TEST_SEED_BASE) < (TEST_SET_SIZE + DARK_TEST_SET_SIZE) as u64
+    seed.wrapping_sub(TEST_SEED_BASE) < (TEST_SET_SIZE + DARK_TEST_SET_SIZE + SATURATED_TEST_SET_SIZE) as u64
 }
 
 /// Seed of the `index`-th material of the unbounded training stream.
@@ -572,7 +640,7 @@ mod tests {
 
     #[test]
     fn mixed_materials_are_valid_and_blend_both_families() {
-        let cfg = ProceduralConfig { size: S, mix_probability: 1.0, families: Family::ALL.to_vec(), dark_probability: 0.0 };
+        let cfg = ProceduralConfig { size: S, mix_probability: 1.0, families: Family::ALL.to_vec(), dark_probability: 0.0, saturated_probability: 0.0 };
         let mut seen = 0;
         for seed in 0..40u64 {
             let info = describe(seed, &cfg);
@@ -604,7 +672,7 @@ mod tests {
         let empty = generate(1, &ProceduralConfig { size: 0, ..Default::default() });
         assert_eq!(empty.diffuse.data.len(), 0);
         // Empty family list falls back to all families.
-        let cfg = ProceduralConfig { size: 8, mix_probability: 0.5, families: vec![], dark_probability: 0.0 };
+        let cfg = ProceduralConfig { size: 8, mix_probability: 0.5, families: vec![], dark_probability: 0.0, saturated_probability: 0.0 };
         generate(3, &cfg).validate().unwrap();
     }
 
@@ -742,13 +810,59 @@ mod tests {
         assert!(means.iter().any(|&m| m < 0.01), "{means:?}");
     }
 
+    /// A saturated material keeps its texture (each pixel's RGB mean, where
+    /// nothing clips) and takes a hue whose channels are the tint's
+    /// proportions; hand-derived tints at red, yellow and 200 degrees; the
+    /// held-out set spans hues and holds near-black channels.
+    #[test]
+    fn saturated_materials_take_a_hue_and_keep_their_texture() {
+        let plain = ProceduralConfig::with_size(32);
+        let sat = ProceduralConfig { saturated_probability: 1.0, ..plain.clone() };
+        for seed in 0..8u64 {
+            let tint = describe(seed, &sat).saturation_tint.expect("every material is saturated at probability 1");
+            assert_eq!(describe(seed, &plain).saturation_tint, None);
+            let (max, min) = (tint.iter().cloned().fold(0.0, f32::max), tint.iter().cloned().fold(1.0, f32::min));
+            assert_eq!(max, 1.0);
+            assert!((SATURATED_FLOOR_MIN..=SATURATED_FLOOR_MAX).contains(&min), "{tint:?}");
+            let (a, b) = (generate(seed, &plain), generate(seed, &sat));
+            assert_eq!((&a.specular, &a.roughness, &a.normal), (&b.specular, &b.roughness, &b.normal));
+            let mean_tint = tint.iter().sum::<f32>() / 3.0;
+            for i in 0..32 * 32 {
+                let (y, x) = (i / 32, i % 32);
+                let level = (0..3).map(|c| a.diffuse.get(c, y, x)).sum::<f32>() / 3.0;
+                for c in 0..3 {
+                    let want = (level * tint[c] / mean_tint).min(1.0);
+                    assert!((b.diffuse.get(c, y, x) - want).abs() < 1e-6);
+                }
+            }
+        }
+        // The hue wheel, by hand: red at 0, yellow at 1/6, 200 degrees = (0, 2/3, 1).
+        let tint_at = |hue: f32| {
+            let channel = |centre: f32| (2.0 - ((hue - centre).rem_euclid(1.0) * 6.0).min((centre - hue).rem_euclid(1.0) * 6.0)).clamp(0.0, 1.0);
+            [0.0, 1.0 / 3.0, 2.0 / 3.0].map(channel)
+        };
+        for (hue, want) in [(0.0, [1.0, 0.0, 0.0]), (1.0 / 6.0, [1.0, 1.0, 0.0]), (200.0 / 360.0, [0.0, 2.0 / 3.0, 1.0])] {
+            let got = tint_at(hue);
+            assert!(got.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-5), "{hue}: {got:?}");
+        }
+        let set = saturated_test_set(16);
+        assert_eq!(set.len(), SATURATED_TEST_SET_SIZE);
+        let seeds = (0..SATURATED_TEST_SET_SIZE as u64).map(|i| SATURATED_TEST_SEED_BASE + i);
+        let tints: Vec<[f32; 3]> = seeds.map(|s| saturation_tint(s, &sat).unwrap()).collect();
+        for c in 0..3 {
+            assert!(tints.iter().any(|t| t[c] == 1.0), "no material has channel {c} strongest: {tints:?}");
+        }
+        assert!(tints.iter().any(|t| t.iter().cloned().fold(1.0, f32::min) < 0.01), "no near-black channel: {tints:?}");
+    }
+
     #[test]
     fn held_out_seeds_never_in_training_stream() {
         let test = test_seeds();
         assert_eq!(test.len(), TEST_SET_SIZE);
         assert_eq!(test.iter().collect::<HashSet<_>>().len(), TEST_SET_SIZE);
         assert!(test.iter().all(|&s| is_test_seed(s)));
-        assert!(!is_test_seed(TEST_SEED_BASE - 1) && !is_test_seed(DARK_TEST_SEED_BASE + DARK_TEST_SET_SIZE as u64));
+        assert!(!is_test_seed(TEST_SEED_BASE - 1) && !is_test_seed(SATURATED_TEST_SEED_BASE + SATURATED_TEST_SET_SIZE as u64));
+        assert!(is_test_seed(SATURATED_TEST_SEED_BASE) && is_test_seed(SATURATED_TEST_SEED_BASE + SATURATED_TEST_SET_SIZE as u64 - 1));
         assert!(is_test_seed(DARK_TEST_SEED_BASE) && is_test_seed(DARK_TEST_SEED_BASE + DARK_TEST_SET_SIZE as u64 - 1));
         assert!(!is_test_seed(0) && !is_test_seed(u64::MAX));
         // The argument: test seeds have the top bit set, training seeds never do.
@@ -791,9 +905,9 @@ mod tests {
             assert!((800..1200).contains(&c), "{f} drawn {c} times out of {n}");
         }
         // Restricted family list.
-        let only = ProceduralConfig { size: S, mix_probability: 1.0, families: vec![Family::Wood], dark_probability: 0.0 };
+        let only = ProceduralConfig { size: S, mix_probability: 1.0, families: vec![Family::Wood], dark_probability: 0.0, saturated_probability: 0.0 };
         for s in 0..20 {
-            assert_eq!(describe(s, &only), MaterialInfo { family: Family::Wood, mixed_with: None, dark_factor: None });
+            assert_eq!(describe(s, &only), MaterialInfo { family: Family::Wood, mixed_with: None, dark_factor: None, saturation_tint: None });
         }
     }
 
@@ -815,7 +929,7 @@ mod tests {
         let cfg: ProceduralConfig = toml::from_str("size = 128\nfamilies = [\"wood\", \"rust-paint\"]").unwrap();
         assert_eq!(
             cfg,
-            ProceduralConfig { size: 128, mix_probability: 0.3, families: vec![Family::Wood, Family::RustPaint], dark_probability: 0.0 }
+            ProceduralConfig { size: 128, mix_probability: 0.3, families: vec![Family::Wood, Family::RustPaint], dark_probability: 0.0, saturated_probability: 0.0 }
         );
     }
 

@@ -75,6 +75,9 @@ pub struct ExposureRow {
     /// The same over the pixels not clipped in the photo (= `ratio` on an
     /// unclipped photo; NaN when every pixel is clipped).
     pub ratio_kept: f64,
+    /// `ratio_kept` per channel: the colour of what the camera recorded
+    /// (issue 69's white balance target).
+    pub ratio_kept_rgb: [f64; 3],
     /// Moved lights' mean at EV over at 0 stops, over 2^EV; `None` at 0.
     pub relit_scale: Option<f64>,
     /// The 0-stop photo's [`clipped_fraction`] (the relit scale's reference).
@@ -82,10 +85,10 @@ pub struct ExposureRow {
 }
 
 /// The identity ratio of a prepared method: per channel, of the RGB means,
-/// and of the RGB means over the pixels `photo` does not clip (NaN when it
-/// clips all). exposed_truth: `[3, H, W]`, the linear co-located render x
-/// 2^EV, unclamped; photo: the same as the method saw it.
-pub fn identity_ratio(method: &dyn Method, exposed_truth: &Tensor, photo: &Tensor) -> Result<([f64; 3], f64, f64)> {
+/// and of the RGB means and per channel over the pixels `photo` does not
+/// clip (NaN when it clips all). exposed_truth: `[3, H, W]`, the linear
+/// co-located render x 2^EV, unclamped; photo: the same as the method saw it.
+pub fn identity_ratio(method: &dyn Method, exposed_truth: &Tensor, photo: &Tensor) -> Result<([f64; 3], f64, f64, [f64; 3])> {
     let render = method.render(&[LightView::colocated(MODEL_FOV_DEG)])?.get(0).clamp_min(0.0);
     let truth = exposed_truth.to_device(tch::Device::Cpu).to_kind(Kind::Float);
     let (r, p) = (channel_means(&render), channel_means(&truth));
@@ -94,7 +97,11 @@ pub fn identity_ratio(method: &dyn Method, exposed_truth: &Tensor, photo: &Tenso
     let kept = photo.to_device(tch::Device::Cpu).lt(1.0).all_dim(0, true).to_kind(Kind::Double); // [1, H, W]
     let masked_sum = |t: &Tensor| f64::try_from((t.to_kind(Kind::Double) * &kept).sum(Kind::Double)).unwrap_or(f64::NAN);
     let kept_ratio = masked_sum(&render) / masked_sum(&truth);
-    Ok((rgb, all, if kept_ratio.is_finite() { kept_ratio } else { f64::NAN }))
+    let kept_rgb = [0, 1, 2].map(|c| {
+        let r = masked_sum(&render.get(c).unsqueeze(0)) / masked_sum(&truth.get(c).unsqueeze(0));
+        if r.is_finite() { r } else { f64::NAN }
+    });
+    Ok((rgb, all, if kept_ratio.is_finite() { kept_ratio } else { f64::NAN }, kept_rgb))
 }
 
 /// Scores one method on one material at every exposure. photo_linear:
@@ -123,7 +130,7 @@ pub fn measure(method: &mut dyn Method, material: &str, photo_linear: &Tensor, e
             }
         };
         let means = channel_means(&relit.clamp_min(0.0));
-        let (ratio_rgb, ratio, ratio_kept) = identity_ratio(method, &exposed(photo_linear, ev, false), &photo)?;
+        let (ratio_rgb, ratio, ratio_kept, ratio_kept_rgb) = identity_ratio(method, &exposed(photo_linear, ev, false), &photo)?;
         let relit_scale = match reference {
             None => {
                 reference = Some(means);
@@ -131,7 +138,7 @@ pub fn measure(method: &mut dyn Method, material: &str, photo_linear: &Tensor, e
             }
             Some(r) => Some(means.iter().sum::<f64>() / r.iter().sum::<f64>().max(1e-12) / 2f64.powf(ev)),
         };
-        rows.push(ExposureRow { material: material.to_string(), ev, clipped: clipped_fraction(&photo), ratio_rgb, ratio, ratio_kept, relit_scale, reference_clipped });
+        rows.push(ExposureRow { material: material.to_string(), ev, clipped: clipped_fraction(&photo), ratio_rgb, ratio, ratio_kept, ratio_kept_rgb, relit_scale, reference_clipped });
     }
     // Back in the order asked for.
     rows.sort_by(|a, b| {
@@ -151,14 +158,15 @@ pub fn geo_min_max(values: &[f64]) -> (f64, f64, f64) {
 }
 
 /// CSV of every method's rows: `method,material,ev,clipped,ratio,ratio_r,
-/// ratio_g,ratio_b,relit_scale,reference_clipped,ratio_kept`.
+/// ratio_g,ratio_b,relit_scale,reference_clipped,ratio_kept,ratio_kept_r,
+/// ratio_kept_g,ratio_kept_b`.
 pub fn csv_text(methods: &[(String, Vec<ExposureRow>)]) -> String {
-    let mut s = String::from("method,material,ev,clipped,ratio,ratio_r,ratio_g,ratio_b,relit_scale,reference_clipped,ratio_kept\n");
+    let mut s = String::from("method,material,ev,clipped,ratio,ratio_r,ratio_g,ratio_b,relit_scale,reference_clipped,ratio_kept,ratio_kept_r,ratio_kept_g,ratio_kept_b\n");
     for (name, rows) in methods {
         for r in rows {
             let _ = writeln!(
                 s,
-                "{name},{},{},{:.6},{:.5},{:.5},{:.5},{:.5},{},{:.6},{:.5}",
+                "{name},{},{},{:.6},{:.5},{:.5},{:.5},{:.5},{},{:.6},{:.5},{:.5},{:.5},{:.5}",
                 r.material,
                 r.ev,
                 r.clipped,
@@ -168,7 +176,10 @@ pub fn csv_text(methods: &[(String, Vec<ExposureRow>)]) -> String {
                 r.ratio_rgb[2],
                 r.relit_scale.map_or(String::new(), |v| format!("{v:.5}")),
                 r.reference_clipped,
-                r.ratio_kept
+                r.ratio_kept,
+                r.ratio_kept_rgb[0],
+                r.ratio_kept_rgb[1],
+                r.ratio_kept_rgb[2]
             );
         }
     }
@@ -234,6 +245,41 @@ pub fn markdown(methods: &[(String, Vec<ExposureRow>)], ldr: bool) -> String {
             );
         }
     }
+    s.push_str(&colour_markdown(methods));
+    s
+}
+
+/// A channel of one material is off when its kept-pixel ratio leaves this
+/// band (issue 69: no material's channel off by more than 10%).
+pub const CHANNEL_TOLERANCE: f64 = 0.10;
+
+/// The colour table (issue 69): per method and exposure, the identity
+/// render's mean over the photo's per channel over the pixels each photo
+/// kept, geometric mean over all photos, the largest |ratio - 1| of any
+/// channel, and the photos with a channel off by more than
+/// [`CHANNEL_TOLERANCE`].
+fn colour_markdown(methods: &[(String, Vec<ExposureRow>)]) -> String {
+    let mut s = format!(
+        "\nColour: identity render over photo per channel, over the pixels each photo kept (all photos). Cells: geometric mean over materials; the largest |ratio - 1| of any channel; materials with a channel off by more than {:.0}%.\n\n\
+         | Method | EV | photos | R / G / B kept (geo) | worst channel | channels off > {:.0}% |\n|---|---|---|---|---|---|\n",
+        100.0 * CHANNEL_TOLERANCE,
+        100.0 * CHANNEL_TOLERANCE
+    );
+    for (name, rows) in methods {
+        let mut evs: Vec<f64> = vec![];
+        rows.iter().for_each(|r| if !evs.contains(&r.ev) { evs.push(r.ev) });
+        for ev in evs {
+            let at: Vec<&ExposureRow> = rows.iter().filter(|r| r.ev == ev && r.ratio_kept_rgb.iter().all(|v| v.is_finite() && *v > 0.0)).collect();
+            if at.is_empty() {
+                continue;
+            }
+            let rgb = [0, 1, 2].map(|c| geo_min_max(&at.iter().map(|r| r.ratio_kept_rgb[c]).collect::<Vec<_>>()).0);
+            let off = |r: &ExposureRow| r.ratio_kept_rgb.iter().map(|v| (v - 1.0).abs()).fold(0.0, f64::max);
+            let (worst, worst_name) = at.iter().map(|r| (off(r), r.material.as_str())).max_by(|a, b| a.0.total_cmp(&b.0)).expect("at is not empty");
+            let n_off = at.iter().filter(|r| off(r) > CHANNEL_TOLERANCE).count();
+            let _ = writeln!(s, "| {name} | {ev:+} | {} | {:.3} / {:.3} / {:.3} | {worst:.3} ({worst_name}) | {n_off}/{} |", at.len(), rgb[0], rgb[1], rgb[2], at.len());
+        }
+    }
     s
 }
 
@@ -281,6 +327,9 @@ mod tests {
         let md = markdown(&[("printout".into(), rows.clone())], true);
         assert!(md.contains("| printout | -6 | 1 | 1.00 [1.00, 1.00] | 1/1 |"), "{md}");
         assert!(md.contains("| 1.00 [1.00, 1.00] (1/1) |"), "the clipped photo's kept pixels: {md}");
+        // The print-out is the photo wherever it kept pixels: every channel 1, none off.
+        assert!(rows.iter().all(|r| r.ratio_kept_rgb.iter().all(|v| (v - 1.0).abs() < 1e-5)), "{rows:?}");
+        assert!(md.contains("| printout | +2 | 1 | 1.000 / 1.000 / 1.000 | 0.000 (test03) | 0/1 |"), "{md}");
         assert!(csv_text(&[("printout".into(), rows)]).lines().count() == 4);
         assert!(measure(&mut p, "x", &linear, &[-1.0], false, &moved, None).is_err());
     }

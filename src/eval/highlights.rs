@@ -162,6 +162,10 @@ pub struct LightRatios {
     pub rest: Option<f64>,
     pub lpips_ghost: Option<f64>,
     pub lpips_lobe: Option<f64>,
+    /// Chromaticity distance of the render's mean colour from the truth's
+    /// (rgb / (r + g + b); `uniform::chromaticity_distance`): the relit
+    /// colour, whatever the brightness (issue 69).
+    pub chroma: Option<f64>,
 }
 
 /// The ratios of one method's renders under the moved lights.
@@ -192,7 +196,9 @@ pub fn light_ratios(s_in: &[bool], pred: &Tensor, truth: &Tensor, cfg: &Highligh
                 let crop = |x: &Tensor| x.narrow(1, top as i64, side as i64).narrow(2, left as i64, side as i64).unsqueeze(0);
                 Ok(Some(super::metrics::score_renders(lpips, &crop(&p), &crop(&t))?[0].lpips))
             };
-            Ok(LightRatios { ghost, lobe, rest, lpips_ghost: crop_lpips(ghost, &ghost_r)?, lpips_lobe: crop_lpips(lobe, &lobe_r)? })
+            let mean_colour = |x: &Tensor| -> Result<[f64; 3]> { Ok(super::uniform::mean_colour(&Image::from_tensor(x)?)) };
+            let chroma = Some(super::uniform::chromaticity_distance(mean_colour(&p)?, mean_colour(&t)?));
+            Ok(LightRatios { ghost, lobe, rest, lpips_ghost: crop_lpips(ghost, &ghost_r)?, lpips_lobe: crop_lpips(lobe, &lobe_r)?, chroma })
         })
         .collect()
 }
@@ -213,6 +219,8 @@ pub struct MaterialHighlights {
     pub lobe_lights: usize,
     pub lpips_ghost: Option<f64>,
     pub lpips_lobe: Option<f64>,
+    /// Mean over the lights of [`LightRatios::chroma`].
+    pub relit_chroma: Option<f64>,
 }
 
 /// Mean of the defined values, `None` for none.
@@ -236,6 +244,7 @@ pub fn material_highlights(material: &str, glossiness: f64, photo_highlight_pixe
         lobe_lights,
         lpips_ghost: mean_defined(lights.iter().map(|l| l.lpips_ghost)).0,
         lpips_lobe: mean_defined(lights.iter().map(|l| l.lpips_lobe)).0,
+        relit_chroma: mean_defined(lights.iter().map(|l| l.chroma)).0,
     }
 }
 
@@ -299,6 +308,10 @@ pub struct HighlightSummary {
     /// Arithmetic means of the crops' LPIPS (NaN for none).
     pub lpips_ghost: f64,
     pub lpips_lobe: f64,
+    /// Mean over materials of [`MaterialHighlights::relit_chroma`], and the
+    /// largest.
+    pub relit_chroma: f64,
+    pub relit_chroma_max: f64,
 }
 
 pub fn summarize(rows: &[&MaterialHighlights]) -> HighlightSummary {
@@ -316,6 +329,8 @@ pub fn summarize(rows: &[&MaterialHighlights]) -> HighlightSummary {
         rest: ratio_stats(rows.iter().map(|r| r.rest)),
         lpips_ghost: mean(|r| r.lpips_ghost),
         lpips_lobe: mean(|r| r.lpips_lobe),
+        relit_chroma: mean(|r| r.relit_chroma),
+        relit_chroma_max: rows.iter().filter_map(|r| r.relit_chroma).fold(f64::NAN, f64::max),
     }
 }
 
@@ -347,15 +362,15 @@ fn cell(v: Option<f64>, digits: usize) -> String {
 }
 
 /// CSV of every method's rows: `method,material,glossiness,photo_highlight_pixels,
-/// ghost,lobe,rest,ghost_lights,lobe_lights,lpips_ghost,lpips_lobe` (empty
-/// cells where a ratio is undefined).
+/// ghost,lobe,rest,ghost_lights,lobe_lights,lpips_ghost,lpips_lobe,relit_chroma`
+/// (empty cells where a ratio is undefined).
 pub fn csv_text(methods: &[(String, Vec<MaterialHighlights>)]) -> String {
-    let mut s = String::from("method,material,glossiness,photo_highlight_pixels,ghost,lobe,rest,ghost_lights,lobe_lights,lpips_ghost,lpips_lobe\n");
+    let mut s = String::from("method,material,glossiness,photo_highlight_pixels,ghost,lobe,rest,ghost_lights,lobe_lights,lpips_ghost,lpips_lobe,relit_chroma\n");
     for (name, rows) in methods {
         for r in rows {
             let _ = writeln!(
                 s,
-                "{name},{},{:.5},{},{},{},{},{},{},{},{}",
+                "{name},{},{:.5},{},{},{},{},{},{},{},{},{}",
                 r.material,
                 r.glossiness,
                 r.photo_highlight_pixels,
@@ -365,7 +380,8 @@ pub fn csv_text(methods: &[(String, Vec<MaterialHighlights>)]) -> String {
                 r.ghost_lights,
                 r.lobe_lights,
                 cell(r.lpips_ghost, 5),
-                cell(r.lpips_lobe, 5)
+                cell(r.lpips_lobe, 5),
+                cell(r.relit_chroma, 5)
             );
         }
     }
@@ -391,23 +407,26 @@ pub fn markdown(methods: &[(String, Vec<MaterialHighlights>)], cfg: &HighlightCo
          Ratios of mean linear radiance, method over truth: **ghost** on S_in \\ S_gt (1 = the photographed highlight is gone), **lobe** on S_gt \\ S_in \
          (1 = the new highlight at full strength), **rest** elsewhere; per material the mean over the lights leaving more than {} pixels (at 256x256) in the region. \
          Cells: geometric mean | median | materials past {GHOST_PAST}x (ghost), below {LOBE_BELOW}x (lobe), outside 0.9-1.1 (rest) / materials with the region. \
-         LPIPS: linear renders clamped to [0, 1] in a window a quarter of the image side centred on the region's centroid, mean over materials.\n",
+         LPIPS: linear renders clamped to [0, 1] in a window a quarter of the image side centred on the region's centroid, mean over materials. \
+         Relit chromaticity: distance of the render's mean rgb / (r + g + b) from the truth's under each light, mean over lights, then mean | largest over materials.\n",
         lights.join(", "),
         cfg.threshold,
         cfg.min_pixels_at_256
     );
-    let header = "| Method | ghost | median | > 1.5x | lobe | median | < 0.67x | rest | median | outside 0.9-1.1 | LPIPS ghost window | LPIPS lobe window |\n|---|---|---|---|---|---|---|---|---|---|---|---|";
+    let header = "| Method | ghost | median | > 1.5x | lobe | median | < 0.67x | rest | median | outside 0.9-1.1 | LPIPS ghost window | LPIPS lobe window | relit chromaticity | largest |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|";
     // `lead`: the first cells of the row (method, and tercile).
     let row = |lead: &str, rows: &[&MaterialHighlights]| {
         let sm = summarize(rows);
         let rest_out = rows.iter().filter_map(|r| r.rest).filter(|&v| !(0.9..=1.1).contains(&v)).count();
         format!(
-            "| {lead} | {} | {} | {} | {:.3} | {:.3} |",
+            "| {lead} | {} | {} | {} | {:.3} | {:.3} | {:.4} | {:.4} |",
             stats_cells(&sm.ghost, sm.ghost.above_1_5),
             stats_cells(&sm.lobe, sm.lobe.below_0_67),
             stats_cells(&sm.rest, rest_out),
             sm.lpips_ghost,
-            sm.lpips_lobe
+            sm.lpips_lobe,
+            sm.relit_chroma,
+            sm.relit_chroma_max
         )
     };
     let _ = writeln!(s, "{header}");
@@ -552,6 +571,12 @@ mod tests {
         let r = light_ratios(&s_in, &truth, &truth, &cfg, Some(&lpips)).unwrap()[0];
         assert_eq!((r.ghost, r.lobe, r.rest), (Some(1.0), Some(1.0), Some(1.0)));
         assert!(r.lpips_ghost.unwrap() < 1e-6 && r.lpips_lobe.unwrap() < 1e-6);
+        assert!(r.chroma.unwrap() < 1e-9, "{r:?}");
+        // Grey renders against a truth with twice the red: chromaticities
+        // (1/3, 1/3, 1/3) and (1/2, 1/4, 1/4), distance sqrt(1/36 + 2/144).
+        let red = &truth * Tensor::from_slice(&[2.0f32, 1.0, 1.0]).view([1, 3, 1, 1]);
+        let r = light_ratios(&s_in, &truth, &red, &cfg, None).unwrap()[0];
+        assert!((r.chroma.unwrap() - (1.0f64 / 36.0 + 2.0 / 144.0).sqrt()).abs() < 1e-6, "{r:?}");
         // A highlight of 3 pixels (the minimum at 64 x 64) does not count.
         let small = Tensor::full([3, 64, 64], 0.1, (Kind::Float, Device::Cpu));
         let _ = small.narrow(1, 0, 1).narrow(2, 0, 3).fill_(1.0);

@@ -28,7 +28,7 @@ pub mod uniform;
 pub use methods::{open_methods, open_model_file, AnalyticMethod, Method, ModelMethod, PrintoutMethod, RelightMethod, PRINTOUT};
 pub use metrics::{mean_ci95, mean_scores, score_renders, score_renders_on, LpipsOn, Scores, PSNR_CAP_DB};
 
-use crate::data::loaders::{center_crop, open_dataset};
+use crate::data::loaders::{center_crop, load_readable, open_dataset, SvbrdfSource, Unreadable};
 use crate::data::phone::{exposure_factor, finish_phone_photo, phone_light_view, PhonePhotoConfig};
 use crate::data::procedural;
 use crate::geometry::{sample_hemisphere, sample_reflect, fov_to_distance, LightView, Sampling, HEMISPHERE_RADIUS, MODEL_FOV_DEG};
@@ -47,6 +47,9 @@ pub const PROCEDURAL_TEST: &str = "procedural-test";
 
 /// Dataset name of the held-out dark materials (`procedural::dark_test_set`).
 pub const PROCEDURAL_DARK_TEST: &str = "procedural-dark-test";
+
+/// Dataset name of the held-out saturated materials (`procedural::saturated_test_set`).
+pub const PROCEDURAL_SATURATED_TEST: &str = "procedural-saturated-test";
 
 /// Configurations per material of the Reflect and Hemisphere cases (the
 /// paper's 128 lights x 128 views, paired).
@@ -159,32 +162,65 @@ impl MethodResults {
 
 /// Loads the materials at `size x size`: the procedural test set, or a
 /// dataset's materials centre-cropped to a square and shrunk (area) or
-/// enlarged (bilinear) to `size`. At most `limit` materials.
+/// enlarged (bilinear) to `size`. At most `limit` materials. The first
+/// that cannot be read is the error, naming it ([`load_readable_materials`]
+/// goes on without it).
 pub fn load_materials(dataset: &str, size: usize, limit: Option<usize>) -> Result<Vec<(String, Svbrdf)>> {
+    if let Some(materials) = procedural_materials(dataset, size, limit)? {
+        return Ok(materials);
+    }
+    let (ds, n) = open_eval_dataset(dataset, limit)?;
+    (0..n)
+        .map(|i| {
+            let m = ds.load(i).and_then(|m| fit_to_size(&m, size)).map_err(|e| anyhow!("material {}: {e:#}", ds.name(i)))?;
+            Ok((ds.name(i), m))
+        })
+        .collect()
+}
+
+/// [`load_materials`], going on past dataset materials that cannot be read
+/// (each named in a warning line; [`load_readable`]), which it returns
+/// beside the others. Errors when none can be read.
+pub fn load_readable_materials(dataset: &str, size: usize, limit: Option<usize>) -> Result<(Vec<(String, Svbrdf)>, Vec<Unreadable>)> {
+    if let Some(materials) = procedural_materials(dataset, size, limit)? {
+        return Ok((materials, vec![]));
+    }
+    let (ds, n) = open_eval_dataset(dataset, limit)?;
+    load_readable(ds.as_ref(), n, |m| fit_to_size(&m, size))
+}
+
+/// The procedural sets (`procedural-test`, `procedural-dark-test`,
+/// `procedural-saturated-test`, `procedural-test:I`) at `size`; None for a
+/// dataset on disk.
+fn procedural_materials(dataset: &str, size: usize, limit: Option<usize>) -> Result<Option<Vec<(String, Svbrdf)>>> {
     if dataset == PROCEDURAL_TEST {
         let seeds = procedural::test_seeds();
         let n = limit.unwrap_or(seeds.len()).min(seeds.len());
         let mats = procedural::generate_many(&seeds[..n], size);
-        return Ok(mats.into_iter().enumerate().map(|(i, m)| (format!("test{i:02}"), m)).collect());
+        return Ok(Some(mats.into_iter().enumerate().map(|(i, m)| (format!("test{i:02}"), m)).collect()));
     }
     if dataset == PROCEDURAL_DARK_TEST {
         let mats = procedural::dark_test_set(size);
         let n = limit.unwrap_or(mats.len()).min(mats.len());
-        return Ok(mats.into_iter().take(n).enumerate().map(|(i, m)| (format!("dark{i:02}"), m)).collect());
+        return Ok(Some(mats.into_iter().take(n).enumerate().map(|(i, m)| (format!("dark{i:02}"), m)).collect()));
+    }
+    if dataset == PROCEDURAL_SATURATED_TEST {
+        let mats = procedural::saturated_test_set(size);
+        let n = limit.unwrap_or(mats.len()).min(mats.len());
+        return Ok(Some(mats.into_iter().take(n).enumerate().map(|(i, m)| (format!("sat{i:02}"), m)).collect()));
     }
     if let Some(i) = procedural::parse_test_material(dataset)? {
-        return Ok(vec![(format!("test{i:02}"), procedural::test_material(i, size))]);
+        return Ok(Some(vec![(format!("test{i:02}"), procedural::test_material(i, size))]));
     }
+    Ok(None)
+}
+
+/// A dataset on disk and how many of its materials to load (`limit`).
+fn open_eval_dataset(dataset: &str, limit: Option<usize>) -> Result<(Box<dyn SvbrdfSource>, usize)> {
     let ds = open_dataset(Path::new(dataset))?;
     let n = limit.unwrap_or(ds.len()).min(ds.len());
     ensure!(n > 0, "dataset {dataset} holds no materials");
-    (0..n)
-        .map(|i| {
-            let m = ds.load(i)?;
-            let m = fit_to_size(&m, size).map_err(|e| anyhow!("{}: {e:#}", ds.name(i)))?;
-            Ok((ds.name(i), m))
-        })
-        .collect()
+    Ok((ds, n))
 }
 
 /// Centre square crop, then resized to `size` (normals renormalised, the
@@ -295,9 +331,21 @@ pub fn check_eval_size(size: usize) -> Result<()> {
     crate::infer::photo::check_size(size)
 }
 
+/// What [`run`] scored, and the dataset materials it could not read.
+#[derive(Debug)]
+pub struct EvalRun {
+    pub results: Vec<MethodResults>,
+    /// Materials scored.
+    pub materials: usize,
+    /// Dataset materials left out, named in `summary.md`.
+    pub skipped: Vec<Unreadable>,
+}
+
 /// `flashmat eval`: loads methods and materials, scores them, writes the
-/// CSVs, `summary.md` and the best/worst grids into `opts.out`.
-pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
+/// CSVs, `summary.md` and the best/worst grids into `opts.out`. A dataset
+/// material that cannot be read is left out (warned of, and listed in
+/// `summary.md` and the result); the run fails only when none can be read.
+pub fn run(opts: &EvalOptions) -> Result<EvalRun> {
     ensure!(!opts.cases.is_empty(), "give at least one case with --cases (reflect, identity, hemisphere)");
     ensure!(opts.configs > 0, "--configs must be at least 1");
     ensure!(opts.phone_photos.is_none() || opts.ldr_input, "--phone-photos needs --ldr-input (a phone writes 8-bit photos)");
@@ -306,14 +354,14 @@ pub fn run(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
     cases.dedup();
     let opts = EvalOptions { cases, exposures: exposure_list(&opts.exposures)?, ..opts.clone() };
     let mut methods = open_methods(&opts.models, opts.ldr_input, opts.device, &opts.refine, &opts.exposure, opts.highlight_fill)?;
-    let materials = load_materials(&opts.dataset, opts.size, opts.limit)?;
+    let (materials, skipped) = load_readable_materials(&opts.dataset, opts.size, opts.limit)?;
     let lpips = Lpips::new(opts.device)?;
     std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;
     let results = evaluate(&mut methods, &materials, &opts, &lpips)?;
-    report::write_reports(&opts, &results)?;
+    report::write_reports(&opts, &results, &skipped)?;
     report::write_grids(&opts, &mut methods, &materials, &results)?;
     report::write_highlight_picture(&opts, &mut methods, &materials)?;
-    Ok(results)
+    Ok(EvalRun { results, materials: materials.len(), skipped })
 }
 
 /// The exposures to score, checked and sorted: finite, each once, 0

@@ -4,6 +4,7 @@
 
 use super::methods::split_refined;
 use super::{case_configs, case_name, case_title, material_photo, mean_ci95, reference_renders, EvalOptions, Method, MethodResults};
+use crate::data::loaders::Unreadable;
 use crate::image::Image;
 use crate::svbrdf::Svbrdf;
 use anyhow::Result;
@@ -102,19 +103,49 @@ pub fn resummarize(opts: &EvalOptions) -> Result<Vec<MethodResults>> {
         }
     }
     let opts = EvalOptions { cases, ..opts.clone() };
-    write_reports(&opts, &results)?;
+    // The CSVs hold the materials scored; the ones skipped are kept from the summary.
+    let old = std::fs::read_to_string(opts.out.join("summary.md")).unwrap_or_default();
+    write_reports(&opts, &results, &read_skipped(&old))?;
     Ok(results)
 }
 
+/// Title of the summary's last section, on materials left out.
+const SKIPPED_TITLE: &str = "## Skipped materials";
+
+/// The section naming the dataset materials that could not be read (empty
+/// for none): a line ``- `NAME`: REASON`` each.
+fn skipped_markdown(skipped: &[Unreadable]) -> String {
+    if skipped.is_empty() {
+        return String::new();
+    }
+    let mut s = format!("{SKIPPED_TITLE}\n\n{} material(s) of the dataset could not be read and are in no table above:\n\n", skipped.len());
+    for u in skipped {
+        let _ = writeln!(s, "- `{}`: {}", u.name, u.reason);
+    }
+    s
+}
+
+/// The materials listed by [`skipped_markdown`] in a summary's text.
+fn read_skipped(summary: &str) -> Vec<Unreadable> {
+    let Some(at) = summary.find(SKIPPED_TITLE) else { return vec![] };
+    summary[at..]
+        .lines()
+        .filter_map(|l| l.strip_prefix("- `")?.split_once("`: "))
+        .map(|(name, reason)| Unreadable { name: name.to_string(), reason: reason.to_string() })
+        .collect()
+}
+
 /// Markdown summary: one table per metric, rows methods, columns cases,
-/// cells `mean ± 1.96 std / sqrt(n)` over materials.
-pub fn summary_markdown(opts: &EvalOptions, results: &[MethodResults]) -> String {
+/// cells `mean ± 1.96 std / sqrt(n)` over materials; last, the dataset
+/// materials `skipped` (unreadable), if any.
+pub fn summary_markdown(opts: &EvalOptions, results: &[MethodResults], skipped: &[Unreadable]) -> String {
     let n = results.first().map(|r| r.rows.iter().filter(|x| Some(x.case) == opts.cases.first().copied()).count()).unwrap_or(0);
     let mut s = String::from("# Evaluation\n\n");
     let _ = writeln!(
         s,
-        "Dataset `{}`, {n} materials at {}x{}, seed {}, {} configurations per material (Reflect, Hemisphere), {} input photos.\n",
+        "Dataset `{}`, {n} materials{} at {}x{}, seed {}, {} configurations per material (Reflect, Hemisphere), {} input photos.\n",
         opts.dataset,
+        if skipped.is_empty() { String::new() } else { format!(" ({} unreadable left out, named at the end)", skipped.len()) },
         opts.size,
         opts.size,
         opts.seed,
@@ -157,6 +188,7 @@ pub fn summary_markdown(opts: &EvalOptions, results: &[MethodResults]) -> String
         s.push_str(&super::exposure::markdown(&exposure_rows(results), opts.ldr_input));
         s.push('\n');
     }
+    s.push_str(&skipped_markdown(skipped));
     s
 }
 
@@ -168,13 +200,14 @@ fn exposure_rows(results: &[MethodResults]) -> Vec<(String, Vec<super::exposure:
     results.iter().map(|r| (r.name.clone(), r.exposure.clone())).collect()
 }
 
-/// Writes `NAME.csv` per method and `summary.md` (atomically), and
-/// `refine.png` when a model was scored at two or more refinement steps.
-pub fn write_reports(opts: &EvalOptions, results: &[MethodResults]) -> Result<()> {
+/// Writes `NAME.csv` per method and `summary.md` (atomically; naming the
+/// `skipped` materials), and `refine.png` when a model was scored at two
+/// or more refinement steps.
+pub fn write_reports(opts: &EvalOptions, results: &[MethodResults], skipped: &[Unreadable]) -> Result<()> {
     for r in results {
         crate::io::atomic_write_bytes(&opts.out.join(format!("{}.csv", r.name)), csv_text(r).as_bytes())?;
     }
-    crate::io::atomic_write_bytes(&opts.out.join("summary.md"), summary_markdown(opts, results).as_bytes())?;
+    crate::io::atomic_write_bytes(&opts.out.join("summary.md"), summary_markdown(opts, results, skipped).as_bytes())?;
     if results.iter().any(|r| !r.highlights.is_empty()) {
         let dir = opts.out.join(HIGHLIGHTS_DIR);
         std::fs::create_dir_all(&dir).map_err(|e| anyhow::anyhow!("cannot create {}: {e}", dir.display()))?;

@@ -101,7 +101,7 @@ fn eval_end_to_end_on_two_materials() {
     Model::new(&ModelConfig::tiny(), Device::Cpu).unwrap().save(&model_path, &ModelInfo::default(), false).unwrap();
     let out = t.path().join("report");
     let opts = small_eval(vec![model_path.to_string_lossy().into_owned(), PRINTOUT.into()], &out);
-    let results = run(&opts).unwrap();
+    let results = run(&opts).unwrap().results;
     assert_eq!(results.len(), 2);
     for name in ["tiny.csv", "printout.csv", "summary.md", "best.jpg", "worst.jpg", "grids.txt"] {
         assert!(out.join(name).is_file(), "{name} missing");
@@ -134,10 +134,46 @@ fn eval_end_to_end_on_two_materials() {
     assert_eq!(std::fs::read_to_string(out.join("exposure/curve.csv")).unwrap().lines().count(), 1 + 2 * 2);
     assert!(out.join("highlights/moved.jpg").is_file() && out.join("highlights/moved.txt").is_file());
     // Same seed, same numbers.
-    let again = run(&EvalOptions { out: t.path().join("again"), ..opts }).unwrap();
+    let again = run(&EvalOptions { out: t.path().join("again"), ..opts }).unwrap().results;
     assert_eq!(csv, std::fs::read_to_string(t.path().join("again/printout.csv")).unwrap());
     assert_eq!(tiny, std::fs::read_to_string(t.path().join("again/tiny.csv")).unwrap());
     assert_eq!(again[0].rows.len(), 6);
+}
+
+/// A dataset with an unreadable material among good ones: the others are
+/// scored, the bad one named in the result and in `summary.md` (which
+/// `--summarize` keeps); a dataset of unreadable ones only is an error
+/// naming the material.
+#[test]
+fn unreadable_dataset_materials_are_skipped_and_named() {
+    let t = tempfile::tempdir().unwrap();
+    let data = t.path().join("data");
+    for name in ["a", "b", "c"] {
+        crate::data::loaders::write_material_dir(&data.join(name), &Svbrdf::uniform(16, 16, [0.3; 3], [0.04; 3], 0.4)).unwrap();
+    }
+    std::fs::write(data.join("b/normals.png"), b"not a png").unwrap();
+    let out = t.path().join("report");
+    let opts = EvalOptions { dataset: data.to_string_lossy().into_owned(), cases: vec![Sampling::Identity], limit: None, ..small_eval(vec![PRINTOUT.into()], &out) };
+    let done = run(&opts).unwrap();
+    assert_eq!(done.materials, 2);
+    assert_eq!(done.skipped.iter().map(|u| u.name.as_str()).collect::<Vec<_>>(), ["b"]);
+    assert!(done.skipped[0].reason.contains("b/normals.png"), "{:?}", done.skipped);
+    let csv = std::fs::read_to_string(out.join("printout.csv")).unwrap();
+    let materials: Vec<&str> = csv.lines().skip(1).map(|l| l.split(',').next().unwrap()).collect();
+    assert_eq!(materials, ["a", "c"]);
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(summary.contains("2 materials (1 unreadable left out, named at the end)"), "{summary}");
+    let section = &summary[summary.find("## Skipped materials").expect("a Skipped materials section")..];
+    assert!(section.contains("- `b`: ") && section.contains("b/normals.png"), "{section}");
+    report::resummarize(&opts).unwrap();
+    let resummary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(resummary.contains("(1 unreadable left out") && resummary.ends_with(section), "{resummary}");
+
+    let bad = t.path().join("bad");
+    crate::data::loaders::write_material_dir(&bad.join("x"), &Svbrdf::uniform(16, 16, [0.3; 3], [0.04; 3], 0.4)).unwrap();
+    std::fs::write(bad.join("x/normals.png"), b"not a png").unwrap();
+    let e = format!("{:#}", run(&EvalOptions { dataset: bad.to_string_lossy().into_owned(), out: t.path().join("none"), ..opts }).unwrap_err());
+    assert!(e.starts_with("material x: ") && e.contains("x/normals.png"), "{e}");
 }
 
 #[test]
@@ -153,7 +189,7 @@ fn refine_variants_are_scored_as_their_own_rows() {
         refine: vec![RefineConfig::with_steps(0), RefineConfig::with_steps(40)],
         ..small_eval(vec![model.clone(), PRINTOUT.into()], &out)
     };
-    let results = run(&opts).unwrap();
+    let results = run(&opts).unwrap().results;
     let names: Vec<&str> = results.iter().map(|r| r.name.as_str()).collect();
     assert_eq!(names, ["tiny", "tiny+refine40", "printout"]);
     // The refinement fits the identity render: lower log error on every material.
@@ -180,7 +216,7 @@ fn refine_variants_are_scored_as_their_own_rows() {
         assert_eq!(line(&summary), line(&resummary));
     }
     // Without 0 in the list only the refined variant is scored.
-    let only = run(&EvalOptions { refine: vec![RefineConfig::with_steps(5)], out: t.path().join("only"), ..small_eval(vec![model], &out) }).unwrap();
+    let only = run(&EvalOptions { refine: vec![RefineConfig::with_steps(5)], out: t.path().join("only"), ..small_eval(vec![model], &out) }).unwrap().results;
     assert_eq!(only.iter().map(|r| r.name.as_str()).collect::<Vec<_>>(), ["tiny+refine5"]);
 }
 
@@ -264,7 +300,7 @@ fn eval_scores_baseline_model_files() {
     let out = t.path().join("report");
     let models = [&flashmat, &analytic, &relight].map(|p| p.to_string_lossy().into_owned());
     let opts = small_eval(vec![models[0].clone(), PRINTOUT.into(), models[1].clone(), models[2].clone()], &out);
-    let results = run(&opts).unwrap();
+    let results = run(&opts).unwrap().results;
     let names: Vec<&str> = results.iter().map(|r| r.name.as_str()).collect();
     assert_eq!(names, ["flashmat", "printout", "analytic", "relight-unet"]);
     for name in ["analytic", "relight-unet"] {
@@ -330,7 +366,7 @@ fn phone_photos_are_drawn_per_material_and_scored_against_the_same_truths() {
     let mean_gap = f64::try_from((crate::spaces::ldr_clamp(&linear) - &photo).abs().mean(tch::Kind::Float)).unwrap();
     assert!(mean_gap < 0.02, "{mean_gap}");
     // The run scores them and says so; a phone photo without --ldr-input is refused.
-    let results = run(&opts).unwrap();
+    let results = run(&opts).unwrap().results;
     assert_eq!(results[0].rows.len(), 2);
     assert!(std::fs::read_to_string(t.path().join("summary.md")).unwrap().contains("phone (8-bit sRGB"));
     let e = run(&EvalOptions { ldr_input: false, ..opts }).unwrap_err().to_string();

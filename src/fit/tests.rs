@@ -116,9 +116,9 @@ fn neural_targets_equal_the_neural_renderer() {
     assert!(mean_abs(&t, &direct) < 1e-5, "{}", mean_abs(&t, &direct));
     // The material's exposure gain: the targets are ln(1 + gain R), what its renders show.
     let mut m = m;
-    m.meta.gain = 3.0;
+    m.meta.gain = [3.0, 1.5, 0.5];
     let scaled = neural_targets(&m, &wi, &wo, |_| {}).unwrap();
-    let expect = (direct.expm1() * 3.0).log1p();
+    let expect = (direct.expm1() * Tensor::from_slice(&[3.0f32, 1.5, 0.5]).view([1, 3, 1, 1])).log1p();
     assert!(mean_abs(&scaled, &expect) < 1e-5, "{}", mean_abs(&scaled, &expect));
     assert!(mean_abs(&scaled, &t) > 0.01);
 }

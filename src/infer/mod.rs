@@ -188,17 +188,24 @@ fn estimate_at_scale(
         ldr_input: photo.ldr,
         model_info: info.clone(),
         refine: None,
-        gain: 1.0 / scale,
+        gain: [1.0 / scale; 3],
     };
     let mut material = NeuralMaterial::from_parts(map.get(0), stored.to_device(device), &model.config, &model.renderer_vs.variables(), meta)?;
     let mut identity = if exposure.calibrate || want_identity { Some(material.render(&[NeuralMaterial::identity_config()])?.get(0)) } else { None };
     if let (true, Some(id)) = (exposure.calibrate, identity.as_mut()) {
-        if let Some(f) = exposure::calibration_factor(&material.input_photo, id) {
-            material.meta.gain *= f;
-            *id = &*id * f;
+        if let Some(f) = exposure::calibration_factor(&material.input_photo, id, exposure.white_balance) {
+            material.meta.gain = [0, 1, 2].map(|c| material.meta.gain[c] * f[c]);
+            *id = &*id * tch::Tensor::from_slice(&f).to_kind(tch::Kind::Float).to_device(id.device()).view([3, 1, 1]);
         }
     }
     Ok((material, identity))
+}
+
+/// The material's identity render against its stored photo
+/// ([`exposure::IdentityCheck`]); None where nothing can be compared.
+pub fn identity_check(material: &NeuralMaterial) -> Result<Option<exposure::IdentityCheck>> {
+    let identity = material.render(&[NeuralMaterial::identity_config()])?.get(0);
+    Ok(exposure::IdentityCheck::measure(&material.input_photo, &identity))
 }
 
 /// `frames` configurations of a light circling the material at radius
@@ -251,7 +258,7 @@ mod tests {
         let info = ModelInfo { ldr_input: true, steps: 0 };
         // The photo as it is (no exposure normalisation): M_est's input is the stored photo.
         let m = estimate_planned(&model, &info, &photo(24, false), &EstPlan::Whole, &ExposureConfig::off(), || ()).unwrap();
-        assert_eq!(m.meta.gain, 1.0);
+        assert_eq!(m.meta.gain, [1.0; 3]);
         assert_eq!(m.size(), (24, 24));
         assert_eq!(m.neural_map.size(), [16, 24, 24]);
         // An LDR model sees the HDR photo clamped.
@@ -294,7 +301,9 @@ mod tests {
             let b = estimate_planned(&model, &info, &dark, &EstPlan::Whole, &cfg, || ()).unwrap();
             let d = (&a.neural_map - &b.neural_map).abs().max().double_value(&[]);
             assert!(d < 1e-5 * (1.0 + a.neural_map.abs().max().double_value(&[])), "maps differ by {d}");
-            assert!((a.meta.gain / b.meta.gain - 4.0).abs() < 1e-5, "{} / {}", a.meta.gain, b.meta.gain);
+            for c in 0..3 {
+                assert!((a.meta.gain[c] / b.meta.gain[c] - 4.0).abs() < 1e-5, "{:?} / {:?}", a.meta.gain, b.meta.gain);
+            }
             let (ra, rb) = (a.render(&relit).unwrap(), b.render(&relit).unwrap());
             let e = (&ra - &rb * 4.0).abs().max().double_value(&[]);
             assert!(e < 1e-4 * (1.0 + ra.max().double_value(&[])), "renders differ by {e}");
@@ -306,13 +315,17 @@ mod tests {
                 let mean = |t: &tch::Tensor| t.masked_select(&mask).mean(tch::Kind::Double).double_value(&[]);
                 let ratio = mean(&rb.get(0)) / mean(&photo);
                 assert!((ratio - 1.0).abs() < 1e-4, "identity over photo {ratio}");
+                // ... and per channel (the white balance).
+                for r in exposure::identity_channel_ratios(&photo, &rb.get(0)) {
+                    assert!((r - 1.0).abs() < 1e-4, "identity over photo per channel {r}");
+                }
             } else {
                 // Normalised only: M_est saw the photo at the minimum level, the gain undoes it.
                 let level = exposure::photo_level(&dark.linear.to_tensor()).unwrap();
-                assert!((b.meta.gain - level / exposure::DEFAULT_MIN_LEVEL).abs() < 1e-9);
+                assert!(b.meta.gain.iter().all(|g| (g - level / exposure::DEFAULT_MIN_LEVEL).abs() < 1e-9), "{:?}", b.meta.gain);
                 // The bundled model's estimate of a photo above the level is the photo as it is.
                 let plain = estimate_planned(&model, &info, &base, &EstPlan::Whole, &cfg, || ()).unwrap();
-                assert_eq!(plain.meta.gain, 1.0);
+                assert_eq!(plain.meta.gain, [1.0; 3]);
             }
         }
     }
@@ -334,13 +347,15 @@ mod tests {
         let kept = est(1.0, &cfg);
         let capped = est(1.0, &ExposureConfig { lift_candidates: 1, ..cfg });
         let clipping = est(1.0, &ExposureConfig { clip_share: None, ..cfg });
-        assert!(capped.meta.gain > clipping.meta.gain * 1.5, "the two ends differ: {} / {}", capped.meta.gain, clipping.meta.gain);
+        assert!(capped.meta.gain[1] > clipping.meta.gain[1] * 1.5, "the two ends differ: {:?} / {:?}", capped.meta.gain, clipping.meta.gain);
         let e = error(&kept);
         assert!(e <= error(&capped) + 1e-12 && e <= error(&clipping) + 1e-12, "{e} vs {} and {}", error(&capped), error(&clipping));
         let darker = est(0.25, &cfg);
         let d = (&kept.neural_map - &darker.neural_map).abs().max().double_value(&[]);
         assert!(d < 1e-4 * (1.0 + kept.neural_map.abs().max().double_value(&[])), "maps differ by {d}");
-        assert!((kept.meta.gain / darker.meta.gain - 4.0).abs() < 1e-4, "{} / {}", kept.meta.gain, darker.meta.gain);
+        for c in 0..3 {
+            assert!((kept.meta.gain[c] / darker.meta.gain[c] - 4.0).abs() < 1e-4, "{:?} / {:?}", kept.meta.gain, darker.meta.gain);
+        }
     }
 
     #[test]

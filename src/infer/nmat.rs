@@ -7,8 +7,8 @@
 //! linear photo M_est saw) and the renderer weights under their model names
 //! (`renderer.nd_enc.*`, `renderer.m_render.*`). Metadata: `model_id`,
 //! `config` (TOML), `fov_deg`, `crop` (JSON), `source`, `ldr_input`,
-//! `model_info` (JSON), `resolution` (JSON), `gain` (the exposure the
-//! network's radiance is multiplied by, [`NmatMeta::gain`]).
+//! `model_info` (JSON), `resolution` (JSON), `gain` (the exposure and white
+//! balance the network's radiance is multiplied by, [`NmatMeta::gain`]).
 
 use super::photo::Crop;
 use crate::archive::{restore_vars, Archive};
@@ -20,15 +20,16 @@ use std::collections::HashMap;
 use std::path::Path;
 use tch::{nn, Device, Tensor};
 
-/// Format tag and version of `.nmat` files. Version 3 adds the exposure
-/// `gain`; version 2 allows rectangular maps (the shorter side spans
+/// Format tag and version of `.nmat` files. Version 4 makes the gain one
+/// per channel (a JSON array `[r, g, b]`); version 3 adds the exposure
+/// `gain` (one number); version 2 allows rectangular maps (the shorter side spans
 /// [-1, 1]) and stores the crop's width and height. Version-1 files
 /// (square, `side`) and version-2 files are still read (gain 1).
 pub const NMAT_FORMAT: &str = "flashmat-nmat";
-pub const NMAT_VERSION: u32 = 3;
+pub const NMAT_VERSION: u32 = 4;
 
 /// Older versions this flashmat still reads.
-pub const NMAT_READABLE_VERSIONS: &[u32] = &[1, 2, 3];
+pub const NMAT_READABLE_VERSIONS: &[u32] = &[1, 2, 3, 4];
 
 /// Largest ln(1 + R) turned into radiance: exp(80) = 5.5e34 stays finite in
 /// f32, so renders of untrained or diverged models can still be written
@@ -52,12 +53,14 @@ pub struct NmatMeta {
     pub model_info: ModelInfo,
     /// The refinement on the photo applied after M_est, if any.
     pub refine: Option<super::refine::settings::RefineReport>,
-    /// Exposure of the material: every render is the network's radiance
-    /// times this (finite, > 0). M_est saw the photo divided by it (and
+    /// Exposure and white balance of the material, per channel (R, G, B):
+    /// every render is the network's radiance times this (finite, > 0).
+    /// M_est saw the photo times the inverse of its exposure part (and
     /// clamped for an LDR model), so a photo one stop darker gives the same
-    /// neural map and half the gain ([`super::exposure`]). 1 in files
-    /// written before version 3.
-    pub gain: f64,
+    /// neural map and half the gain; the calibration on the identity render
+    /// sets each channel ([`super::exposure`]). One number for all three in
+    /// version-3 files, 1 in files written before.
+    pub gain: [f64; 3],
 }
 
 /// A relightable neural material: per-pixel parameters and the neural BRDF
@@ -91,7 +94,7 @@ impl NeuralMaterial {
         let s = neural_map.size();
         ensure!(s.len() == 3 && s[0] == config.neural_channels, "neural map must be [{}, H, W], got {s:?}", config.neural_channels);
         ensure!(input_photo.size() == [3, s[1], s[2]], "input photo must be [3, {}, {}], got {:?}", s[1], s[2], input_photo.size());
-        ensure!(meta.gain.is_finite() && meta.gain > 0.0, "the exposure gain must be a positive number, got {}", meta.gain);
+        ensure!(meta.gain.iter().all(|g| g.is_finite() && *g > 0.0), "the exposure gain must be three positive numbers, got {:?}", meta.gain);
         let device = neural_map.device();
         let mut renderer_vs = nn::VarStore::new(device);
         let renderer = NeuralRenderer::new(&(renderer_vs.root() / "renderer"), config)?;
@@ -151,7 +154,7 @@ impl NeuralMaterial {
         a.set_meta("ldr_input", m.ldr_input.to_string());
         a.set_meta("model_info", serde_json::to_string(&m.model_info)?);
         a.set_meta("resolution", serde_json::to_string(&[h, w])?);
-        a.set_meta("gain", m.gain.to_string());
+        a.set_meta("gain", serde_json::to_string(&m.gain)?);
         if let Some(r) = &m.refine {
             a.set_meta("refine", serde_json::to_string(r)?);
         }
@@ -179,9 +182,9 @@ impl NeuralMaterial {
         };
         let fov_deg: f64 = a.meta("fov_deg")?.parse().context("metadata field 'fov_deg' is not a number")?;
         let gain = match a.metadata.get("gain") {
-            Some(g) => g.parse::<f64>().ok().filter(|g| g.is_finite() && *g > 0.0).with_context(|| format!("metadata field 'gain' must be a positive number, got '{g}'"))?,
+            Some(g) => parse_gain(g)?,
             // Files before version 3 have no exposure: the network's radiance as it is.
-            None => 1.0,
+            None => [1.0; 3],
         };
         let meta = NmatMeta {
             model_id,
@@ -247,17 +250,23 @@ impl NeuralMaterial {
         // Finite weights can still overflow to Inf - Inf = NaN, which the
         // clamps below would keep (Inf itself clamps to MAX_LOG_RADIANCE).
         ensure!(log.isnan().any().int64_value(&[]) == 0, "M_render produced NaN values for this material (weights out of range?)");
-        Ok(crate::spaces::from_log(&log.get(0).clamp_max(MAX_LOG_RADIANCE)).clamp_min(0.0) * self.meta.gain)
+        Ok(crate::spaces::from_log(&log.get(0).clamp_max(MAX_LOG_RADIANCE)).clamp_min(0.0) * self.gain_tensor().view([3, 1, 1]))
     }
 
-    /// The network's ln(1 + R) `[..]` (clamped to [0, [`MAX_LOG_RADIANCE`]])
-    /// as the material renders it: ln(1 + gain R). Identity at gain 1.
+    /// [`NmatMeta::gain`] as a `[3]` float tensor on the material's device.
+    pub fn gain_tensor(&self) -> Tensor {
+        Tensor::from_slice(&self.meta.gain).to_kind(tch::Kind::Float).to_device(self.device())
+    }
+
+    /// The network's ln(1 + R) `[.., 3]` (channels last; clamped to
+    /// [0, [`MAX_LOG_RADIANCE`]]) as the material renders it: ln(1 + gain R)
+    /// per channel. Identity at gain 1.
     pub fn with_gain_log(&self, network_log: &Tensor) -> Tensor {
         let log = network_log.clamp(0.0, MAX_LOG_RADIANCE);
-        if self.meta.gain == 1.0 {
+        if self.meta.gain == [1.0; 3] {
             return log;
         }
-        crate::spaces::to_log(&(crate::spaces::from_log(&log) * self.meta.gain))
+        crate::spaces::to_log(&(crate::spaces::from_log(&log) * self.gain_tensor()))
     }
 
     /// Per-pixel unit directions towards the light and the camera of each
@@ -278,6 +287,17 @@ impl NeuralMaterial {
     pub fn input_image(&self) -> Result<Image> {
         Image::from_tensor(&self.input_photo)
     }
+}
+
+/// The stored `gain`: a JSON array of three positive numbers (version 4)
+/// or one number for all three channels (version 3).
+fn parse_gain(text: &str) -> Result<[f64; 3]> {
+    let gain = match text.trim().parse::<f64>() {
+        Ok(g) => Some([g; 3]),
+        Err(_) => serde_json::from_str::<[f64; 3]>(text).ok(),
+    };
+    gain.filter(|g| g.iter().all(|v| v.is_finite() && *v > 0.0))
+        .with_context(|| format!("metadata field 'gain' must be a positive number or three of them ([r, g, b]), got '{text}'"))
 }
 
 /// Refuses metadata that contradicts itself or the `h x w` neural map
@@ -335,7 +355,7 @@ pub(crate) mod tests {
             ldr_input: true,
             model_info: ModelInfo { ldr_input: true, steps: 7 },
             refine: None,
-            gain: 1.0,
+            gain: [1.0; 3],
         };
         let map = Tensor::randn([cfg.neural_channels, size, size], (tch::Kind::Float, Device::Cpu));
         let photo = Tensor::rand([3, size, size], (tch::Kind::Float, Device::Cpu));
@@ -403,18 +423,24 @@ pub(crate) mod tests {
 
         // Another version of the format.
         let mut a = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
-        let v4 = dir.path().join("v4.nmat");
-        a.save(&v4, NMAT_FORMAT, 4).unwrap();
-        let e = err(&v4);
-        assert!(e.contains("v4.nmat") && e.contains("version 4 is not supported (this flashmat reads versions 1, 2 and 3)"), "{e}");
-        // A gain that is not a positive number.
-        for bad in ["0", "-2", "NaN", "inf", "bright"] {
+        let v5 = dir.path().join("v5.nmat");
+        a.save(&v5, NMAT_FORMAT, 5).unwrap();
+        let e = err(&v5);
+        assert!(e.contains("v5.nmat") && e.contains("version 5 is not supported (this flashmat reads versions 1, 2, 3 and 4)"), "{e}");
+        // A gain that is not a positive number, or not three of them.
+        for bad in ["0", "-2", "NaN", "inf", "bright", "[1, 2]", "[1, 0, 1]", "[1, 2, 3, 4]", "[1, null, 1]"] {
             let mut g = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
             g.set_meta("gain", bad);
             let path = dir.path().join("gain.nmat");
             g.save(&path, NMAT_FORMAT, NMAT_VERSION).unwrap();
-            assert!(err(&path).contains("metadata field 'gain' must be a positive number"), "{bad}: {}", err(&path));
+            assert!(err(&path).contains("metadata field 'gain' must be a positive number or three"), "{bad}: {}", err(&path));
         }
+        // Version 3 stored one number for all three channels.
+        let mut v3 = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
+        v3.set_meta("gain", "0.25");
+        let old3 = dir.path().join("v3.nmat");
+        v3.save(&old3, NMAT_FORMAT, 3).unwrap();
+        assert_eq!(NeuralMaterial::load(&old3, Device::Cpu).unwrap().meta.gain, [0.25; 3]);
         // A version-1 file (square crop stored as `side`) is still read.
         let mut v1 = Archive::load(&p, NMAT_FORMAT, NMAT_VERSION).unwrap();
         v1.set_meta("crop", r#"{"x0":3,"y0":0,"side":20,"source_width":26,"source_height":20}"#.to_string());
@@ -422,7 +448,7 @@ pub(crate) mod tests {
         v1.save(&old, NMAT_FORMAT, 1).unwrap();
         let back = NeuralMaterial::load(&old, Device::Cpu).unwrap();
         assert_eq!((back.meta.crop.width, back.meta.crop.height, back.meta.crop.x0), (20, 20, 3));
-        assert_eq!(back.meta.gain, 1.0, "files before version 3 have no exposure gain");
+        assert_eq!(back.meta.gain, [1.0; 3], "files before version 3 have no exposure gain");
         v1.set_meta("crop", r#"{"x0":3,"y0":0,"width":20,"source_width":26,"source_height":20}"#.to_string());
         v1.save(&old, NMAT_FORMAT, 1).unwrap();
         assert!(err(&old).contains("width and height"), "{}", err(&old));
@@ -443,24 +469,33 @@ pub(crate) mod tests {
     }
 
     /// The exposure gain survives the file and multiplies every render,
-    /// and [`NeuralMaterial::with_gain_log`] is the same in log space.
+    /// each channel by its own, and [`NeuralMaterial::with_gain_log`] is the
+    /// same in log space (channels last).
     #[test]
     fn the_gain_is_stored_and_scales_every_render() {
         let dir = tempfile::tempdir().unwrap();
         let mut m = random_material(5, 8);
-        let unit = m.render(&configs()).unwrap();
-        m.meta.gain = 0.0625;
+        let unit = m.render(&configs()).unwrap(); // [K, 3, H, W]
+        let gain = [0.0625, 0.5, 2.0];
+        m.meta.gain = gain;
         let p = dir.path().join("g.nmat");
         m.save(&p).unwrap();
         let back = NeuralMaterial::load(&p, Device::Cpu).unwrap();
-        assert_eq!(back.meta.gain, 0.0625);
+        assert_eq!(back.meta.gain, gain);
         let scaled = back.render(&configs()).unwrap();
         assert!(unit.max().double_value(&[]) > 0.0);
-        assert!((&scaled - &unit * 0.0625).abs().max().double_value(&[]) < 1e-6 * (1.0 + unit.max().double_value(&[])));
-        let log = Tensor::from_slice(&[0.0f32, 0.5, 3.0, 100.0]);
-        let expect = Tensor::from_slice(&[0.0f64, 0.5f64.exp_m1() * 0.0625, 3f64.exp_m1() * 0.0625, MAX_LOG_RADIANCE.exp_m1() * 0.0625]).log1p();
+        for (c, g) in gain.iter().enumerate() {
+            let (s, u) = (scaled.select(1, c as i64), unit.select(1, c as i64));
+            assert!((&s - &u * *g).abs().max().double_value(&[]) < 1e-6 * (1.0 + unit.max().double_value(&[])), "channel {c}");
+        }
+        // ln(1 + R) values in rows of [R, G, B]: each column by its own gain.
+        let log = Tensor::from_slice(&[0.0f32, 0.5, 3.0, 100.0, 1.0, 2.0]).view([2, 3]);
+        let e = |v: f64, c: usize| (v.min(MAX_LOG_RADIANCE).exp_m1() * gain[c]).ln_1p();
+        let expect = Tensor::from_slice(&[e(0.0, 0), e(0.5, 1), e(3.0, 2), e(100.0, 0), e(1.0, 1), e(2.0, 2)]).view([2, 3]);
         assert!((back.with_gain_log(&log).to_kind(tch::Kind::Double) - expect).abs().max().double_value(&[]) < 1e-5);
-        assert!(NeuralMaterial::from_parts(m.neural_map.copy(), m.input_photo.copy(), &m.config, &m.renderer_vs.variables(), NmatMeta { gain: f64::NAN, ..m.meta.clone() }).is_err());
+        for bad in [[f64::NAN, 1.0, 1.0], [1.0, 0.0, 1.0], [1.0, 1.0, -1.0]] {
+            assert!(NeuralMaterial::from_parts(m.neural_map.copy(), m.input_photo.copy(), &m.config, &m.renderer_vs.variables(), NmatMeta { gain: bad, ..m.meta.clone() }).is_err());
+        }
     }
 
     /// Metadata whose checksums are intact but which contradicts itself is

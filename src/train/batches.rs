@@ -9,7 +9,7 @@ use crate::data::procedural;
 use crate::data::samples::{input_only, make_batch, SampleConfig, ShiftedPhotos, TrainingBatch};
 use crate::svbrdf::height::ensure_height_field;
 use crate::svbrdf::Svbrdf;
-use anyhow::Result;
+use anyhow::{anyhow, Result};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 use std::sync::mpsc;
@@ -48,10 +48,14 @@ pub enum MaterialStream {
 
 impl MaterialStream {
     pub fn open(cfg: &TrainConfig) -> Result<Self> {
+        let procedural_config = || procedural::ProceduralConfig {
+            saturated_probability: cfg.saturated_share as f32,
+            ..procedural::ProceduralConfig::with_dark_share(cfg.material_size, cfg.dark_share as f32)
+        };
         if cfg.data == "procedural" && cfg.bank > 0 {
-            Ok(Self::Bank(Arc::new(generate_bank(cfg.bank, &procedural::ProceduralConfig::with_dark_share(cfg.material_size, cfg.dark_share as f32)))))
+            Ok(Self::Bank(Arc::new(generate_bank(cfg.bank, &procedural_config()))))
         } else if cfg.data == "procedural" {
-            Ok(Self::Procedural { config: procedural::ProceduralConfig::with_dark_share(cfg.material_size, cfg.dark_share as f32) })
+            Ok(Self::Procedural { config: procedural_config() })
         } else if let Some(index) = procedural::parse_test_material(&cfg.data)? {
             Ok(Self::Single(Arc::new(procedural::test_material(index, cfg.material_size))))
         } else {
@@ -94,6 +98,8 @@ impl MaterialStream {
         }
         let mut rng = step_rng(cfg.seed, step, 1);
         let n = cfg.materials_per_batch as u64;
+        // Names of dataset materials, for the errors of their crops.
+        let mut names: Vec<String> = Vec::new();
         let full: Vec<Svbrdf> = match self {
             Self::Procedural { config } => {
                 let seeds: Vec<u64> = (0..n).map(|i| procedural::training_seed(step * n + i)).collect();
@@ -110,16 +116,26 @@ impl MaterialStream {
                     })
                     .collect();
             }
-            Self::Dataset(ds) => (0..n).map(|_| ds.load(rng.random_range(0..ds.len()))).collect::<Result<_>>()?,
+            Self::Dataset(ds) => (0..n)
+                .map(|_| {
+                    let i = rng.random_range(0..ds.len());
+                    names.push(ds.name(i));
+                    ds.load_named(i)
+                })
+                .collect::<Result<_>>()?,
+        };
+        let named = |k: usize, e: anyhow::Error| match names.get(k) {
+            Some(name) => anyhow!("material {name}: {e:#}"),
+            None => e,
         };
         // Loaded maps have no height field: integrate the whole material
         // before cropping (a crop's own integration would differ at its edges).
         let full = if cfg.shadows {
-            full.into_iter().map(|mut m| ensure_height_field(&mut m).map(|_| m)).collect::<Result<Vec<_>>>()?
+            full.into_iter().enumerate().map(|(k, mut m)| ensure_height_field(&mut m).map(|_| m).map_err(|e| named(k, e))).collect::<Result<Vec<_>>>()?
         } else {
             full
         };
-        full.iter().map(|m| random_crop(m, cfg.material_crop(), &mut rng)).collect()
+        full.iter().enumerate().map(|(k, m)| random_crop(m, cfg.material_crop(), &mut rng).map_err(|e| named(k, e))).collect()
     }
 
     /// The cropped material at `index` of step `step`'s global batch, from
@@ -128,6 +144,7 @@ impl MaterialStream {
     fn material_of(&self, cfg: &TrainConfig, step: u64, index: u64) -> Result<Svbrdf> {
         let mut rng = material_rng(cfg.seed, step, index, 1);
         let global = (cfg.materials_per_batch * cfg.shard.world) as u64;
+        let mut name = None;
         let mut full = match self {
             Self::Procedural { config } => procedural::generate_many_with(&[procedural::training_seed(step * global + index)], config).remove(0),
             Self::Single(m) => m.as_ref().clone(),
@@ -136,12 +153,20 @@ impl MaterialStream {
                 let code = rng.random_range(0..8u8);
                 return random_crop(m, cfg.material_crop(), &mut rng).map(|c| c.dihedral(code));
             }
-            Self::Dataset(ds) => ds.load(rng.random_range(0..ds.len()))?,
+            Self::Dataset(ds) => {
+                let i = rng.random_range(0..ds.len());
+                name = Some(ds.name(i));
+                ds.load_named(i)?
+            }
+        };
+        let named = |e: anyhow::Error| match &name {
+            Some(name) => anyhow!("material {name}: {e:#}"),
+            None => e,
         };
         if cfg.shadows {
-            ensure_height_field(&mut full)?;
+            ensure_height_field(&mut full).map_err(named)?;
         }
-        random_crop(&full, cfg.material_crop(), &mut rng)
+        random_crop(&full, cfg.material_crop(), &mut rng).map_err(named)
     }
 }
 

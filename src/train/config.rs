@@ -130,6 +130,13 @@ pub struct TrainConfig {
     /// materials are mostly darker than the families' own colours (issue 53).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub dark_share: f64,
+    /// Share of saturated procedural materials (diffuse albedo given a
+    /// fully saturated hue with a near-black channel,
+    /// `ProceduralConfig::saturated_probability`); 0 is the paper's data.
+    /// The families' colours are muted, and real saturated materials came
+    /// back with blue the photos lack (issue 69).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub saturated_share: f64,
     /// Of each material's outputs, this many are co-located (the input's
     /// own view, then light and camera together elsewhere,
     /// `SampleConfig::colocated_outputs`); 0 is the paper's "reflect" only.
@@ -341,6 +348,7 @@ impl Default for TrainConfig {
             frozen_bn_from: None,
             colour_augment: 0.0,
             dark_share: 0.0,
+            saturated_share: 0.0,
             colocated_outputs: 0,
             hemisphere_outputs: 0,
             moved_highlight_outputs: 0,

@@ -11,7 +11,7 @@ uniform sampler2D uOut;    // ln(1 + R), render pixels, row 0 = top
 uniform sampler2D uPhoto;  // linear input photo, map pixels, row 0 = top
 uniform int uShowPhoto;
 uniform float uExposure;
-uniform float uGain;       // the material's exposure gain (.nmat `gain`): network radiance to the photo's
+uniform vec3 uGain;        // the material's exposure gain per channel (.nmat `gain`): network radiance to the photo's
 uniform ivec2 uRender;     // render resolution of uOut's valid part
 uniform ivec2 uCanvas;     // canvas = map size (the display scales it)
 out vec4 color;

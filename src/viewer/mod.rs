@@ -515,6 +515,7 @@ pub fn build_page(m: &NeuralMaterial, opts: &ViewerOptions) -> Result<(String, V
         "width": w,
         "height": h,
         "gain": m.meta.gain,
+        "identityCheck": crate::infer::identity_check(m)?,
         "identity": NeuralMaterial::identity_config().view,
         "light": opts.initial.light,
         "view": opts.initial.view,

@@ -288,7 +288,7 @@
       gl.uniform1i(display.loc.uPhoto, 1);
       gl.uniform1i(display.loc.uShowPhoto, state.showPhoto ? 1 : 0);
       gl.uniform1f(display.loc.uExposure, Math.pow(2, state.exposure));
-      gl.uniform1f(display.loc.uGain, meta.gain);
+      gl.uniform3f(display.loc.uGain, meta.gain[0], meta.gain[1], meta.gain[2]);
       gl.uniform2i(display.loc.uRender, RW, RH);
       gl.uniform2i(display.loc.uCanvas, W, H);
       gl.drawArrays(gl.TRIANGLES, 0, 3);
@@ -523,11 +523,15 @@
       else if (k === "c") setMode("camera");
     });
 
+    // Ratios as `flashmat estimate` prints them; a channel the photo holds at 0 is "-" (JSON null).
+    const ratio = (v) => (typeof v === "number" && isFinite(v) ? v.toFixed(2) : "-");
     $("name").textContent = meta.source;
     $("info").textContent = `${meta.preset} preset (${meta.modelId}), ${C}-channel ${W0}x${H0} neural map` +
       (f > 1 ? ` shown at ${W}x${H} (GPU texture limit ${maxTex})` : "") +
       `, ${meta.map.bits}-bit map, ${meta.weightBits}-bit weights; ${(macsPerPixel / 1000).toFixed(1)}k multiply-adds per pixel, ` +
-      `${(macsPerPixel * W * H / 1e9).toFixed(2)} G per full frame; d = ${d.toFixed(4)}`;
+      `${(macsPerPixel * W * H / 1e9).toFixed(2)} G per full frame; d = ${d.toFixed(4)}` +
+      (meta.identityCheck ? `; identity render over the photo: brightness ${ratio(meta.identityCheck.brightness)}, ` +
+        `R / G / B ${meta.identityCheck.rgb.map(ratio).join(" / ")}` : "");
     updateText();
     status("");
     requestAnimationFrame(frame);

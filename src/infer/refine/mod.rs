@@ -116,7 +116,7 @@ pub fn refine(material: &mut NeuralMaterial, photo: &Tensor, clipped_photo: bool
     // The network renders the photo divided by the material's exposure gain
     // (what M_est saw, before any clamp); a pixel is clipped where the photo itself was.
     let clipped = clipped_photo.then(|| photo.ge(CLIP_LEVEL));
-    let photo = photo / material.meta.gain;
+    let photo = photo / material.gain_tensor().view([3, 1, 1]);
     let target = crate::spaces::to_log(&photo);
     let (edge_x, edge_y) = edge_weights(&target);
 
@@ -206,7 +206,7 @@ pub fn fit_to_renders(material: &mut NeuralMaterial, configs: &[crate::geometry:
     ensure!(targets.size() == [k, 3, h as i64, w as i64], "the targets must be [{k}, 3, {h}, {w}], got {:?}", targets.size());
     ensure!(learning_rate.is_finite() && learning_rate > 0.0, "the fit's learning rate must be a positive number, got {learning_rate}");
     let device = material.device();
-    let target = crate::spaces::to_log(&(targets.to_device(device).to_kind(Kind::Float).clamp_min(0.0) / material.meta.gain)).unsqueeze(0); // [1, K, 3, H, W]
+    let target = crate::spaces::to_log(&(targets.to_device(device).to_kind(Kind::Float).clamp_min(0.0) / material.gain_tensor().view([3, 1, 1]))).unsqueeze(0); // [1, K, 3, H, W]
     let (wi, wo) = material.direction_maps(configs);
     let code = tch::no_grad(|| material.renderer.encode_maps(&wi, &wo))?; // [1, K, E, H, W]
     let data = |map: &Tensor| -> Result<Tensor> { Ok((material.renderer.render_code(&map.unsqueeze(0), &code)? - &target).abs().mean(Kind::Float)) };
@@ -274,7 +274,7 @@ mod tests {
 
     /// ln(1 + R / gain): renders at the brightness M_est saw, where the refinement measures.
     fn log_render(m: &NeuralMaterial, c: &LightView) -> Tensor {
-        crate::spaces::to_log(&(m.render(std::slice::from_ref(c)).unwrap().get(0) / m.meta.gain))
+        crate::spaces::to_log(&(m.render(std::slice::from_ref(c)).unwrap().get(0) / m.gain_tensor().view([3, 1, 1])))
     }
 
     #[test]
@@ -284,7 +284,7 @@ mod tests {
         let truth = crate::svbrdf::render::render_material(&checker(), &[NeuralMaterial::identity_config(), side]).unwrap();
         let photo = truth[0].to_tensor();
         let unrefined = estimate_from(&model, &info, &truth[0], false);
-        let target = crate::spaces::to_log(&(&photo / unrefined.meta.gain));
+        let target = crate::spaces::to_log(&(&photo / unrefined.gain_tensor().view([3, 1, 1])));
         let before = (log_render(&unrefined, &NeuralMaterial::identity_config()) - &target).abs().mean(Kind::Float).double_value(&[]);
 
         let mut free = estimate_from(&model, &info, &truth[0], false);
