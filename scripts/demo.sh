@@ -44,8 +44,7 @@ for photo in "${photos[@]}"; do
     dir=out/$name
     mkdir -p "$dir"
     echo "== $photo"
-    $FLASHMAT estimate "$photo" -o "$dir/material.nmat" "${fov[@]}" "$@" 2> >(tee "$dir/estimate.log" >&2)
-    wait $! 2>/dev/null || true  # the tee has written the log
+    $FLASHMAT estimate "$photo" -o "$dir/material.nmat" "${fov[@]}" "$@" 2>&1 | tee "$dir/estimate.log"
     check=$(sed -n 's/.*identity render over the photo: //p' "$dir/estimate.log" | tail -n 1)
     summary+=("$(printf '%-24s %s' "$name" "${check:-(no pixel to compare)}")")
     $FLASHMAT show "$dir/material.nmat" -o "$dir/grid.png"
