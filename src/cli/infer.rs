@@ -162,11 +162,13 @@ pub struct EstimateArgs {
     /// Flash photo: PNG/JPEG/HEIC/AVIF (gamma-decoded, LDR) or EXR (linear HDR). Several photos or a folder (its
     /// .png/.jpg/.jpeg/.exr/.heic/.heif/.avif files) make a batch: one OUTDIR/NAME.nmat each, a failed photo reported
     /// and skipped.
-    #[arg(required = true, num_args = 1.., value_name = "PHOTO|DIR")]
+    #[arg(required_unless_present = "capture", num_args = 1.., value_name = "PHOTO|DIR")]
     pub photo: Vec<PathBuf>,
     /// Output neural material (.nmat); for a batch, the output folder.
     #[arg(short, long)]
     pub output: PathBuf,
+    #[command(flatten)]
+    pub capture: super::capture::CaptureArgs,
     #[command(flatten)]
     pub estimate: EstimateOptions,
 }
@@ -340,6 +342,9 @@ fn looks_like_image(path: &Path) -> bool {
 }
 
 pub fn estimate(a: &EstimateArgs) -> Result<()> {
+    if let Some(dir) = &a.capture.capture {
+        return super::capture::estimate_capture(dir, &a.output, &a.capture, &a.estimate);
+    }
     if super::batch::is_batch(&a.photo) {
         // Settings are checked once, before any photo.
         a.estimate.refine_config()?;

@@ -3,6 +3,7 @@
 
 pub mod batch;
 pub mod bench;
+pub mod capture;
 pub mod eval;
 pub mod fit;
 pub mod infer;
@@ -40,7 +41,8 @@ pub enum Command {
     Export(train::ExportArgs),
     /// Average the weights of several exported models of one run (late checkpoints) into one model file.
     Average(train::AverageArgs),
-    /// Estimate a neural material (.nmat) from one flash photo (or one each from several photos or a folder).
+    /// Estimate a neural material (.nmat) from one flash photo (or one each from several photos or a folder), or one from all
+    /// photos of a capture folder (--capture).
     Estimate(infer::EstimateArgs),
     /// Render a neural material (or a photo, estimated first) under a new light and view, or an orbit GIF.
     Relight(infer::RelightArgs),

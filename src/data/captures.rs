@@ -10,7 +10,8 @@
 //! which the renderers omit: [`Captures::load_compensated`] multiplies each
 //! photo by |light - p|^2 / r0^2 per surface point p, with r0 the overhead
 //! light's distance to the sample centre (so the input photo keeps its
-//! level at the centre). `eval::captures` scores methods on such folders.
+//! level at the centre). `eval::captures` scores methods on such folders;
+//! `fit::photos` (`estimate --capture`) fits one material to all their photos.
 //!
 //! [`write_synthetic`] writes such a folder from a GGX material (the
 //! fall-off applied), for trying the format and for tests.
@@ -117,6 +118,11 @@ pub fn falloff(light: [f64; 3], r0: f64, h: usize, w: usize) -> Tensor {
 /// bilinear when enlarging). Refuses photos that are not square (they
 /// should be rectified to the sample square) or smaller than 32 pixels.
 pub fn load_photo(path: &Path, size: usize) -> Result<Tensor> {
+    Ok(load_photo_sized(path, size)?.0)
+}
+
+/// [`load_photo`] and the photo's own (width, height) before resizing.
+pub fn load_photo_sized(path: &Path, size: usize) -> Result<(Tensor, (usize, usize))> {
     let rgb = crate::io::read_rgb(path)?;
     let (w, h) = (rgb.width, rgb.height);
     ensure!(
@@ -130,7 +136,7 @@ pub fn load_photo(path: &Path, size: usize) -> Result<Tensor> {
         path.display()
     );
     let linear = rgb.map(crate::spaces::gamma_decode);
-    Ok(linear.resize_to(size, size).to_tensor())
+    Ok((linear.resize_to(size, size).to_tensor(), (w, h)))
 }
 
 fn read_text(path: &Path) -> Result<String> {

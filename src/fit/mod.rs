@@ -27,6 +27,7 @@
 //! near 1 where the material looks smooth and near 0 across its edges.
 
 pub mod export;
+pub mod photos;
 pub mod relief;
 
 use crate::infer::nmat::NeuralMaterial;
@@ -282,7 +283,7 @@ fn error_map(pred: &Tensor, target: &Tensor) -> Tensor {
 
 /// Edge-aware smoothness weights of the mean target `[3, H, W]`:
 /// (x `[1, H, W-1]`, y `[1, H-1, W]`).
-fn edge_weights(mean_target: &Tensor) -> (Tensor, Tensor) {
+pub fn edge_weights(mean_target: &Tensor) -> (Tensor, Tensor) {
     let (gx, gy) = differences(mean_target);
     let weight = |g: Tensor| (-g.abs().mean_dim(0, true, Kind::Float) / EDGE_SCALE).exp();
     (weight(gx), weight(gy))
@@ -323,11 +324,64 @@ fn initial_maps(targets: &Tensor, wi: &Tensor, wo: &Tensor) -> Tensor {
     })
 }
 
+/// The settings of [`fit_core`]'s Adam loop.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CoreSettings {
+    /// Adam steps.
+    pub steps: usize,
+    /// Step in the unconstrained parameters, cosine-decayed to a tenth.
+    pub learning_rate: f64,
+    /// Weight of the edge-aware smoothness of the maps.
+    pub smooth_weight: f64,
+}
+
+/// The one fitting core of `flashmat fit` and of the fit to photos
+/// ([`photos`]): Adam on the unconstrained parameters ([`encode`] /
+/// [`decode`]) of GGX maps, minimising `data(maps)` plus the edge-aware
+/// smoothness `w * mean(e * |grad maps|)`, with a cosine-decayed step.
+/// What the maps are compared with lives in `data` (any further prior
+/// too), so both fits share the loop, its parameterisation and its checks.
+/// init: `[1, 10, H, W]`; edges: (x `[1, H, W-1]`, y `[1, H-1, W]`) from
+/// [`edge_weights`]; data: maps `[1, 10, H, W]` -> scalar loss.
+/// Returns the fitted maps `[1, 10, H, W]` (no gradient). A non-finite
+/// loss is an error naming the step.
+pub fn fit_core(
+    init: &Tensor,
+    settings: &CoreSettings,
+    edges: &(Tensor, Tensor),
+    mut data: impl FnMut(&Tensor) -> Tensor,
+    mut on_step: impl FnMut(usize),
+) -> Result<Tensor> {
+    let (edge_x, edge_y) = edges;
+    let raw = encode(init).detach().set_requires_grad(true);
+    let mut adam = Adam::new(HashMap::from([("raw".to_string(), raw.shallow_clone())]));
+    for step in 0..settings.steps {
+        adam.zero_grad();
+        let maps = decode(&raw);
+        let data = data(&maps);
+        let loss = if settings.smooth_weight > 0.0 {
+            let (dx, dy) = differences(&maps.get(0));
+            data + ((dx.abs() * edge_x).mean(Kind::Float) + (dy.abs() * edge_y).mean(Kind::Float)) * settings.smooth_weight
+        } else {
+            data
+        };
+        let value = loss.double_value(&[]);
+        ensure!(value.is_finite(), "the fit's loss became {value} at step {}", step + 1);
+        loss.backward();
+        // Cosine decay from the full step to a tenth of it.
+        let progress = step as f64 / settings.steps.max(1) as f64;
+        let lr = settings.learning_rate * (0.1 + 0.45 * (1.0 + (std::f64::consts::PI * progress).cos()));
+        adam.step(lr, None);
+        on_step(step);
+    }
+    Ok(tch::no_grad(|| decode(&raw.detach())))
+}
+
 /// Fits GGX maps to log radiance targets seen under shared direction pairs.
 /// targets: `[S, 3, H, W]` ln(1 + R); wi, wo: `[S, 3]` (the pairs the
 /// targets were rendered for). `on_step(i)` is called after each step.
 /// A non-finite loss is an error (the targets hold NaN/Inf).
-pub fn fit_targets(targets: &Tensor, wi: &Tensor, wo: &Tensor, cfg: &FitConfig, mut on_step: impl FnMut(usize)) -> Result<FitResult> {
+pub fn fit_targets(targets: &Tensor, wi: &Tensor, wo: &Tensor, cfg: &FitConfig, on_step: impl FnMut(usize)) -> Result<FitResult> {
     cfg.validate()?;
     let s = targets.size();
     ensure!(s.len() == 4 && s[1] == 3, "fit targets must be [S, 3, H, W], got {s:?}");
@@ -341,28 +395,9 @@ pub fn fit_targets(targets: &Tensor, wi: &Tensor, wo: &Tensor, cfg: &FitConfig, 
     let init_error = tch::no_grad(|| error_map(&ggx_log(&init, &wi, &wo).get(0), &targets).mean(Kind::Double).double_value(&[]));
     let (edge_x, edge_y) = edge_weights(&targets.mean_dim(0, false, Kind::Float));
 
-    let raw = encode(&init).detach().set_requires_grad(true);
-    let mut adam = Adam::new(HashMap::from([("raw".to_string(), raw.shallow_clone())]));
-    for step in 0..cfg.steps {
-        adam.zero_grad();
-        let maps = decode(&raw);
-        let data = data_map(&ggx_log(&maps, &wi, &wo).get(0), &targets).mean(Kind::Float);
-        let loss = if cfg.smooth_weight > 0.0 {
-            let (dx, dy) = differences(&maps.get(0));
-            data + ((dx.abs() * &edge_x).mean(Kind::Float) + (dy.abs() * &edge_y).mean(Kind::Float)) * cfg.smooth_weight
-        } else {
-            data
-        };
-        let value = loss.double_value(&[]);
-        ensure!(value.is_finite(), "the fit's loss became {value} at step {}", step + 1);
-        loss.backward();
-        // Cosine decay from the full step to a tenth of it.
-        let progress = step as f64 / cfg.steps.max(1) as f64;
-        let lr = cfg.learning_rate * (0.1 + 0.45 * (1.0 + (std::f64::consts::PI * progress).cos()));
-        adam.step(lr, None);
-        on_step(step);
-    }
-    let maps = tch::no_grad(|| decode(&raw.detach()));
+    let data = |maps: &Tensor| data_map(&ggx_log(maps, &wi, &wo).get(0), &targets).mean(Kind::Float);
+    let settings = CoreSettings { steps: cfg.steps, learning_rate: cfg.learning_rate, smooth_weight: cfg.smooth_weight };
+    let maps = fit_core(&init, &settings, &(edge_x, edge_y), data, on_step)?;
     let error = tch::no_grad(|| error_map(&ggx_log(&maps, &wi, &wo).get(0), &targets));
     ensure!(crate::image::all_finite(&maps) && crate::image::all_finite(&error), "the fitted maps are not finite");
     let flat = error.flatten(0, -1);

@@ -10,7 +10,57 @@
 //! [`ModelConfig::ggx_codes`]: super::ModelConfig::ggx_codes
 
 use super::layers::leaky;
-use tch::{nn, Tensor};
+use super::ModelConfig;
+use crate::archive::{restore_vars, Archive};
+use anyhow::{anyhow, ensure, Result};
+use std::collections::HashMap;
+use std::path::Path;
+use tch::{nn, Device, Tensor};
+
+/// Format tag and version of a teacher file (`train::teacher` writes it:
+/// the encoder under `teacher/`, ND_enc + M_render under `renderer/`, the
+/// renderer's `model_id` and the recipe `teacher_config` (JSON, its `model`
+/// field the renderer's [`ModelConfig`]) in the metadata).
+pub const TEACHER_FORMAT: &str = "flashmat-teacher";
+pub const TEACHER_VERSION: u32 = 1;
+
+/// What a teacher file holds for its users outside training: the frozen
+/// encoder and the renderer's weights.
+pub struct TeacherWeights {
+    /// The renderer's configuration (the `compact` preset for the committed teacher).
+    pub config: ModelConfig,
+    /// Holds the encoder's variables (frozen).
+    pub vs: nn::VarStore,
+    pub encoder: GgxEncoder,
+    /// ND_enc + M_render, named as in `Model::renderer_vs` (`renderer.nd_enc.*`, `renderer.m_render.*`).
+    pub renderer: HashMap<String, Tensor>,
+}
+
+impl TeacherWeights {
+    /// Reads a teacher file; its renderer's configuration comes from the
+    /// file (and must agree with its `model_id`). Errors are one line
+    /// naming the file.
+    pub fn load(path: &Path, device: Device) -> Result<Self> {
+        let a = Archive::load(path, TEACHER_FORMAT, TEACHER_VERSION)?;
+        let recipe: serde_json::Value =
+            serde_json::from_str(a.meta("teacher_config")?).map_err(|e| anyhow!("{}: unreadable teacher_config: {e}", path.display()))?;
+        let config: ModelConfig = serde_json::from_value(recipe.get("model").cloned().unwrap_or_default())
+            .map_err(|e| anyhow!("{}: unreadable model configuration in teacher_config: {e}", path.display()))?;
+        let id = a.meta("model_id")?;
+        ensure!(id == config.model_id(), "{}: model_id '{id}' does not match its configuration ('{}')", path.display(), config.model_id());
+        Self::load_for(path, &a, config, device)
+    }
+
+    /// The weights of an opened teacher archive for a renderer of `config`
+    /// (the caller checked the file's `model_id`).
+    pub fn load_for(path: &Path, a: &Archive, config: ModelConfig, device: Device) -> Result<Self> {
+        let mut vs = nn::VarStore::new(device);
+        let encoder = GgxEncoder::new(&(vs.root() / "teacher"), config.neural_channels);
+        restore_vars(&vs.variables(), &a.with_prefix("teacher/"), &format!("{}: teacher encoder", path.display()))?;
+        vs.freeze();
+        Ok(Self { config, vs, encoder, renderer: a.with_prefix("renderer/") })
+    }
+}
 
 /// GGX values per pixel: kd (3), ks (3), roughness (1), normal (3).
 pub const GGX_CHANNELS: i64 = 10;

@@ -25,8 +25,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tch::{nn, Device, Kind, Tensor};
 
-pub const FORMAT: &str = "flashmat-teacher";
-pub const VERSION: u32 = 1;
+/// The file format's home is the model layer, which reads teacher files for
+/// `fit::photos` too.
+pub use crate::model::ggx_codes::{TEACHER_FORMAT as FORMAT, TEACHER_VERSION as VERSION};
 
 /// The encoder lives in the model layer: a `compact-g` model carries a
 /// frozen copy behind M_est ([`crate::model::ggx_codes`]).
@@ -112,14 +113,11 @@ impl Teacher {
         // A compact-g model's renderer and neural map are the compact preset's.
         let renderer_id = model.without_ggx_codes().model_id();
         ensure!(theirs == renderer_id, "{}: a teacher of model '{theirs}' cannot train a '{}' model", path.display(), model.model_id());
-        let mut vs = nn::VarStore::new(device);
-        let encoder = TeacherEncoder::new(&(vs.root() / "teacher"), model.neural_channels as i64);
-        restore_vars(&vs.variables(), &a.with_prefix("teacher/"), &format!("{}: teacher encoder", path.display()))?;
-        vs.freeze();
+        let weights = crate::model::ggx_codes::TeacherWeights::load_for(path, &a, model.without_ggx_codes(), device)?;
         if let Some(r) = renderer_vs {
-            restore_vars(&r.variables(), &a.with_prefix("renderer/"), &format!("{}: renderer", path.display()))?;
+            restore_vars(&r.variables(), &weights.renderer, &format!("{}: renderer", path.display()))?;
         }
-        Ok(Self { vs, encoder })
+        Ok(Self { vs: weights.vs, encoder: weights.encoder })
     }
 }
 

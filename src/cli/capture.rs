@@ -1,0 +1,94 @@
+//! `flashmat estimate --capture DIR`: one neural material from all photos
+//! of a capture folder (work done in `flashmat::fit::photos`).
+
+use super::infer::EstimateOptions;
+use flashmat::data::captures::Captures;
+use flashmat::fit::export::{check_output_dir, write_fit};
+use flashmat::fit::photos::{estimated_start, fit_photos, load_capture, load_teacher, neural_material, PhotoFitConfig};
+use flashmat::fit::relief::ReliefConfig;
+use flashmat::fit::FitConfig;
+use anyhow::{bail, ensure, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::Path;
+use std::time::Instant;
+
+/// The options of `estimate --capture`.
+#[derive(Args, Debug, Clone)]
+pub struct CaptureArgs {
+    /// A capture folder (photos 00.png, 01.png ..., camera_pos.txt, light_pos.txt, image_size.txt): one material from
+    /// all its photos, a per-pixel GGX fit to them with their light and camera positions, started from the estimate
+    /// of the most overhead photo, then a neural material of the fitted maps (the bundled teacher's encoder and renderer).
+    /// --size sets the side of the fitted maps; --model the model of the start; --device where both run.
+    #[arg(long, value_name = "DIR", conflicts_with = "photo")]
+    pub capture: Option<std::path::PathBuf>,
+    /// With --capture: use the first K photos (default: all).
+    #[arg(long, value_name = "K", requires = "capture")]
+    pub photos: Option<usize>,
+    /// With --capture: Adam steps of the fit to the photos.
+    #[arg(long, requires = "capture", default_value_t = PhotoFitConfig::default().steps)]
+    pub steps: usize,
+    /// With --capture: also write the fitted GGX maps as PBR texture sets into DIR (as `flashmat fit` does).
+    #[arg(long, value_name = "DIR", requires = "capture")]
+    pub pbr: Option<std::path::PathBuf>,
+}
+
+pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &EstimateOptions) -> Result<()> {
+    let t0 = Instant::now();
+    ensure!(output.extension().is_some_and(|e| e.eq_ignore_ascii_case("nmat")), "{}: the output must end in .nmat", output.display());
+    if opts.refine.is_some() || opts.tile || opts.highlight_fill.is_some() || opts.fov.is_some() || opts.exposure.is_some() || opts.square {
+        bail!("--capture takes none of --refine, --tile, --highlight-fill, --fov, --exposure, --square (capture photos are rectified to the sample)");
+    }
+    let cfg = PhotoFitConfig { steps: a.steps, size: opts.size, ..Default::default() };
+    cfg.validate()?;
+    if let Some(pbr) = &a.pbr {
+        check_output_dir(pbr)?;
+    }
+    let device = flashmat::device::parse_device(&opts.device)?;
+    let captures = Captures::open(dir)?;
+    let count = a.photos.unwrap_or(captures.photos.len());
+    let capture = load_capture(&captures, count, cfg.size)?;
+    let loaded = flashmat::infer::load_model(opts.model.as_deref(), device)?;
+    let teacher = load_teacher(None, device)?;
+
+    let start_cfg = FitConfig::default();
+    let style = |what: &str| ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} ETA {{eta}}"));
+    let bar = ProgressBar::new((start_cfg.samples + start_cfg.steps) as u64).with_style(style("start: estimate of the overhead photo, GGX fit")?);
+    let overhead = capture.photos.get(capture.overhead as i64);
+    let start = estimated_start(&loaded, &overhead, &start_cfg, |done, _| bar.set_position(done as u64))?;
+    bar.finish_and_clear();
+
+    let bar = ProgressBar::new(cfg.steps as u64).with_style(style(&format!("fitting {count} photos"))?);
+    let photos = capture.photos.to_device(device);
+    let fit = fit_photos(&photos, &capture.clipped, &capture.configs, &start, &cfg, |_| bar.inc(1))?;
+    bar.finish_and_clear();
+
+    let source = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
+    let material = neural_material(&fit.maps, &overhead, &teacher, &source)?;
+    let out_dir = super::prepare_output(output)?;
+    material.save(output)?;
+    out_dir.keep();
+    if let Some(pbr) = &a.pbr {
+        write_fit(pbr, &fit.as_fit_result(), &ReliefConfig::default(), &dir.display().to_string())?;
+    }
+    let r = &fit.report;
+    eprintln!(
+        "estimated {} from {} of {} photos at {}x{}: data term {:.4} -> {:.4} (mean |ln(1+R) diff| {:.4} -> {:.4}), {} steps, {:.1} s ({:.1} s fit)",
+        output.display(),
+        r.photos,
+        captures.photos.len(),
+        cfg.size,
+        cfg.size,
+        r.data_before,
+        r.data_after,
+        r.error_before,
+        r.error_after,
+        cfg.steps,
+        t0.elapsed().as_secs_f64(),
+        r.seconds
+    );
+    if let Some(pbr) = &a.pbr {
+        eprintln!("wrote PBR maps of the fit to {}", pbr.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,138 @@
+use super::*;
+use crate::data::captures::{synthetic_configs, write_synthetic};
+use crate::geometry::fov_to_distance;
+use crate::svbrdf::Svbrdf;
+
+const SIDE: i64 = 48;
+const TRUE_ROUGHNESS: f64 = 0.4;
+
+/// Uniform kd (0.18, 0.15, 0.12), ks 0.04, roughness 0.4 and a gentle
+/// bump: slopes (0.15 sin(pi x), 0.15 sin(pi y)) over the [-1, 1] square,
+/// normals up to 8.5 degrees from +z. `[10, S, S]`.
+fn truth_maps() -> Tensor {
+    let opts = (Kind::Float, Device::Cpu);
+    let coords = Tensor::linspace(-1.0 + 1.0 / SIDE as f64, 1.0 - 1.0 / SIDE as f64, SIDE, opts);
+    let sx = (&coords * std::f64::consts::PI).sin().view([1, 1, SIDE]).expand([1, SIDE, SIDE], false) * 0.15;
+    let sy = (&coords * std::f64::consts::PI).sin().view([1, SIDE, 1]).expand([1, SIDE, SIDE], false) * 0.15;
+    let n = Tensor::cat(&[sx, sy, Tensor::ones([1, SIDE, SIDE], opts)], 0);
+    let n = &n / n.square().sum_dim_intlist([0i64].as_slice(), true, Kind::Float).sqrt();
+    let kd = Tensor::from_slice(&[0.18f32, 0.15, 0.12]).view([3, 1, 1]).expand([3, SIDE, SIDE], false);
+    Tensor::cat(&[kd, Tensor::full([3, SIDE, SIDE], 0.04, opts), Tensor::full([1, SIDE, SIDE], TRUE_ROUGHNESS, opts), n], 0)
+}
+
+/// The truth written as a 5-photo synthetic capture, read back and fitted
+/// from the flat start (no pull: the start is no estimate).
+fn fitted_from_capture() -> (Tensor, PhotoFit) {
+    let truth = truth_maps();
+    let dir = tempfile::tempdir().unwrap();
+    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&truth).unwrap()).unwrap();
+    write_synthetic(dir.path(), &material, &synthetic_configs(5), 10.0).unwrap();
+    let captures = Captures::open(dir.path()).unwrap();
+    let loaded = load_capture(&captures, 5, SIDE as usize).unwrap();
+    assert_eq!(loaded.photos.size(), [5, 3, SIDE, SIDE]);
+    assert_eq!(loaded.overhead, 0);
+    let start = flat_start(&loaded.photos.get(0), &loaded.configs[0]);
+    let cfg = PhotoFitConfig { pull_weight: 0.0, size: SIDE as usize, ..Default::default() };
+    let fit = fit_photos(&loaded.photos, &loaded.clipped, &loaded.configs, &start, &cfg, |_| ()).unwrap();
+    (truth, fit)
+}
+
+#[test]
+fn a_synthetic_capture_gives_back_its_roughness_and_normals() {
+    let (truth, fit) = fitted_from_capture();
+    let r = &fit.report;
+    assert!(r.data_after < 0.5 * r.data_before, "data term {} -> {}", r.data_before, r.data_after);
+    let rough = fit.maps.get(6);
+    let rough_err = (&rough - TRUE_ROUGHNESS).abs().mean(Kind::Double).double_value(&[]);
+    assert!(rough_err < 0.05, "mean |r - {TRUE_ROUGHNESS}| = {rough_err} (mean r {})", rough.mean(Kind::Double).double_value(&[]));
+    // Angle between fitted and true normals, mean over the pixels.
+    let cos = (fit.maps.narrow(0, 7, 3) * truth.narrow(0, 7, 3)).sum_dim_intlist([0i64].as_slice(), false, Kind::Float).clamp(-1.0, 1.0);
+    let angle = cos.acos().mean(Kind::Double).double_value(&[]).to_degrees();
+    assert!(angle < 2.0, "mean normal error {angle} degrees");
+    // kd within 10% of the truth on average.
+    let kd_err = ((fit.maps.narrow(0, 0, 3) - truth.narrow(0, 0, 3)).abs() / truth.narrow(0, 0, 3)).mean(Kind::Double).double_value(&[]);
+    eprintln!("data {} -> {}; mean |r - 0.4| {rough_err}, normals {angle} deg, kd {kd_err}", r.data_before, r.data_after);
+    assert!(kd_err < 0.1, "mean relative kd error {kd_err}");
+}
+
+#[test]
+fn the_fitted_maps_move_the_highlight_as_the_truth_does() {
+    let (truth, fit) = fitted_from_capture();
+    // A light none of the photos had: the mirror highlight lands off-centre.
+    let lights = Tensor::from_slice(&[1.2f32, 1.2, 3.5]).view([1, 1, 3]);
+    let views = Tensor::from_slice(&[0.0f32, 0.0, fov_to_distance(MODEL_FOV_DEG) as f32]).view([1, 1, 3]);
+    let render = |maps: &Tensor| crate::svbrdf::render::render(&maps.unsqueeze(0), &lights, &views).get(0).get(0).mean_dim(0, false, Kind::Float);
+    let (want, got) = (render(&truth), render(&fit.maps)); // luminance-like [H, W]
+    let median = want.flatten(0, -1).median().double_value(&[]);
+    let region = want.gt(2.0 * median);
+    let count = region.sum(Kind::Int64).int64_value(&[]);
+    assert!(count >= 10, "the truth has a highlight ({count} pixels above 2x the median)");
+    let mean = |t: &Tensor| t.masked_select(&region).mean(Kind::Double).double_value(&[]);
+    let (w, g) = (mean(&want), mean(&got));
+    eprintln!("highlight: {count} pixels, fitted {g} vs truth {w}");
+    assert!((g / w - 1.0).abs() < 0.15, "highlight mean {g} vs truth {w}");
+}
+
+#[test]
+fn clipped_pixels_count_only_where_the_render_is_below_the_photo() {
+    // One pixel, value 0.5 in the photo: a render of 1.0 above it costs
+    // nothing when clipped, 0.25 below costs as unclipped.
+    let target = crate::spaces::to_log(&Tensor::from_slice(&[0.5f32]).view([1, 1, 1, 1]));
+    let pred = |v: f32| crate::spaces::to_log(&Tensor::from_slice(&[v]).view([1, 1, 1, 1]));
+    let yes = Tensor::from_slice(&[true]).view([1, 1, 1, 1]);
+    let no = Tensor::from_slice(&[false]).view([1, 1, 1, 1]);
+    let cost = |v: f32, clipped: &Tensor| log_differences(&pred(v), &target, clipped).0.double_value(&[0, 0, 0, 0]);
+    assert_eq!(cost(1.0, &yes), 0.0);
+    // |ln(2) - ln(1.5)| = 0.2877; Charbonnier sqrt(d^2 + 1e-4) - 0.01 = 0.2779.
+    assert!((cost(1.0, &no) - 0.2779).abs() < 1e-3, "{}", cost(1.0, &no));
+    let below = cost(0.25, &no);
+    assert!(below > 0.1 && (cost(0.25, &yes) - below).abs() < 1e-7);
+    // The mask: any channel at 0.999 or above.
+    let photos = Tensor::from_slice(&[0.2f32, 1.0, 0.3, 0.2, 0.5, 0.3]).view([1, 3, 1, 2]);
+    assert_eq!(Vec::<bool>::try_from(clip_mask(&photos).flatten(0, -1)).unwrap(), vec![false, true]);
+}
+
+#[test]
+fn the_teachers_material_renders_the_fitted_maps() {
+    // The committed teacher's renderer draws its encoder's codes of GGX
+    // maps close to GGX: the identity render's mean within 20%.
+    let teacher = load_teacher(None, Device::Cpu).unwrap();
+    let truth = truth_maps();
+    let photo = Tensor::zeros([3, SIDE, SIDE], (Kind::Float, Device::Cpu));
+    let material = neural_material(&truth, &photo, &teacher, "test").unwrap();
+    assert_eq!(material.neural_map.size(), [teacher.config.neural_channels, SIDE, SIDE]);
+    let config = NeuralMaterial::identity_config();
+    let neural = material.render(&[config]).unwrap().mean(Kind::Double).double_value(&[]);
+    let ggx = crate::svbrdf::render::render_material(&Svbrdf::from_stacked(&crate::image::Image::from_tensor(&truth).unwrap()).unwrap(), &[config]).unwrap()[0]
+        .to_tensor()
+        .mean(Kind::Double)
+        .double_value(&[]);
+    eprintln!("identity render mean: neural {neural} vs GGX {ggx}");
+    assert!((neural / ggx - 1.0).abs() < 0.2, "neural {neural} vs GGX {ggx}");
+}
+
+#[test]
+fn bad_captures_are_one_line_naming_the_photo() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&truth_maps()).unwrap()).unwrap();
+    write_synthetic(d, &material, &synthetic_configs(3), 10.0).unwrap();
+    let captures = Captures::open(d).unwrap();
+    let msg = |e: anyhow::Error| {
+        let m = format!("{e:#}");
+        assert!(!m.contains('\n'), "{m}");
+        m
+    };
+    assert!(msg(load_capture(&captures, 0, 32).unwrap_err()).contains("--photos must be between 1 and 3"));
+    assert!(msg(load_capture(&captures, 4, 32).unwrap_err()).contains("--photos must be between 1 and 3"));
+    // A black photo.
+    crate::io::write_png(&d.join("01.png"), &crate::image::Image::filled(3, 48, 48, 0.0), crate::io::BitDepth::Eight).unwrap();
+    let m = msg(load_capture(&captures, 3, 32).unwrap_err());
+    assert!(m.contains("01.png") && m.contains("black"), "{m}");
+    // Photos of different sizes.
+    crate::io::write_png(&d.join("01.png"), &crate::image::Image::filled(3, 64, 64, 0.5), crate::io::BitDepth::Eight).unwrap();
+    let m = msg(load_capture(&captures, 3, 32).unwrap_err());
+    assert!(m.contains("01.png") && m.contains("64x64") && m.contains("48x48"), "{m}");
+    // The first photo alone is fine.
+    assert_eq!(load_capture(&captures, 1, 32).unwrap().photos.size(), [1, 3, 32, 32]);
+}
