@@ -279,7 +279,8 @@ pub fn calibration_factor(photo: &Tensor, identity: &Tensor, white_balance: bool
     });
     // How far to balance: the strength whose render gives the photo's
     // recorded pixels back best, channel by channel (ties: the weaker).
-    let (pk, rk) = (masked_channel_means(photo, &unclipped_mask(photo)), masked_channel_means(identity, &unclipped_mask(photo)));
+    let recorded = unclipped_mask(photo);
+    let (pk, rk) = (masked_channel_means(photo, &recorded), masked_channel_means(identity, &recorded));
     let at = |t: f64| [0, 1, 2].map(|c| overall * (balanced[c] / overall).powf(t));
     let error = |f: [f64; 3]| (0..3).map(|c| (f[c] * rk[c] / pk[c]).ln().abs()).filter(|e| e.is_finite()).sum::<f64>();
     let best = BALANCE_STRENGTHS.iter().map(|&t| (error(at(t)), t)).fold((f64::INFINITY, 0.0), |a, b| if b.0 < a.0 - 1e-12 { b } else { a });
