@@ -10,13 +10,19 @@ use tch::{Device, Kind};
 mod common;
 use common::*;
 
+/// A 3-photo synthetic capture of held-out material 3 at 48x48 in `d/capture`.
+fn synthetic_capture(d: &std::path::Path) -> std::path::PathBuf {
+    let capture = d.join("capture");
+    let material = flashmat::data::procedural::test_material(3, 48);
+    write_synthetic(&capture, &material, &synthetic_configs(3), 10.0).unwrap();
+    capture
+}
+
 #[test]
 fn a_capture_folder_becomes_one_loadable_material() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let capture = d.join("capture");
-    let material = flashmat::data::procedural::test_material(3, 48);
-    write_synthetic(&capture, &material, &synthetic_configs(3), 10.0).unwrap();
+    let capture = synthetic_capture(d);
     let nmat = d.join("out/m.nmat");
     let pbr = d.join("out/pbr");
     let err = assert_ok(&flashmat(&["estimate", "--capture", s(&capture), "--size", "32", "--steps", "40", "--pbr", s(&pbr), "-o", s(&nmat)]));
@@ -41,9 +47,7 @@ fn a_capture_folder_becomes_one_loadable_material() {
 fn bad_captures_give_one_clear_line_and_no_output() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let capture = d.join("capture");
-    let material = flashmat::data::procedural::test_material(3, 48);
-    write_synthetic(&capture, &material, &synthetic_configs(3), 10.0).unwrap();
+    let capture = synthetic_capture(d);
     let out = d.join("out/m.nmat");
     let run = |extra: &[&str]| {
         let mut args = vec!["estimate", "--capture", s(&capture), "--size", "32", "-o", s(&out)];
