@@ -16,7 +16,7 @@
 //! the whole renders under the moved lights (which no photo saw).
 //!
 //! ```sh
-//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH]
+//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR]
 //! # defaults: 128 0-5 1,2,3,5 and PhotoFitConfig's steps, pull and smoothness weights
 //! ```
 
@@ -58,12 +58,16 @@ fn main() -> Result<()> {
     let steps: usize = args.get(4).map_or(Ok(defaults.steps), |s| s.parse())?;
     let pull_weight: f64 = args.get(5).map_or(Ok(defaults.pull_weight), |s| s.parse())?;
     let smooth_weight: f64 = args.get(6).map_or(Ok(defaults.smooth_weight), |s| s.parse())?;
+    let lobe_regions: usize = args.get(7).map_or(Ok(defaults.lobe_regions), |s| s.parse())?;
+    let lobe_weight: f64 = args.get(8).map_or(Ok(defaults.lobe_weight), |s| s.parse())?;
+    // Pictures per material: the photos of the largest capture and the relit grid.
+    let pictures: Option<std::path::PathBuf> = args.get(9).map(Into::into);
     let loaded = flashmat::infer::load_model(None, Device::Cpu)?;
     let teacher = load_teacher(None, Device::Cpu)?;
     let lpips = Lpips::new(Device::Cpu)?;
     let moved = HighlightConfig::default();
     let overhead = LightView::colocated(MODEL_FOV_DEG);
-    let mut rows: BTreeMap<(usize, &str), Vec<(MaterialHighlights, f64, f64)>> = BTreeMap::new();
+    let mut rows: BTreeMap<(usize, &str), Vec<(MaterialHighlights, f64, f64, Option<f64>)>> = BTreeMap::new();
     let t0 = std::time::Instant::now();
     for i in first..=last {
         let m = flashmat::data::procedural::test_material(i, size);
@@ -72,15 +76,20 @@ fn main() -> Result<()> {
         let s_in = highlights::highlight_mask(&highlights::luminance(&truth_identity)?, moved.threshold);
         let gloss = highlights::glossiness(&m);
         let name = format!("test{i:02}");
-        let score = |pred: &Tensor, identity: &Tensor| -> Result<(MaterialHighlights, f64, f64)> {
+        let score = |pred: &Tensor, identity: &Tensor| -> Result<(MaterialHighlights, f64, f64, Option<f64>)> {
             let row = highlights::material_highlights(&name, gloss, 0, &highlights::light_ratios(&s_in, pred, &truth, &moved, None)?);
+            // The lobe as an 8-bit photo under the moved lights would show it (both renders clipped at 1).
+            let clipped = highlights::light_ratios(&s_in, &pred.clamp_max(1.0), &truth.clamp_max(1.0), &moved, None)?;
+            let lobe_8bit = highlights::material_highlights(&name, gloss, 0, &clipped).lobe;
             let lp = flashmat::eval::score_renders(&lpips, &identity.unsqueeze(0), &truth_identity.unsqueeze(0))?[0].lpips;
             let moved_lp = flashmat::eval::score_renders(&lpips, pred, &truth)?.iter().map(|s| s.lpips).sum::<f64>() / truth.size()[0] as f64;
             let f = |v: Option<f64>| v.map_or("-".into(), |v| format!("{v:.2}"));
-            eprintln!("  {name} (glossiness {gloss:.2}): ghost {} lobe {} rest {} LPIPS identity {lp:.3} moved {moved_lp:.3}", f(row.ghost), f(row.lobe), f(row.rest));
-            Ok((row, lp, moved_lp))
+            eprintln!("  {name} (glossiness {gloss:.2}): ghost {} lobe {} (8-bit {}) rest {} LPIPS identity {lp:.3} moved {moved_lp:.3}", f(row.ghost), f(row.lobe), f(lobe_8bit), f(row.rest));
+            Ok((row, lp, moved_lp, lobe_8bit))
         };
         let mut rng = rand_pcg::Pcg64::seed_from_u64(70 + i as u64);
+        // Relit grid columns (label, renders under the moved lights [L, 3, H, W]), truth first.
+        let mut relit: Vec<(String, Tensor)> = vec![("truth".into(), truth.shallow_clone())];
         for &k in &counts {
             let cameras: Vec<[f64; 3]> = CAMERAS.iter().take(k).map(|&c| if c == [0.0; 3] { overhead.view } else { c }).collect();
             let truths: Vec<LightView> = cameras.iter().map(|&c| LightView { light: [c[0] + FLASH_OFFSET, c[1], c[2]], view: c }).collect();
@@ -107,8 +116,9 @@ fn main() -> Result<()> {
                 let pred = single.render(&moved.configs())?;
                 let identity = single.render(&[overhead])?.get(0);
                 rows.entry((0, "single")).or_default().push(score(&pred, &identity)?);
+                relit.push(("bundled model, 1 photo".into(), pred));
             }
-            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, ..PhotoFitConfig::default() };
+            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, ..PhotoFitConfig::default() };
             let fit = fit_photos(&capture.photos, &capture.clipped, &capture.configs, &start, &cfg, |_| {})?;
             let maps = fit.maps.unsqueeze(0);
             let render = |configs: &[LightView]| -> Tensor {
@@ -118,18 +128,35 @@ fn main() -> Result<()> {
             };
             rows.entry((k, "ggx")).or_default().push(score(&render(&moved.configs()), &render(&[overhead]).get(0))?);
             let material = neural_material(&fit.maps, &photo, &teacher, "capture")?;
-            rows.entry((k, "neural")).or_default().push(score(&material.render(&moved.configs())?, &material.render(&[overhead])?.get(0))?);
+            let pred = material.render(&moved.configs())?;
+            rows.entry((k, "neural")).or_default().push(score(&pred, &material.render(&[overhead])?.get(0))?);
+            relit.push((format!("fit, {k} photo(s)"), pred));
+            if let (Some(out), true) = (&pictures, k == *counts.iter().max().unwrap_or(&k)) {
+                let cells: Vec<flashmat::image::Image> = (0..k).map(|j| flashmat::image::Image::display_of(&capture.photos.get(j as i64))).collect::<Result<_>>()?;
+                std::fs::create_dir_all(out)?;
+                flashmat::io::write_jpeg(&out.join(format!("photos-{name}.jpg")), &flashmat::viz::grid(&[cells], 4)?, 80)?;
+            }
             eprintln!("{name}, {k} photo(s): data term {:.4} -> {:.4} in {:.1} s", fit.report.data_before, fit.report.data_after, fit.report.seconds);
         }
+        if let Some(out) = &pictures {
+            // Rows: the moved lights; columns: truth, the bundled model, the fits by photo count.
+            let grid: Vec<Vec<flashmat::image::Image>> = (0..truth.size()[0])
+                .map(|l| relit.iter().map(|(_, r)| flashmat::image::Image::display_of(&r.get(l))).collect::<Result<_>>())
+                .collect::<Result<_>>()?;
+            flashmat::io::write_jpeg(&out.join(format!("relit-{name}.jpg")), &flashmat::viz::grid(&grid, 4)?, 80)?;
+            eprintln!("{}: columns {}", out.join(format!("relit-{name}.jpg")).display(), relit.iter().map(|(l, _)| l.as_str()).collect::<Vec<_>>().join(" | "));
+        }
     }
-    println!("| photos | method | ghost | lobe | rest | LPIPS identity | LPIPS moved lights |\n|---|---|---|---|---|---|---|");
+    println!("| photos | method | ghost | lobe | lobe, 8-bit | rest | LPIPS identity | LPIPS moved lights |\n|---|---|---|---|---|---|---|---|");
     for ((k, method), v) in &rows {
-        let s = highlights::summarize(&v.iter().map(|(r, _, _)| r).collect::<Vec<_>>());
-        let mean = |f: fn(&(MaterialHighlights, f64, f64)) -> f64| v.iter().map(f).sum::<f64>() / v.len() as f64;
+        let s = highlights::summarize(&v.iter().map(|(r, _, _, _)| r).collect::<Vec<_>>());
+        let mean = |f: fn(&(MaterialHighlights, f64, f64, Option<f64>)) -> f64| v.iter().map(f).sum::<f64>() / v.len() as f64;
+        let lobes_8bit: Vec<f64> = v.iter().filter_map(|r| r.3).collect();
+        let lobe_8bit = flashmat::eval::metrics::geometric_mean(&lobes_8bit);
         let cell = |r: &highlights::RatioStats| format!("{:.2} ({}/{})", r.geo_mean, r.n, v.len());
         let k = if *k == 0 { "1 (model)".to_string() } else { k.to_string() };
-        println!("| {k} | {method} | {} | {} | {} | {:.3} | {:.3} |", cell(&s.ghost), cell(&s.lobe), cell(&s.rest), mean(|r| r.1), mean(|r| r.2));
+        println!("| {k} | {method} | {} | {} | {lobe_8bit:.2} | {} | {:.3} | {:.3} |", cell(&s.ghost), cell(&s.lobe), cell(&s.rest), mean(|r| r.1), mean(|r| r.2));
     }
-    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
+    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
     Ok(())
 }

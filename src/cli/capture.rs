@@ -4,9 +4,8 @@
 use super::infer::EstimateOptions;
 use flashmat::data::captures::Captures;
 use flashmat::fit::export::{check_output_dir, write_fit};
-use flashmat::fit::photos::{estimated_start, fit_photos, load_capture, load_teacher, neural_material, PhotoFitConfig};
+use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, outlier_warnings, PhotoFitConfig};
 use flashmat::fit::relief::ReliefConfig;
-use flashmat::fit::FitConfig;
 use anyhow::{bail, ensure, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -48,20 +47,29 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
     let captures = Captures::open(dir)?;
     let count = a.photos.unwrap_or(captures.photos.len());
     let capture = load_capture(&captures, count, cfg.size)?;
+    for warning in &capture.warnings {
+        eprintln!("warning: {warning}");
+    }
     let loaded = flashmat::infer::load_model(opts.model.as_deref(), device)?;
     let teacher = load_teacher(None, device)?;
 
-    let start_cfg = FitConfig::default();
     let style = |what: &str| ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} ETA {{eta}}"));
-    let bar = ProgressBar::new((start_cfg.samples + start_cfg.steps) as u64).with_style(style("start: estimate of the overhead photo, GGX fit")?);
+    let stages = [style("start: estimate of the overhead photo, GGX fit")?, style(&format!("fitting {count} photos"))?];
+    let bar = ProgressBar::new(0);
+    let mut stage = usize::MAX;
+    let fit = fit_capture(&loaded, &capture, &cfg, device, |s, done, total| {
+        if s != stage {
+            stage = s;
+            bar.set_style(stages[s].clone());
+            bar.set_length(total as u64);
+        }
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    for warning in outlier_warnings(&fit, &capture.names) {
+        eprintln!("warning: {warning}");
+    }
     let overhead = capture.photos.get(capture.overhead as i64);
-    let start = estimated_start(&loaded, &overhead, &start_cfg, |done, _| bar.set_position(done as u64))?;
-    bar.finish_and_clear();
-
-    let bar = ProgressBar::new(cfg.steps as u64).with_style(style(&format!("fitting {count} photos"))?);
-    let photos = capture.photos.to_device(device);
-    let fit = fit_photos(&photos, &capture.clipped, &capture.configs, &start, &cfg, |_| bar.inc(1))?;
-    bar.finish_and_clear();
 
     let source = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
     let material = neural_material(&fit.maps, &overhead, &teacher, &source)?;

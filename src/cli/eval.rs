@@ -33,6 +33,10 @@ pub struct EvalArgs {
     /// Estimates from the photo nearest overhead, re-renders the others (1/r^2 fall-off compensated), LPIPS on display images.
     #[arg(long, value_name = "DIR", conflicts_with_all = ["dataset", "cases", "seed", "limit", "configs", "ldr_input", "exposures"])]
     pub captures: Option<PathBuf>,
+    /// With --captures: also score the several-photo fit of `estimate --capture` leave-one-out (each scored photo
+    /// from a material fitted to all the other photos; one fit per photo, about 20 s each at 256 on 2 cores).
+    #[arg(long, requires = "captures")]
+    pub capture_fit: bool,
     /// Run the uniform-colour check instead: 9 flat colours, matte and glossy, estimated from their flash photo
     /// and re-rendered (identity, side light); writes uniform.md and uniform.json (flashmat models only).
     #[arg(long, conflicts_with_all = ["captures", "dataset", "cases", "seed", "limit", "configs", "ldr_input", "exposures"])]
@@ -144,6 +148,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             refine: args.refine_configs()?,
             exposure: args.exposure_mode.config(),
             highlight_fill: args.highlight_fill_config(),
+            capture_fit: args.capture_fit.then(flashmat::fit::photos::PhotoFitConfig::default),
         };
         eval::captures::run(&opts)?;
         return print_summary(&args.output);

@@ -41,7 +41,14 @@ pub struct CaptureEvalOptions {
     pub exposure: crate::infer::ExposureConfig,
     /// Also score every flashmat model with its photographed highlight filled.
     pub highlight_fill: Option<crate::infer::highlight_fill::HighlightFillConfig>,
+    /// Also score the several-photo fit (`estimate --capture`) leave-one-out:
+    /// for each scored photo, a material fitted to all the other photos
+    /// (the bundled model's start, the bundled teacher's renderer).
+    pub capture_fit: Option<crate::fit::photos::PhotoFitConfig>,
 }
+
+/// Name of the leave-one-out capture fit in the tables.
+pub const CAPTURE_FIT_METHOD: &str = "capture-fit (leave-one-out)";
 
 /// Scores of one method on one photo.
 #[derive(Clone, Debug)]
@@ -86,19 +93,17 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
     let lpips = Lpips::new(opts.device)?;
     std::fs::create_dir_all(&opts.out).map_err(|e| anyhow!("cannot create output folder {}: {e}", opts.out.display()))?;
 
-    let bar = if opts.progress { ProgressBar::new(methods.len() as u64) } else { ProgressBar::hidden() };
-    bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} methods, {elapsed} {msg}").expect("valid template"));
+    let folds = if opts.capture_fit.is_some() { others.len() } else { 0 };
+    let bar = if opts.progress { ProgressBar::new((methods.len() + folds) as u64) } else { ProgressBar::hidden() };
+    bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} methods and folds, {elapsed} {msg}").expect("valid template"));
     let shown: Vec<usize> = grid_picks(others.len());
     let moved = super::highlights::HighlightConfig::default();
     let s_in = super::highlights::highlight_mask(&super::highlights::luminance(&photos[input])?, moved.threshold);
     let mut results = Vec::new();
     // Grid columns: the photos, then each method's renders.
     let mut columns: Vec<Vec<Tensor>> = vec![std::iter::once(photos[input].shallow_clone()).chain(shown.iter().map(|&k| target.get(k as i64))).collect()];
-    for method in methods.iter_mut() {
-        let name = method.name();
-        bar.set_message(name.clone());
-        method.prepare(&photos[input]).map_err(|e| anyhow!("{name}: {e:#}"))?;
-        let pred = method.render(&configs).map_err(|e| anyhow!("{name}: {e:#}"))?;
+    // Scores a method's renders of the other photos `[N, 3, S, S]` and its identity render `[3, S, S]`.
+    let mut score = |name: String, pred: Tensor, identity: Tensor| -> Result<()> {
         let scores = score_renders_on(&lpips, &pred, &target, LpipsOn::Display)?;
         let rows = others
             .iter()
@@ -106,11 +111,41 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
             .zip(scores)
             .map(|((&i, &config), scores)| CaptureRow { photo: file_name(&captures.photos[i]), config, scores })
             .collect();
-        let identity = method.render(&[captures.config(input)]).map_err(|e| anyhow!("{name}: {e:#}"))?.get(0);
         columns.push(std::iter::once(identity).chain(shown.iter().map(|&k| pred.get(k as i64))).collect());
         let highlights = super::highlights::light_ratios(&s_in, &pred, &target, &moved, None).map_err(|e| anyhow!("{name}: {e:#}"))?;
         results.push(CaptureResults { name, rows, highlights });
+        Ok(())
+    };
+    for method in methods.iter_mut() {
+        let name = method.name();
+        bar.set_message(name.clone());
+        method.prepare(&photos[input]).map_err(|e| anyhow!("{name}: {e:#}"))?;
+        let pred = method.render(&configs).map_err(|e| anyhow!("{name}: {e:#}"))?;
+        let identity = method.render(&[captures.config(input)]).map_err(|e| anyhow!("{name}: {e:#}"))?.get(0);
+        score(name, pred, identity)?;
         bar.inc(1);
+    }
+    if let Some(cfg) = &opts.capture_fit {
+        use crate::fit::photos::{fit_capture, load_capture_photos, load_teacher, neural_material};
+        let cfg = crate::fit::photos::PhotoFitConfig { size: opts.size, ..cfg.clone() };
+        let loaded = crate::infer::load_model(None, opts.device)?;
+        let teacher = load_teacher(None, opts.device)?;
+        let mut preds = Vec::with_capacity(others.len());
+        let mut identity = None;
+        for &left_out in &others {
+            bar.set_message(format!("{CAPTURE_FIT_METHOD}: without {}", file_name(&captures.photos[left_out])));
+            let kept: Vec<usize> = (0..n).filter(|&i| i != left_out).collect();
+            let capture = load_capture_photos(&captures, &kept, opts.size)?;
+            let fit = fit_capture(&loaded, &capture, &cfg, opts.device, |_, _, _| {})?;
+            let material = neural_material(&fit.maps, &capture.photos.get(capture.overhead as i64), &teacher, CAPTURE_FIT_METHOD)?;
+            preds.push(material.render(&[captures.config(left_out)])?.get(0));
+            if identity.is_none() {
+                identity = Some(material.render(&[captures.config(input)])?.get(0));
+            }
+            bar.inc(1);
+        }
+        let identity = identity.expect("a capture eval has at least one photo to score");
+        score(CAPTURE_FIT_METHOD.to_string(), Tensor::stack(&preds, 0), identity)?;
     }
     bar.finish_and_clear();
 
@@ -263,6 +298,7 @@ mod tests {
             refine: vec![],
             exposure: crate::infer::ExposureConfig::default(),
             highlight_fill: None,
+            capture_fit: None,
         }
     }
 
@@ -304,6 +340,29 @@ mod tests {
         let glossy_res = run(&eval_opts(&t.path().join("glossy"), &t.path().join("report2"), &["printout"])).unwrap();
         let mean = |r: &CaptureResults| r.rows.iter().map(|x| x.scores.lpips).sum::<f64>() / r.rows.len() as f64;
         assert!(mean(&glossy_res[0]) > 0.1, "{}", mean(&glossy_res[0]));
+    }
+
+    #[test]
+    fn the_capture_fit_left_out_relights_a_glossy_capture_better_than_the_printout() {
+        // kd in blocks, ks 0.6, roughness 0.3: each left-out photo's highlight
+        // moves, which the print-out cannot draw and a fit to the other four
+        // photos can.
+        let t = tempfile::tempdir().unwrap();
+        let mut glossy = Svbrdf::uniform(32, 32, [0.0; 3], [0.6; 3], 0.3);
+        glossy.diffuse = Image::from_fn(3, 32, 32, |c, y, x| 0.15 + 0.6 * ((x / 8 + y / 8 + c) % 3) as f32 / 2.0);
+        write_synthetic(t.path(), &glossy, &synthetic_configs(5), 10.0).unwrap();
+        let opts = CaptureEvalOptions { capture_fit: Some(crate::fit::photos::PhotoFitConfig { steps: 300, ..Default::default() }), ..eval_opts(t.path(), &t.path().join("o"), &["printout"]) };
+        let res = run(&opts).unwrap();
+        assert_eq!(res.iter().map(|r| r.name.as_str()).collect::<Vec<_>>(), ["printout", CAPTURE_FIT_METHOD]);
+        assert_eq!(res[1].rows.len(), 4);
+        let mean = |r: &CaptureResults, f: fn(&Scores) -> f64| r.rows.iter().map(|x| f(&x.scores)).sum::<f64>() / r.rows.len() as f64;
+        let (printout, fit) = (mean(&res[0], |s| s.lpips), mean(&res[1], |s| s.lpips));
+        let (printout_log, fit_log) = (mean(&res[0], |s| s.rmse_log), mean(&res[1], |s| s.rmse_log));
+        eprintln!("LPIPS printout {printout:.3} capture fit {fit:.3}; log RMSE {printout_log:.3} {fit_log:.3}");
+        assert!(fit < 0.7 * printout, "LPIPS printout {printout} capture fit {fit}");
+        assert!(fit_log < 0.7 * printout_log, "log RMSE printout {printout_log} capture fit {fit_log}");
+        let summary = std::fs::read_to_string(t.path().join("o/summary.md")).unwrap();
+        assert!(summary.contains(CAPTURE_FIT_METHOD), "{summary}");
     }
 
     #[test]

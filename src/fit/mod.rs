@@ -335,12 +335,34 @@ pub struct CoreSettings {
     pub smooth_weight: f64,
 }
 
+/// Specular lobes shared by the regions of a material: each pixel's
+/// specular colour and roughness (raw channels 3..7) are its regions' lobes,
+/// mixed by its soft memberships, plus a departure of its own whose square
+/// costs `weight`. One photo sees a pixel's lobe at one half-angle, where a
+/// sharper lobe with a brighter ks draws the same value; the pixels of a
+/// region see it at many half-angles, which fixes its shape, and the
+/// pixels no highlight touched take their region's lobe instead of staying
+/// at the start's.
+#[derive(Debug)]
+pub struct SharedLobes {
+    /// Soft memberships `[1, C, H, W]`, summing to 1 over the C regions.
+    pub memberships: Tensor,
+    /// Weight of the mean squared departure (raw units, 4 channels summed).
+    pub weight: f64,
+}
+
+/// Raw channels of the lobe ([`SharedLobes`]): ks (3) and roughness.
+const LOBE_CHANNELS: (i64, i64) = (3, 4);
+
 /// The one fitting core of `flashmat fit` and of the fit to photos
 /// ([`photos`]): Adam on the unconstrained parameters ([`encode`] /
 /// [`decode`]) of GGX maps, minimising `data(maps)` plus the edge-aware
 /// smoothness `w * mean(e * |grad maps|)`, with a cosine-decayed step.
 /// What the maps are compared with lives in `data` (any further prior
 /// too), so both fits share the loop, its parameterisation and its checks.
+/// With `shared`, the lobe channels are parameterised as [`SharedLobes`]
+/// says (started at the regions' mean lobes plus each pixel's departure,
+/// so the start is unchanged).
 /// init: `[1, 10, H, W]`; edges: (x `[1, H, W-1]`, y `[1, H-1, W]`) from
 /// [`edge_weights`]; data: maps `[1, 10, H, W]` -> scalar loss.
 /// Returns the fitted maps `[1, 10, H, W]` (no gradient). A non-finite
@@ -349,22 +371,53 @@ pub fn fit_core(
     init: &Tensor,
     settings: &CoreSettings,
     edges: &(Tensor, Tensor),
+    shared: Option<&SharedLobes>,
     mut data: impl FnMut(&Tensor) -> Tensor,
     mut on_step: impl FnMut(usize),
 ) -> Result<Tensor> {
     let (edge_x, edge_y) = edges;
-    let raw = encode(init).detach().set_requires_grad(true);
-    let mut adam = Adam::new(HashMap::from([("raw".to_string(), raw.shallow_clone())]));
+    let (first, count) = LOBE_CHANNELS;
+    let start = encode(init).detach();
+    let mut params = HashMap::new();
+    // The shared lobes [C, 4] and the mixing of them into [1, 4, H, W].
+    let lobes = shared.map(|s| {
+        let m = s.memberships.to_device(init.device()).to_kind(Kind::Float);
+        let weights = m.sum_dim_intlist([0i64, 2, 3].as_slice(), false, Kind::Float).clamp_min(1e-6); // [C]
+        let means = Tensor::einsum("bchw,bkhw->ck", &[&m, &start.narrow(1, first, count)], None::<i64>) / weights.unsqueeze(1);
+        let means = means.detach().set_requires_grad(true);
+        params.insert("lobes".to_string(), means.shallow_clone());
+        (m, means, s.weight)
+    });
+    let mix = |m: &Tensor, lobes: &Tensor| Tensor::einsum("bchw,ck->bkhw", &[m, lobes], None::<i64>);
+    let raw = match &lobes {
+        // Channels 3..7 hold the departure from the mixed lobe.
+        Some((m, means, _)) => tch::no_grad(|| {
+            let departure = start.narrow(1, first, count) - mix(m, means);
+            Tensor::cat(&[start.narrow(1, 0, first), departure, start.narrow(1, first + count, RAW_CHANNELS - first - count)], 1)
+        }),
+        None => start.shallow_clone(),
+    }
+    .set_requires_grad(true);
+    params.insert("raw".to_string(), raw.shallow_clone());
+    let full = |raw: &Tensor| match &lobes {
+        Some((m, means, _)) => {
+            let lobe = raw.narrow(1, first, count) + mix(m, means);
+            Tensor::cat(&[raw.narrow(1, 0, first), lobe, raw.narrow(1, first + count, RAW_CHANNELS - first - count)], 1)
+        }
+        None => raw.shallow_clone(),
+    };
+    let mut adam = Adam::new(params);
     for step in 0..settings.steps {
         adam.zero_grad();
-        let maps = decode(&raw);
-        let data = data(&maps);
-        let loss = if settings.smooth_weight > 0.0 {
+        let maps = decode(&full(&raw));
+        let mut loss = data(&maps);
+        if settings.smooth_weight > 0.0 {
             let (dx, dy) = differences(&maps.get(0));
-            data + ((dx.abs() * edge_x).mean(Kind::Float) + (dy.abs() * edge_y).mean(Kind::Float)) * settings.smooth_weight
-        } else {
-            data
-        };
+            loss = loss + ((dx.abs() * edge_x).mean(Kind::Float) + (dy.abs() * edge_y).mean(Kind::Float)) * settings.smooth_weight;
+        }
+        if let Some((_, _, weight)) = &lobes {
+            loss = loss + raw.narrow(1, first, count).square().sum_dim_intlist([1i64].as_slice(), false, Kind::Float).mean(Kind::Float) * *weight;
+        }
         let value = loss.double_value(&[]);
         ensure!(value.is_finite(), "the fit's loss became {value} at step {}", step + 1);
         loss.backward();
@@ -374,7 +427,7 @@ pub fn fit_core(
         adam.step(lr, None);
         on_step(step);
     }
-    Ok(tch::no_grad(|| decode(&raw.detach())))
+    Ok(tch::no_grad(|| decode(&full(&raw.detach()))))
 }
 
 /// Fits GGX maps to log radiance targets seen under shared direction pairs.
@@ -397,7 +450,7 @@ pub fn fit_targets(targets: &Tensor, wi: &Tensor, wo: &Tensor, cfg: &FitConfig, 
 
     let data = |maps: &Tensor| data_map(&ggx_log(maps, &wi, &wo).get(0), &targets).mean(Kind::Float);
     let settings = CoreSettings { steps: cfg.steps, learning_rate: cfg.learning_rate, smooth_weight: cfg.smooth_weight };
-    let maps = fit_core(&init, &settings, &(edge_x, edge_y), data, on_step)?;
+    let maps = fit_core(&init, &settings, &(edge_x, edge_y), None, data, on_step)?;
     let error = tch::no_grad(|| error_map(&ggx_log(&maps, &wi, &wo).get(0), &targets));
     ensure!(crate::image::all_finite(&maps) && crate::image::all_finite(&error), "the fitted maps are not finite");
     let flat = error.flatten(0, -1);

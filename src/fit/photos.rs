@@ -20,7 +20,7 @@
 //!
 //! Left for later: pose refinement, coarse-to-fine.
 
-use super::{decode, edge_weights, encode, fit_core, fit_material, sample_directions, CoreSettings, FitConfig, FitReport, FitResult, CHARBONNIER_EPS, MAX_FIT_STEPS};
+use super::{decode, edge_weights, encode, fit_core, fit_material, sample_directions, CoreSettings, FitConfig, FitReport, FitResult, SharedLobes, CHARBONNIER_EPS, MAX_FIT_STEPS};
 use crate::data::captures::{falloff, load_photo_sized, Captures};
 use crate::geometry::{LightView, MODEL_FOV_DEG};
 use crate::infer::nmat::{NeuralMaterial, NmatMeta};
@@ -56,6 +56,78 @@ const BLACK_MEAN: f64 = 1e-4;
 /// and the normal follow the photos' shading.
 const PULL_FACTORS: [f64; 10] = [0.1, 0.1, 0.1, 1.0, 1.0, 1.0, 1.0, 0.2, 0.2, 0.2];
 
+/// Most regions of [`albedo_regions`].
+pub const MAX_LOBE_REGIONS: usize = 8;
+
+/// Width of a region's soft membership in ln(kd) distance (per channel, RMS).
+const REGION_WIDTH: f64 = 0.15;
+
+/// Soft regions of an albedo map for [`SharedLobes`]: k-means (10 rounds)
+/// on ln(kd) from centres at evenly spaced brightness quantiles, then each
+/// pixel's membership exp(-d^2 / (2 * 3 * REGION_WIDTH^2)) normalised over
+/// the regions. kd: `[3, H, W]` linear -> `[1, C, H, W]`.
+pub fn albedo_regions(kd: &Tensor, count: usize) -> Tensor {
+    tch::no_grad(|| {
+        let (h, w) = (kd.size()[1], kd.size()[2]);
+        let points = kd.to_kind(Kind::Float).clamp_min(1e-3).log().view([3, h * w]).transpose(0, 1); // [P, 3]
+        let brightness = points.mean_dim(1, false, Kind::Float);
+        let order = brightness.argsort(0, false);
+        let n = h * w;
+        let picks: Vec<i64> = (0..count as i64).map(|c| ((2 * c + 1) * n / (2 * count as i64)).min(n - 1)).collect();
+        let mut centres = points.index_select(0, &order.index_select(0, &Tensor::from_slice(&picks).to_device(kd.device()))); // [C, 3]
+        let distances = |centres: &Tensor| (points.unsqueeze(1) - centres.unsqueeze(0)).square().sum_dim_intlist([2i64].as_slice(), false, Kind::Float); // [P, C]
+        for _ in 0..10 {
+            let nearest = distances(&centres).argmin(1, false).one_hot(count as i64).to_kind(Kind::Float); // [P, C]
+            let counts = nearest.sum_dim_intlist([0i64].as_slice(), false, Kind::Float).unsqueeze(1); // [C, 1]
+            let means = nearest.transpose(0, 1).matmul(&points) / counts.clamp_min(1.0);
+            // An empty region keeps its centre.
+            centres = means.where_self(&counts.gt(0.0), &centres);
+        }
+        let memberships = (-distances(&centres) / (6.0 * REGION_WIDTH * REGION_WIDTH)).softmax(1, Kind::Float); // [P, C]
+        memberships.transpose(0, 1).reshape([1, count as i64, h, w])
+    })
+}
+
+/// Roughness and specular levels of [`searched_lobes`]' grid.
+const SEARCH_ROUGHNESS: [f64; 7] = [0.08, 0.12, 0.18, 0.25, 0.35, 0.5, 0.7];
+const SEARCH_SPECULAR: [f64; 6] = [0.02, 0.05, 0.12, 0.3, 0.6, 1.0];
+
+/// The start with each region's lobe set to the grid's (roughness, grey
+/// specular) pair of lowest data term over the region, where that beats
+/// the start's own lobes there. A sharp bright lobe and a broad dim one
+/// are far apart for Adam (the way between them draws a broad bright
+/// highlight everywhere), while the data term of a whole region tells
+/// them apart at once.
+/// start: `[1, 10, H, W]`; memberships: `[1, C, H, W]` ([`albedo_regions`]);
+/// data_map: maps `[1, 10, H, W]` -> per-pixel data term `[H, W]`.
+fn searched_lobes(start: &Tensor, memberships: &Tensor, data_map: impl Fn(&Tensor) -> Tensor) -> Tensor {
+    tch::no_grad(|| {
+        let m = memberships.get(0); // [C, H, W]
+        let weights = m.sum_dim_intlist([1i64, 2].as_slice(), false, Kind::Float).clamp_min(1e-6); // [C]
+        let score = |maps: &Tensor| (&m * data_map(maps).unsqueeze(0)).sum_dim_intlist([1i64, 2].as_slice(), false, Kind::Float) / &weights; // [C]
+        let mut best = score(start);
+        let count = m.size()[0];
+        let mut lobes = start.narrow(1, 3, 4).expand([count, 4, -1, -1], false).copy(); // [C, 4, H, W]: each region's lobe map
+        let with_lobe = |ks: f64, r: f64| {
+            let opts = (Kind::Float, start.device());
+            let (h, w) = (start.size()[2], start.size()[3]);
+            Tensor::cat(&[start.narrow(1, 0, 3), Tensor::full([1, 3, h, w], ks, opts), Tensor::full([1, 1, h, w], r, opts), start.narrow(1, 7, 3)], 1)
+        };
+        for &r in &SEARCH_ROUGHNESS {
+            for &ks in &SEARCH_SPECULAR {
+                let candidate = with_lobe(ks, r);
+                let scores = score(&candidate);
+                let better = scores.lt_tensor(&best); // [C]
+                best = scores.minimum(&best);
+                lobes = candidate.narrow(1, 3, 4).expand_as(&lobes).where_self(&better.view([count, 1, 1, 1]), &lobes);
+            }
+        }
+        // Each pixel's lobe: its regions' lobes mixed by its memberships.
+        let lobe = (lobes * m.unsqueeze(1)).sum_dim_intlist([0i64].as_slice(), true, Kind::Float); // [1, 4, H, W]
+        Tensor::cat(&[start.narrow(1, 0, 3), lobe, start.narrow(1, 7, 3)], 1)
+    })
+}
+
 /// Settings of the fit to photos.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PhotoFitConfig {
@@ -71,11 +143,20 @@ pub struct PhotoFitConfig {
     pub pull_weight: f64,
     /// Side of the fitted maps in pixels, a multiple of 8 (default 256, the model's resolution).
     pub size: usize,
+    /// Regions of the start's albedo whose pixels share a specular lobe
+    /// ([`SharedLobes`]), each started from a grid search ([`searched_lobes`]);
+    /// 0 (the default) fits every pixel's lobe alone. Measured in
+    /// reports/capture.md: 3 regions left the lobe at 0.30-0.36 and cost
+    /// identity LPIPS, because an 8-bit photo's clipped highlight does not
+    /// say how bright its peak is.
+    pub lobe_regions: usize,
+    /// Weight of a pixel's squared departure from its regions' lobe.
+    pub lobe_weight: f64,
 }
 
 impl Default for PhotoFitConfig {
     fn default() -> Self {
-        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256 }
+        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01 }
     }
 }
 
@@ -86,6 +167,8 @@ impl PhotoFitConfig {
         ensure!(self.learning_rate.is_finite() && self.learning_rate > 0.0, "the fit's learning rate must be a finite number > 0, got {}", self.learning_rate);
         ensure!(self.smooth_weight.is_finite() && self.smooth_weight >= 0.0, "the smoothness weight must be a finite number >= 0, got {}", self.smooth_weight);
         ensure!(self.pull_weight.is_finite() && self.pull_weight >= 0.0, "the pull weight must be a finite number >= 0, got {}", self.pull_weight);
+        ensure!(self.lobe_regions <= MAX_LOBE_REGIONS, "at most {MAX_LOBE_REGIONS} lobe regions, got {}", self.lobe_regions);
+        ensure!(self.lobe_weight.is_finite() && self.lobe_weight >= 0.0, "the lobe weight must be a finite number >= 0, got {}", self.lobe_weight);
         ensure!(self.size >= 32 && self.size.is_multiple_of(8) && self.size <= 4096, "--size must be a multiple of 8 between 32 and 4096, got {}", self.size);
         Ok(())
     }
@@ -102,6 +185,8 @@ pub struct PhotoFitReport {
     /// Mean |ln(1 + R_ggx) - ln(1 + photo)| of the start maps and of the fitted ones.
     pub error_before: f64,
     pub error_after: f64,
+    /// Mean |log difference| of the fitted maps per photo (in the photos' order).
+    pub photo_errors: Vec<f64>,
     /// Seconds of the fit itself.
     pub seconds: f64,
 }
@@ -190,10 +275,15 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
     let measure = |maps: &Tensor| {
         tch::no_grad(|| {
             let (data, diff) = log_differences(&log_render(maps), &target, &clipped);
-            (data.mean(Kind::Double).double_value(&[]), diff.mean_dim([0i64, 1].as_slice(), false, Kind::Float))
+            (data.mean(Kind::Double).double_value(&[]), diff.mean_dim([1i64].as_slice(), false, Kind::Float))
         })
     };
     let (data_before, error_start) = measure(&start);
+    let memberships = (cfg.lobe_regions > 0).then(|| albedo_regions(&start.get(0).narrow(0, 0, 3), cfg.lobe_regions));
+    let start = match &memberships {
+        Some(m) => searched_lobes(&start, m, |maps| tch::no_grad(|| log_differences(&log_render(maps), &target, &clipped).0.mean_dim([0i64, 1].as_slice(), false, Kind::Float))),
+        None => start,
+    };
     let data = |maps: &Tensor| {
         let term = log_differences(&log_render(maps), &target, &clipped).0.mean(Kind::Float);
         if cfg.pull_weight > 0.0 {
@@ -204,8 +294,11 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
     };
     let edges = edge_weights(&target.mean_dim(0, false, Kind::Float));
     let settings = CoreSettings { steps: cfg.steps, learning_rate: cfg.learning_rate, smooth_weight: cfg.smooth_weight };
-    let maps = fit_core(&start, &settings, &edges, data, on_step)?;
-    let (data_after, error) = measure(&maps);
+    let shared = memberships.map(|memberships| SharedLobes { memberships, weight: cfg.lobe_weight });
+    let maps = fit_core(&start, &settings, &edges, shared.as_ref(), data, on_step)?;
+    let (data_after, photo_error) = measure(&maps); // [K, H, W]
+    let photo_errors = Vec::<f64>::try_from(photo_error.mean_dim([1i64, 2].as_slice(), false, Kind::Double))?;
+    let error = photo_error.mean_dim(0, false, Kind::Float);
     ensure!(crate::image::all_finite(&maps) && data_after.is_finite(), "the fitted maps are not finite");
     let report = PhotoFitReport {
         config: cfg.clone(),
@@ -214,6 +307,7 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
         data_after,
         error_before: error_start.mean(Kind::Double).double_value(&[]),
         error_after: error.mean(Kind::Double).double_value(&[]),
+        photo_errors,
         seconds: t0.elapsed().as_secs_f64(),
     };
     Ok(PhotoFit { maps: maps.get(0).to_device(Device::Cpu), error: error.to_device(Device::Cpu), report })
@@ -272,25 +366,53 @@ pub struct CapturePhotos {
     /// `[K, 1, S, S]` bool: clipped in the 8-bit photo ([`clip_mask`]).
     pub clipped: Tensor,
     pub configs: Vec<LightView>,
-    /// Index of the overhead photo ([`Captures::overhead`] among the first K).
+    /// Index of the overhead photo ([`Captures::overhead`] among these).
     pub overhead: usize,
+    /// File names of the photos, as the folder has them.
+    pub names: Vec<String>,
+    /// Warnings naming a photo (one line each): what the fit will not
+    /// learn from it ([`highlight_point`] off the sample).
+    pub warnings: Vec<String>,
 }
 
-/// Loads the first `count` photos of a capture at `size x size`. Errors
-/// (one line, naming the photo): photos of different sizes, a black photo,
-/// one clipped everywhere.
+/// Where a flat sample mirrors the light into the camera (z = 0): the
+/// highlight's centre, in the sample's units ([-1, 1] is on the sample).
+/// The mirror image of the light below the plane, seen from the camera,
+/// crosses the plane there.
+pub fn highlight_point(config: &LightView) -> [f64; 2] {
+    let (l, v) = (config.light, config.view);
+    let t = v[2] / (v[2] + l[2]);
+    [v[0] + t * (l[0] - v[0]), v[1] + t * (l[1] - v[1])]
+}
+
+/// Loads the first `count` photos of a capture at `size x size`
+/// ([`load_capture_photos`]).
 pub fn load_capture(captures: &Captures, count: usize, size: usize) -> Result<CapturePhotos> {
     let total = captures.photos.len();
     ensure!((1..=total).contains(&count), "--photos must be between 1 and {total} (the photos in {}), got {count}", captures.dir.display());
-    let configs: Vec<LightView> = (0..count).map(|i| captures.config(i)).collect();
+    load_capture_photos(captures, &(0..count).collect::<Vec<_>>(), size)
+}
+
+/// Loads the photos `indices` of a capture at `size x size`, compensated
+/// for the fall-off relative to the most overhead of them. Errors (one
+/// line, naming the photo): photos of different sizes, a black photo, one
+/// clipped everywhere. A photo whose highlight falls off the sample is a
+/// warning in [`CapturePhotos::warnings`].
+pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) -> Result<CapturePhotos> {
+    ensure!(!indices.is_empty(), "a fit needs at least one photo");
+    ensure!(indices.iter().all(|&i| i < captures.photos.len()), "photo indices {indices:?} out of the {} photos", captures.photos.len());
+    let configs: Vec<LightView> = indices.iter().map(|&i| captures.config(i)).collect();
     let cameras: Vec<[f64; 3]> = configs.iter().map(|c| c.view).collect();
     let overhead = crate::data::captures::overhead_index(&cameras);
     // Compensated relative to the overhead photo used, as `Captures::load_compensated` does.
     let r0 = crate::geometry::length(configs[overhead].light);
-    let mut photos = Vec::with_capacity(count);
-    let mut raw = Vec::with_capacity(count);
+    let mut photos = Vec::with_capacity(indices.len());
+    let mut raw = Vec::with_capacity(indices.len());
+    let mut names = Vec::with_capacity(indices.len());
+    let mut warnings = Vec::new();
     let mut first_size = None;
-    for (path, c) in captures.photos.iter().zip(&configs) {
+    for (&i, c) in indices.iter().zip(&configs) {
+        let path = &captures.photos[i];
         let (photo, dims) = load_photo_sized(path, size)?;
         match first_size {
             None => first_size = Some((dims, path)),
@@ -311,10 +433,58 @@ pub fn load_capture(captures: &Captures, count: usize, size: usize) -> Result<Ca
             "{}: the photo is white (clipped everywhere); nothing to fit",
             path.display()
         );
+        let [x, y] = highlight_point(c);
+        if x.abs() > 1.0 || y.abs() > 1.0 {
+            warnings.push(format!(
+                "{}: the flash's reflection falls off the sample (at {x:.2}, {y:.2}; the sample spans -1 to 1), so this photo shows no highlight: it tells the fit the diffuse colour only",
+                path.display()
+            ));
+        }
         photos.push(&photo / falloff(c.light, r0, size, size));
         raw.push(clipped);
+        names.push(path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());
     }
-    Ok(CapturePhotos { photos: Tensor::stack(&photos, 0), clipped: Tensor::cat(&raw, 0), configs, overhead })
+    Ok(CapturePhotos { photos: Tensor::stack(&photos, 0), clipped: Tensor::cat(&raw, 0), configs, overhead, names, warnings })
+}
+
+/// A photo whose mean error after the fit is above this many times the
+/// (lower) median photo's, and above [`OUTLIER_FLOOR`], does not agree
+/// with the others: another material, a moved sample, wrong positions.
+/// The fit bends toward such a photo, so its error stays a few times the
+/// others' rather than far above (a red checkerboard among four photos of
+/// a brown bump: 0.048 against a median of 0.007, where the clean
+/// capture's worst photo is at 0.020, 14x its median: hence the floor).
+pub const OUTLIER_FACTOR: f64 = 3.0;
+/// Mean |log difference| (about a relative error) below which no photo is called an outlier.
+pub const OUTLIER_FLOOR: f64 = 0.03;
+
+/// Warnings for the photos the fitted maps do not explain
+/// ([`OUTLIER_FACTOR`]), naming each with its error and the median.
+pub fn outlier_warnings(fit: &PhotoFit, names: &[String]) -> Vec<String> {
+    let errors = &fit.report.photo_errors;
+    if errors.len() < 3 {
+        return Vec::new(); // with two photos, neither is the odd one out
+    }
+    let mut sorted = errors.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted[(sorted.len() - 1) / 2];
+    errors
+        .iter()
+        .zip(names)
+        .filter(|(&e, _)| e > OUTLIER_FLOOR && e > OUTLIER_FACTOR * median)
+        .map(|(e, name)| format!("{name}: the fitted material explains this photo {:.1}x worse than the others (mean |log difference| {e:.3}, median {median:.3}): is it the same material, and are its positions right?", e / median.max(1e-12)))
+        .collect()
+}
+
+/// The whole capture path on loaded photos: the start ([`estimated_start`]
+/// on the overhead photo), then [`fit_photos`] on `device`.
+/// `on_progress(stage, done, total)`: stage 0 the start, 1 the fit.
+pub fn fit_capture(loaded: &LoadedModel, capture: &CapturePhotos, cfg: &PhotoFitConfig, device: Device, mut on_progress: impl FnMut(usize, usize, usize)) -> Result<PhotoFit> {
+    let start_cfg = FitConfig::default();
+    let overhead = capture.photos.get(capture.overhead as i64);
+    let start = estimated_start(loaded, &overhead, &start_cfg, |done, total| on_progress(0, done, total))?;
+    let photos = capture.photos.to_device(device);
+    fit_photos(&photos, &capture.clipped, &capture.configs, &start, cfg, |step| on_progress(1, step + 1, cfg.steps))
 }
 
 /// The teacher file `explicit`, or the bundled one; a missing file is one line.

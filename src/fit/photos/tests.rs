@@ -136,3 +136,66 @@ fn bad_captures_are_one_line_naming_the_photo() {
     // The first photo alone is fine.
     assert_eq!(load_capture(&captures, 1, 32).unwrap().photos.size(), [1, 3, 32, 32]);
 }
+
+#[test]
+fn the_highlight_point_is_where_the_plane_mirrors_the_light_into_the_camera() {
+    // Co-located: straight below the phone.
+    let colocated = LightView { light: [0.9, -0.7, 3.7], view: [0.9, -0.7, 3.7] };
+    assert_eq!(highlight_point(&colocated), [0.9, -0.7]);
+    // Light (1, 0, 2), camera (0, 0, 2): equal heights, so half-way, (0.5, 0).
+    assert_eq!(highlight_point(&LightView { light: [1.0, 0.0, 2.0], view: [0.0, 0.0, 2.0] }), [0.5, 0.0]);
+    // Light (3, 0, 1), camera (0, 0, 3): t = 3/4, x = 2.25 (off the sample).
+    assert_eq!(highlight_point(&LightView { light: [3.0, 0.0, 1.0], view: [0.0, 0.0, 3.0] }), [2.25, 0.0]);
+}
+
+/// A 4-photo capture of the truth maps: overhead, then three tilted
+/// co-located phones; `far` puts photo 03's flash reflection off the sample.
+fn four_photo_capture(dir: &std::path::Path, far: bool) -> Vec<LightView> {
+    let d = fov_to_distance(MODEL_FOV_DEG);
+    let last = if far { [1.6, 0.2, 3.0] } else { [0.3, 0.8, 3.6] };
+    let configs: Vec<LightView> = [[0.0, 0.0, d], [0.7, -0.5, 3.7], [-0.6, 0.6, 3.8], last].iter().map(|&p| LightView { light: p, view: p }).collect();
+    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&truth_maps()).unwrap()).unwrap();
+    write_synthetic(dir, &material, &configs, 10.0).unwrap();
+    configs
+}
+
+#[test]
+fn a_photo_whose_highlight_misses_the_sample_is_a_warning_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    four_photo_capture(dir.path(), true);
+    let capture = load_capture(&Captures::open(dir.path()).unwrap(), 4, 32).unwrap();
+    assert_eq!(capture.names, ["00.png", "01.png", "02.png", "03.png"]);
+    assert_eq!(capture.warnings.len(), 1, "{:?}", capture.warnings);
+    let w = &capture.warnings[0];
+    assert!(w.contains("03.png") && w.contains("(at 1.60, 0.20") && !w.contains('\n'), "{w}");
+    let near = tempfile::tempdir().unwrap();
+    four_photo_capture(near.path(), false);
+    assert!(load_capture(&Captures::open(near.path()).unwrap(), 4, 32).unwrap().warnings.is_empty());
+}
+
+#[test]
+fn a_photo_of_another_material_is_named_by_the_fits_residual() {
+    let dir = tempfile::tempdir().unwrap();
+    let configs = four_photo_capture(dir.path(), false);
+    let fit_of = |dir: &std::path::Path| {
+        let capture = load_capture(&Captures::open(dir).unwrap(), 4, 32).unwrap();
+        let start = flat_start(&capture.photos.get(0), &capture.configs[0]);
+        let cfg = PhotoFitConfig { steps: 300, pull_weight: 0.0, size: 32, ..Default::default() };
+        let fit = fit_photos(&capture.photos, &capture.clipped, &capture.configs, &start, &cfg, |_| ()).unwrap();
+        let warnings = outlier_warnings(&fit, &capture.names);
+        (fit, warnings)
+    };
+    let (fit, warnings) = fit_of(dir.path());
+    assert_eq!(fit.report.photo_errors.len(), 4);
+    assert!(warnings.is_empty(), "{warnings:?} (errors {:?})", fit.report.photo_errors);
+    // Photo 02 replaced by a photo of a bright red checkerboard from the same place.
+    let mut other = Svbrdf::uniform(48, 48, [0.6, 0.05, 0.05], [0.04; 3], 0.5);
+    other.diffuse = crate::image::Image::from_fn(3, 48, 48, |c, y, x| if (x / 12 + y / 12) % 2 == 0 { [0.6, 0.05, 0.05][c] } else { 0.02 });
+    let elsewhere = tempfile::tempdir().unwrap();
+    write_synthetic(elsewhere.path(), &other, &configs, 10.0).unwrap();
+    std::fs::copy(elsewhere.path().join("02.png"), dir.path().join("02.png")).unwrap();
+    let (fit, warnings) = fit_of(dir.path());
+    eprintln!("per-photo errors {:?}", fit.report.photo_errors);
+    assert_eq!(warnings.len(), 1, "{warnings:?} (errors {:?})", fit.report.photo_errors);
+    assert!(warnings[0].starts_with("02.png: the fitted material explains this photo"), "{}", warnings[0]);
+}
