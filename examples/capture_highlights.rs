@@ -16,14 +16,14 @@
 //! the whole renders under the moved lights (which no photo saw).
 //!
 //! ```sh
-//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR]
+//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE]
 //! # defaults: 128 0-5 1,2,3,5 and PhotoFitConfig's steps, pull and smoothness weights
 //! ```
 
 use anyhow::Result;
 use flashmat::data::captures::{write_synthetic, Captures};
 use flashmat::eval::highlights::{self, HighlightConfig, MaterialHighlights};
-use flashmat::fit::photos::{estimated_start, fit_photos, load_capture, load_teacher, neural_material, PhotoFitConfig};
+use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, PhotoFitConfig};
 use flashmat::geometry::{LightView, MODEL_FOV_DEG};
 use flashmat::lpips::Lpips;
 use rand::{Rng, SeedableRng};
@@ -61,7 +61,8 @@ fn main() -> Result<()> {
     let lobe_regions: usize = args.get(7).map_or(Ok(defaults.lobe_regions), |s| s.parse())?;
     let lobe_weight: f64 = args.get(8).map_or(Ok(defaults.lobe_weight), |s| s.parse())?;
     // Pictures per material: the photos of the largest capture and the relit grid.
-    let pictures: Option<std::path::PathBuf> = args.get(9).map(Into::into);
+    let pictures: Option<std::path::PathBuf> = args.get(9).filter(|a| *a != "-").map(Into::into);
+    let coarse_share: f64 = args.get(10).map_or(Ok(defaults.coarse_share), |s| s.parse())?;
     let loaded = flashmat::infer::load_model(None, Device::Cpu)?;
     let teacher = load_teacher(None, Device::Cpu)?;
     let lpips = Lpips::new(Device::Cpu)?;
@@ -106,7 +107,6 @@ fn main() -> Result<()> {
             std::fs::write(dir.path().join("light_pos.txt"), lights)?;
             let capture = load_capture(&Captures::open(dir.path())?, k, size)?;
             let photo = capture.photos.get(capture.overhead as i64);
-            let start = estimated_start(&loaded, &photo, &flashmat::fit::FitConfig::default(), |_, _| {})?;
             if k == counts[0] {
                 let single = flashmat::infer::estimate(
                     &loaded.model,
@@ -118,8 +118,8 @@ fn main() -> Result<()> {
                 rows.entry((0, "single")).or_default().push(score(&pred, &identity)?);
                 relit.push(("bundled model, 1 photo".into(), pred));
             }
-            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, ..PhotoFitConfig::default() };
-            let fit = fit_photos(&capture.photos, &capture.clipped, &capture.configs, &start, &cfg, |_| {})?;
+            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, coarse_share, ..PhotoFitConfig::default() };
+            let fit = fit_capture(&loaded, &capture, &cfg, Device::Cpu, |_, _, _| {})?;
             let maps = fit.maps.unsqueeze(0);
             let render = |configs: &[LightView]| -> Tensor {
                 let (l, v) = flashmat::geometry::config_tensors(configs, Device::Cpu);
@@ -157,6 +157,6 @@ fn main() -> Result<()> {
         let k = if *k == 0 { "1 (model)".to_string() } else { k.to_string() };
         println!("| {k} | {method} | {} | {} | {lobe_8bit:.2} | {} | {:.3} | {:.3} |", cell(&s.ghost), cell(&s.lobe), cell(&s.rest), mean(|r| r.1), mean(|r| r.2));
     }
-    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
+    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
     Ok(())
 }

@@ -56,6 +56,9 @@ const BLACK_MEAN: f64 = 1e-4;
 /// and the normal follow the photos' shading.
 const PULL_FACTORS: [f64; 10] = [0.1, 0.1, 0.1, 1.0, 1.0, 1.0, 1.0, 0.2, 0.2, 0.2];
 
+/// Maps smaller than this on a side are fitted at full resolution only.
+pub const MIN_COARSE_SIDE: i64 = 64;
+
 /// Most regions of [`albedo_regions`].
 pub const MAX_LOBE_REGIONS: usize = 8;
 
@@ -152,11 +155,14 @@ pub struct PhotoFitConfig {
     pub lobe_regions: usize,
     /// Weight of a pixel's squared departure from its regions' lobe.
     pub lobe_weight: f64,
+    /// Share of the steps run at half the resolution first ([`fit_photos`];
+    /// 0 fits at full resolution throughout; maps under [`MIN_COARSE_SIDE`] always do).
+    pub coarse_share: f64,
 }
 
 impl Default for PhotoFitConfig {
     fn default() -> Self {
-        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01 }
+        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01, coarse_share: 0.5 }
     }
 }
 
@@ -167,6 +173,7 @@ impl PhotoFitConfig {
         ensure!(self.learning_rate.is_finite() && self.learning_rate > 0.0, "the fit's learning rate must be a finite number > 0, got {}", self.learning_rate);
         ensure!(self.smooth_weight.is_finite() && self.smooth_weight >= 0.0, "the smoothness weight must be a finite number >= 0, got {}", self.smooth_weight);
         ensure!(self.pull_weight.is_finite() && self.pull_weight >= 0.0, "the pull weight must be a finite number >= 0, got {}", self.pull_weight);
+        ensure!((0.0..1.0).contains(&self.coarse_share), "the coarse share must be in [0, 1), got {}", self.coarse_share);
         ensure!(self.lobe_regions <= MAX_LOBE_REGIONS, "at most {MAX_LOBE_REGIONS} lobe regions, got {}", self.lobe_regions);
         ensure!(self.lobe_weight.is_finite() && self.lobe_weight >= 0.0, "the lobe weight must be a finite number >= 0, got {}", self.lobe_weight);
         ensure!(self.size >= 32 && self.size.is_multiple_of(8) && self.size <= 4096, "--size must be a multiple of 8 between 32 and 4096, got {}", self.size);
@@ -243,11 +250,93 @@ fn log_differences(pred: &Tensor, target: &Tensor, clipped: &Tensor) -> (Tensor,
     (charbonnier, diff.abs())
 }
 
+/// The photos at one resolution of the fit, with each pixel's light and
+/// view directions.
+struct Level {
+    /// ln(1 + photo) `[K, 3, H, W]`.
+    target: Tensor,
+    /// `[K, 1, H, W]` bool.
+    clipped: Tensor,
+    /// `[1, K, 3, H, W]` each.
+    wi: Tensor,
+    wo: Tensor,
+}
+
+impl Level {
+    fn new(photos: &Tensor, clipped: &Tensor, configs: &[LightView]) -> Self {
+        let device = photos.device();
+        let s = photos.size();
+        let (k, h, w) = (s[0], s[2], s[3]);
+        let position = |pick: fn(&LightView) -> [f64; 3]| {
+            let flat: Vec<f32> = configs.iter().flat_map(|c| pick(c).map(|v| v as f32)).collect();
+            Tensor::from_slice(&flat).to_device(device).view([1, k, 3])
+        };
+        let (wi, wo) = direction_maps_for(&position(|c| c.light), &position(|c| c.view), h as usize, w as usize);
+        Level { target: crate::spaces::to_log(&photos.to_kind(Kind::Float)), clipped: clipped.to_device(device).to_kind(Kind::Bool), wi, wo }
+    }
+
+    /// The level at half the resolution: photos averaged over 2x2 pixels,
+    /// a pixel clipped where any of its four was.
+    fn halved(photos: &Tensor, clipped: &Tensor, configs: &[LightView]) -> Self {
+        let photos = photos.to_kind(Kind::Float).avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None::<i64>);
+        let clipped = clipped.to_kind(Kind::Float).max_pool2d([2, 2], [2, 2], [0, 0], [1, 1], false).gt(0.5);
+        Self::new(&photos, &clipped, configs)
+    }
+
+    /// Per-element data term and |log difference| of maps `[1, 10, H, W]`: `[K, 3, H, W]` each.
+    fn differences(&self, maps: &Tensor) -> (Tensor, Tensor) {
+        log_differences(&crate::spaces::to_log(&render_directions(maps, &self.wi, &self.wo).get(0)), &self.target, &self.clipped)
+    }
+
+    /// `steps` of the fit from `init` with the pull toward `start` (both `[1, 10, H, W]`).
+    fn fit(&self, init: &Tensor, start: &Tensor, steps: usize, cfg: &PhotoFitConfig, on_step: impl FnMut(usize)) -> Result<Tensor> {
+        let factors = Tensor::from_slice(&PULL_FACTORS).to_kind(Kind::Float).to_device(start.device()).view([1, 10, 1, 1]);
+        let memberships = (cfg.lobe_regions > 0).then(|| albedo_regions(&start.get(0).narrow(0, 0, 3), cfg.lobe_regions));
+        let (init, start) = match &memberships {
+            Some(m) => {
+                let searched = searched_lobes(init, m, |maps| tch::no_grad(|| self.differences(maps).0.mean_dim([0i64, 1].as_slice(), false, Kind::Float)));
+                (searched.shallow_clone(), searched)
+            }
+            None => (init.shallow_clone(), start.shallow_clone()),
+        };
+        let data = |maps: &Tensor| {
+            let term = self.differences(maps).0.mean(Kind::Float);
+            if cfg.pull_weight > 0.0 {
+                term + ((maps - &start).square() * &factors).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).mean(Kind::Float) * cfg.pull_weight
+            } else {
+                term
+            }
+        };
+        let edges = edge_weights(&self.target.mean_dim(0, false, Kind::Float));
+        let settings = CoreSettings { steps, learning_rate: cfg.learning_rate, smooth_weight: cfg.smooth_weight };
+        let shared = memberships.map(|memberships| SharedLobes { memberships, weight: cfg.lobe_weight });
+        fit_core(&init, &settings, &edges, shared.as_ref(), data, on_step)
+    }
+}
+
+/// Unit normals again after resampling maps `[1, 10, H, W]`.
+fn renormalised(maps: &Tensor) -> Tensor {
+    let n = maps.narrow(1, 7, 3);
+    let n = &n / n.square().sum_dim_intlist([1i64].as_slice(), true, Kind::Float).sqrt().clamp_min(1e-6);
+    Tensor::cat(&[maps.narrow(1, 0, 7), n], 1)
+}
+
+/// Maps `[1, 10, H, W]` averaged over 2x2 pixels.
+fn halved_maps(maps: &Tensor) -> Tensor {
+    renormalised(&maps.avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None::<i64>))
+}
+
 /// Fits GGX maps to photos with known lights and cameras.
 /// photos: `[K, 3, H, W]` linear, fall-off compensated; clipped: `[K, 1, H, W]`
 /// bool ([`clip_mask`]); configs: K lights/cameras (flashmat units); start:
 /// `[10, H, W]`. Runs on the photos' device; `on_step(i)` after each step.
-pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], start: &Tensor, cfg: &PhotoFitConfig, on_step: impl FnMut(usize)) -> Result<PhotoFit> {
+///
+/// Coarse to fine: the first [`PhotoFitConfig::coarse_share`] of the steps
+/// run at half the resolution (a quarter of the cost per step), where the
+/// lobes and the low frequencies settle; their change to the (halved)
+/// start is then upsampled onto the full-resolution start, which keeps its
+/// fine detail, and the remaining steps refine every pixel.
+pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], start: &Tensor, cfg: &PhotoFitConfig, mut on_step: impl FnMut(usize)) -> Result<PhotoFit> {
     cfg.validate()?;
     let s = photos.size();
     ensure!(s.len() == 4 && s[1] == 3, "photos must be [K, 3, H, W], got {s:?}");
@@ -260,42 +349,28 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
     ensure!(crate::image::all_finite(start), "the start maps hold NaN/Inf values");
     let t0 = Instant::now();
     let device = photos.device();
-    let target = crate::spaces::to_log(&photos.to_kind(Kind::Float)); // [K, 3, H, W]
-    let clipped = clipped.to_device(device).to_kind(Kind::Bool);
-    let position = |pick: fn(&LightView) -> [f64; 3]| {
-        let flat: Vec<f32> = configs.iter().flat_map(|c| pick(c).map(|v| v as f32)).collect();
-        Tensor::from_slice(&flat).to_device(device).view([1, k, 3])
-    };
-    let (wi, wo) = direction_maps_for(&position(|c| c.light), &position(|c| c.view), h as usize, w as usize); // [1, K, 3, H, W]
-    let log_render = |maps: &Tensor| crate::spaces::to_log(&render_directions(maps, &wi, &wo).get(0)); // [K, 3, H, W]
-
+    let full = Level::new(photos, clipped, configs);
     // The start, as `decode` sees it (clamped into its range).
     let start = tch::no_grad(|| decode(&encode(&start.to_device(device).to_kind(Kind::Float).unsqueeze(0))));
-    let factors = Tensor::from_slice(&PULL_FACTORS).to_kind(Kind::Float).to_device(device).view([1, 10, 1, 1]);
     let measure = |maps: &Tensor| {
         tch::no_grad(|| {
-            let (data, diff) = log_differences(&log_render(maps), &target, &clipped);
+            let (data, diff) = full.differences(maps);
             (data.mean(Kind::Double).double_value(&[]), diff.mean_dim([1i64].as_slice(), false, Kind::Float))
         })
     };
     let (data_before, error_start) = measure(&start);
-    let memberships = (cfg.lobe_regions > 0).then(|| albedo_regions(&start.get(0).narrow(0, 0, 3), cfg.lobe_regions));
-    let start = match &memberships {
-        Some(m) => searched_lobes(&start, m, |maps| tch::no_grad(|| log_differences(&log_render(maps), &target, &clipped).0.mean_dim([0i64, 1].as_slice(), false, Kind::Float))),
-        None => start,
+    let coarse_steps = if h >= MIN_COARSE_SIDE && w >= MIN_COARSE_SIDE && h % 2 == 0 && w % 2 == 0 { (cfg.steps as f64 * cfg.coarse_share).round() as usize } else { 0 };
+    let init = if coarse_steps > 0 {
+        let half_start = tch::no_grad(|| halved_maps(&start));
+        let coarse = Level::halved(photos, clipped, configs).fit(&half_start, &half_start, coarse_steps, cfg, &mut on_step)?;
+        tch::no_grad(|| {
+            let change = (coarse - &half_start).upsample_bilinear2d([h, w], false, None, None);
+            decode(&encode(&renormalised(&(&start + change))))
+        })
+    } else {
+        start.shallow_clone()
     };
-    let data = |maps: &Tensor| {
-        let term = log_differences(&log_render(maps), &target, &clipped).0.mean(Kind::Float);
-        if cfg.pull_weight > 0.0 {
-            term + ((maps - &start).square() * &factors).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).mean(Kind::Float) * cfg.pull_weight
-        } else {
-            term
-        }
-    };
-    let edges = edge_weights(&target.mean_dim(0, false, Kind::Float));
-    let settings = CoreSettings { steps: cfg.steps, learning_rate: cfg.learning_rate, smooth_weight: cfg.smooth_weight };
-    let shared = memberships.map(|memberships| SharedLobes { memberships, weight: cfg.lobe_weight });
-    let maps = fit_core(&start, &settings, &edges, shared.as_ref(), data, on_step)?;
+    let maps = full.fit(&init, &start, cfg.steps - coarse_steps, cfg, |step| on_step(coarse_steps + step))?;
     let (data_after, photo_error) = measure(&maps); // [K, H, W]
     let photo_errors = Vec::<f64>::try_from(photo_error.mean_dim([1i64, 2].as_slice(), false, Kind::Double))?;
     let error = photo_error.mean_dim(0, false, Kind::Float);
@@ -476,11 +551,23 @@ pub fn outlier_warnings(fit: &PhotoFit, names: &[String]) -> Vec<String> {
         .collect()
 }
 
+/// The GGX fit of the start: `flashmat fit`'s, with half its direction
+/// pairs and two thirds of its steps. The fit to the photos refines it,
+/// so the start needs its lobes roughly right, not to the last step.
+pub fn start_fit_config() -> FitConfig {
+    let defaults = FitConfig::default();
+    FitConfig { samples: START_SAMPLES, steps: START_STEPS, ..defaults }
+}
+
+/// Direction pairs and steps of [`start_fit_config`].
+pub const START_SAMPLES: usize = 16;
+pub const START_STEPS: usize = 100;
+
 /// The whole capture path on loaded photos: the start ([`estimated_start`]
 /// on the overhead photo), then [`fit_photos`] on `device`.
 /// `on_progress(stage, done, total)`: stage 0 the start, 1 the fit.
 pub fn fit_capture(loaded: &LoadedModel, capture: &CapturePhotos, cfg: &PhotoFitConfig, device: Device, mut on_progress: impl FnMut(usize, usize, usize)) -> Result<PhotoFit> {
-    let start_cfg = FitConfig::default();
+    let start_cfg = start_fit_config();
     let overhead = capture.photos.get(capture.overhead as i64);
     let start = estimated_start(loaded, &overhead, &start_cfg, |done, total| on_progress(0, done, total))?;
     let photos = capture.photos.to_device(device);
