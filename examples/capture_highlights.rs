@@ -16,7 +16,7 @@
 //! the whole renders under the moved lights (which no photo saw).
 //!
 //! ```sh
-//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE]
+//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS]
 //! # defaults: 128 0-5 1,2,3,5 and PhotoFitConfig's steps, pull and smoothness weights
 //! ```
 
@@ -63,6 +63,7 @@ fn main() -> Result<()> {
     // Pictures per material: the photos of the largest capture and the relit grid.
     let pictures: Option<std::path::PathBuf> = args.get(9).filter(|a| *a != "-").map(Into::into);
     let coarse_share: f64 = args.get(10).map_or(Ok(defaults.coarse_share), |s| s.parse())?;
+    let photo_gains: bool = args.get(11).map_or(Ok(defaults.photo_gains), |s| s.parse())?;
     let loaded = flashmat::infer::load_model(None, Device::Cpu)?;
     let teacher = load_teacher(None, Device::Cpu)?;
     let lpips = Lpips::new(Device::Cpu)?;
@@ -118,7 +119,7 @@ fn main() -> Result<()> {
                 rows.entry((0, "single")).or_default().push(score(&pred, &identity)?);
                 relit.push(("bundled model, 1 photo".into(), pred));
             }
-            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, coarse_share, ..PhotoFitConfig::default() };
+            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, coarse_share, photo_gains, ..PhotoFitConfig::default() };
             let fit = fit_capture(&loaded, &capture, &cfg, Device::Cpu, |_, _, _| {})?;
             let maps = fit.maps.unsqueeze(0);
             let render = |configs: &[LightView]| -> Tensor {
@@ -136,7 +137,7 @@ fn main() -> Result<()> {
                 std::fs::create_dir_all(out)?;
                 flashmat::io::write_jpeg(&out.join(format!("photos-{name}.jpg")), &flashmat::viz::grid(&[cells], 4)?, 80)?;
             }
-            eprintln!("{name}, {k} photo(s): data term {:.4} -> {:.4} in {:.1} s", fit.report.data_before, fit.report.data_after, fit.report.seconds);
+            eprintln!("{name}, {k} photo(s): data term {:.4} -> {:.4} in {:.1} s, gains {:?}", fit.report.data_before, fit.report.data_after, fit.report.seconds, fit.report.photo_gains.iter().map(|g| format!("{g:.3}")).collect::<Vec<_>>());
         }
         if let Some(out) = &pictures {
             // Rows: the moved lights; columns: truth, the bundled model, the fits by photo count.
@@ -157,6 +158,6 @@ fn main() -> Result<()> {
         let k = if *k == 0 { "1 (model)".to_string() } else { k.to_string() };
         println!("| {k} | {method} | {} | {} | {lobe_8bit:.2} | {} | {:.3} | {:.3} |", cell(&s.ghost), cell(&s.lobe), cell(&s.rest), mean(|r| r.1), mean(|r| r.2));
     }
-    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
+    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
     Ok(())
 }

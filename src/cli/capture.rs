@@ -27,6 +27,10 @@ pub struct CaptureArgs {
     /// With --capture: Adam steps of the fit to the photos.
     #[arg(long, requires = "capture", default_value_t = PhotoFitConfig::default().steps)]
     pub steps: usize,
+    /// With --capture: fit an exposure gain per photo (photos taken with auto exposure; the overhead photo's is 1).
+    /// Off by default: with one exposure it costs a little (reports/capture.md).
+    #[arg(long, requires = "capture")]
+    pub photo_gains: bool,
     /// With --capture: also write the fitted GGX maps as PBR texture sets into DIR (as `flashmat fit` does).
     #[arg(long, value_name = "DIR", requires = "capture")]
     pub pbr: Option<std::path::PathBuf>,
@@ -38,7 +42,7 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
     if opts.refine.is_some() || opts.tile || opts.highlight_fill.is_some() || opts.fov.is_some() || opts.exposure.is_some() || opts.square {
         bail!("--capture takes none of --refine, --tile, --highlight-fill, --fov, --exposure, --square (capture photos are rectified to the sample)");
     }
-    let cfg = PhotoFitConfig { steps: a.steps, size: opts.size, ..Default::default() };
+    let cfg = PhotoFitConfig { steps: a.steps, size: opts.size, photo_gains: a.photo_gains, ..Default::default() };
     cfg.validate()?;
     if let Some(pbr) = &a.pbr {
         check_output_dir(pbr)?;
@@ -95,6 +99,9 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
         t0.elapsed().as_secs_f64(),
         r.seconds
     );
+    if cfg.photo_gains {
+        eprintln!("exposure gains: {}", capture.names.iter().zip(&r.photo_gains).map(|(n, g)| format!("{n} {g:.3}")).collect::<Vec<_>>().join(", "));
+    }
     if let Some(pbr) = &a.pbr {
         eprintln!("wrote PBR maps of the fit to {}", pbr.display());
     }

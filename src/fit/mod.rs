@@ -362,7 +362,8 @@ const LOBE_CHANNELS: (i64, i64) = (3, 4);
 /// too), so both fits share the loop, its parameterisation and its checks.
 /// With `shared`, the lobe channels are parameterised as [`SharedLobes`]
 /// says (started at the regions' mean lobes plus each pixel's departure,
-/// so the start is unchanged).
+/// so the start is unchanged). `extra`: further parameters `data` uses
+/// (leaf tensors requiring grad, updated in place by the same Adam).
 /// init: `[1, 10, H, W]`; edges: (x `[1, H, W-1]`, y `[1, H-1, W]`) from
 /// [`edge_weights`]; data: maps `[1, 10, H, W]` -> scalar loss.
 /// Returns the fitted maps `[1, 10, H, W]` (no gradient). A non-finite
@@ -372,13 +373,14 @@ pub fn fit_core(
     settings: &CoreSettings,
     edges: &(Tensor, Tensor),
     shared: Option<&SharedLobes>,
+    extra: &[(&str, &Tensor)],
     mut data: impl FnMut(&Tensor) -> Tensor,
     mut on_step: impl FnMut(usize),
 ) -> Result<Tensor> {
     let (edge_x, edge_y) = edges;
     let (first, count) = LOBE_CHANNELS;
     let start = encode(init).detach();
-    let mut params = HashMap::new();
+    let mut params: HashMap<String, Tensor> = extra.iter().map(|(name, t)| (format!("extra.{name}"), t.shallow_clone())).collect();
     // The shared lobes [C, 4] and the mixing of them into [1, 4, H, W].
     let lobes = shared.map(|s| {
         let m = s.memberships.to_device(init.device()).to_kind(Kind::Float);
@@ -450,7 +452,7 @@ pub fn fit_targets(targets: &Tensor, wi: &Tensor, wo: &Tensor, cfg: &FitConfig, 
 
     let data = |maps: &Tensor| data_map(&ggx_log(maps, &wi, &wo).get(0), &targets).mean(Kind::Float);
     let settings = CoreSettings { steps: cfg.steps, learning_rate: cfg.learning_rate, smooth_weight: cfg.smooth_weight };
-    let maps = fit_core(&init, &settings, &(edge_x, edge_y), None, data, on_step)?;
+    let maps = fit_core(&init, &settings, &(edge_x, edge_y), None, &[], data, on_step)?;
     let error = tch::no_grad(|| error_map(&ggx_log(&maps, &wi, &wo).get(0), &targets));
     ensure!(crate::image::all_finite(&maps) && crate::image::all_finite(&error), "the fitted maps are not finite");
     let flat = error.flatten(0, -1);

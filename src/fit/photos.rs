@@ -155,6 +155,10 @@ pub struct PhotoFitConfig {
     pub lobe_regions: usize,
     /// Weight of a pixel's squared departure from its regions' lobe.
     pub lobe_weight: f64,
+    /// Fit an exposure gain per photo besides the maps (the overhead
+    /// photo's held at 1): photos taken with auto exposure. The diffuse
+    /// shading every photo shares fixes each one's gain.
+    pub photo_gains: bool,
     /// Share of the steps run at half the resolution first ([`fit_photos`];
     /// 0 fits at full resolution throughout; maps under [`MIN_COARSE_SIDE`] always do).
     pub coarse_share: f64,
@@ -162,7 +166,7 @@ pub struct PhotoFitConfig {
 
 impl Default for PhotoFitConfig {
     fn default() -> Self {
-        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01, coarse_share: 0.5 }
+        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01, photo_gains: false, coarse_share: 0.5 }
     }
 }
 
@@ -194,6 +198,8 @@ pub struct PhotoFitReport {
     pub error_after: f64,
     /// Mean |log difference| of the fitted maps per photo (in the photos' order).
     pub photo_errors: Vec<f64>,
+    /// Each photo's fitted exposure gain relative to the overhead photo (all 1 without [`PhotoFitConfig::photo_gains`]).
+    pub photo_gains: Vec<f64>,
     /// Seconds of the fit itself.
     pub seconds: f64,
 }
@@ -250,68 +256,125 @@ fn log_differences(pred: &Tensor, target: &Tensor, clipped: &Tensor) -> (Tensor,
     (charbonnier, diff.abs())
 }
 
-/// The photos at one resolution of the fit, with each pixel's light and
-/// view directions.
+/// The photos at one resolution of the fit.
 struct Level {
     /// ln(1 + photo) `[K, 3, H, W]`.
     target: Tensor,
     /// `[K, 1, H, W]` bool.
     clipped: Tensor,
-    /// `[1, K, 3, H, W]` each.
-    wi: Tensor,
-    wo: Tensor,
 }
 
 impl Level {
-    fn new(photos: &Tensor, clipped: &Tensor, configs: &[LightView]) -> Self {
-        let device = photos.device();
-        let s = photos.size();
-        let (k, h, w) = (s[0], s[2], s[3]);
-        let position = |pick: fn(&LightView) -> [f64; 3]| {
-            let flat: Vec<f32> = configs.iter().flat_map(|c| pick(c).map(|v| v as f32)).collect();
-            Tensor::from_slice(&flat).to_device(device).view([1, k, 3])
-        };
-        let (wi, wo) = direction_maps_for(&position(|c| c.light), &position(|c| c.view), h as usize, w as usize);
-        Level { target: crate::spaces::to_log(&photos.to_kind(Kind::Float)), clipped: clipped.to_device(device).to_kind(Kind::Bool), wi, wo }
+    fn new(photos: &Tensor, clipped: &Tensor) -> Self {
+        Level { target: crate::spaces::to_log(&photos.to_kind(Kind::Float)), clipped: clipped.to_device(photos.device()).to_kind(Kind::Bool) }
     }
 
     /// The level at half the resolution: photos averaged over 2x2 pixels,
     /// a pixel clipped where any of its four was.
-    fn halved(photos: &Tensor, clipped: &Tensor, configs: &[LightView]) -> Self {
+    fn halved(photos: &Tensor, clipped: &Tensor) -> Self {
         let photos = photos.to_kind(Kind::Float).avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None::<i64>);
         let clipped = clipped.to_kind(Kind::Float).max_pool2d([2, 2], [2, 2], [0, 0], [1, 1], false).gt(0.5);
-        Self::new(&photos, &clipped, configs)
+        Self::new(&photos, &clipped)
+    }
+
+    /// The renders of maps `[1, 10, H, W]` as the photos took them: `[K, 3, H, W]`.
+    fn render(&self, maps: &Tensor, photo: &PhotoParams) -> Tensor {
+        let s = self.target.size();
+        let (wi, wo) = direction_maps_for(&photo.lights, &photo.views, s[2] as usize, s[3] as usize);
+        render_directions(maps, &wi, &wo).get(0) * photo.gains().view([-1, 1, 1, 1])
     }
 
     /// Per-element data term and |log difference| of maps `[1, 10, H, W]`: `[K, 3, H, W]` each.
-    fn differences(&self, maps: &Tensor) -> (Tensor, Tensor) {
-        log_differences(&crate::spaces::to_log(&render_directions(maps, &self.wi, &self.wo).get(0)), &self.target, &self.clipped)
+    fn differences(&self, maps: &Tensor, photo: &PhotoParams) -> (Tensor, Tensor) {
+        log_differences(&crate::spaces::to_log(&self.render(maps, photo)), &self.target, &self.clipped)
     }
 
-    /// `steps` of the fit from `init` with the pull toward `start` (both `[1, 10, H, W]`).
-    fn fit(&self, init: &Tensor, start: &Tensor, steps: usize, cfg: &PhotoFitConfig, on_step: impl FnMut(usize)) -> Result<Tensor> {
+    /// `steps` of the fit from `init` with the pull toward `start` (both
+    /// `[1, 10, H, W]`); the photos' gains fitted in place with `cfg.photo_gains`.
+    fn fit(&self, init: &Tensor, start: &Tensor, photo: &PhotoParams, steps: usize, cfg: &PhotoFitConfig, on_step: impl FnMut(usize)) -> Result<Tensor> {
         let factors = Tensor::from_slice(&PULL_FACTORS).to_kind(Kind::Float).to_device(start.device()).view([1, 10, 1, 1]);
         let memberships = (cfg.lobe_regions > 0).then(|| albedo_regions(&start.get(0).narrow(0, 0, 3), cfg.lobe_regions));
         let (init, start) = match &memberships {
             Some(m) => {
-                let searched = searched_lobes(init, m, |maps| tch::no_grad(|| self.differences(maps).0.mean_dim([0i64, 1].as_slice(), false, Kind::Float)));
+                let searched = searched_lobes(init, m, |maps| tch::no_grad(|| self.differences(maps, photo).0.mean_dim([0i64, 1].as_slice(), false, Kind::Float)));
                 (searched.shallow_clone(), searched)
             }
             None => (init.shallow_clone(), start.shallow_clone()),
         };
         let data = |maps: &Tensor| {
-            let term = self.differences(maps).0.mean(Kind::Float);
+            let mut loss = self.differences(maps, photo).0.mean(Kind::Float);
             if cfg.pull_weight > 0.0 {
-                term + ((maps - &start).square() * &factors).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).mean(Kind::Float) * cfg.pull_weight
-            } else {
-                term
+                loss = loss + ((maps - &start).square() * &factors).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).mean(Kind::Float) * cfg.pull_weight;
             }
+            loss
         };
         let edges = edge_weights(&self.target.mean_dim(0, false, Kind::Float));
         let settings = CoreSettings { steps, learning_rate: cfg.learning_rate, smooth_weight: cfg.smooth_weight };
         let shared = memberships.map(|memberships| SharedLobes { memberships, weight: cfg.lobe_weight });
-        fit_core(&init, &settings, &edges, shared.as_ref(), data, on_step)
+        let mut extra: Vec<(&str, &Tensor)> = Vec::new();
+        if cfg.photo_gains {
+            extra.push(("log_gains", &photo.log_gains));
+        }
+        fit_core(&init, &settings, &edges, shared.as_ref(), &extra, data, on_step)
     }
+}
+
+/// Scale of the fitted log gains' parameter: Adam moves every parameter
+/// by about its step, and a photo's gain, which all its pixels inform,
+/// wants a tenth of a pixel's step.
+const PHOTO_STEP: f64 = 0.1;
+
+/// What the fit knows and learns of each photo: its positions and its
+/// exposure gain (relative to the overhead photo's, which is held).
+struct PhotoParams {
+    /// Told positions `[1, K, 3]`.
+    lights: Tensor,
+    views: Tensor,
+    /// Log gains / [`PHOTO_STEP`] `[K]`, a leaf requiring grad.
+    log_gains: Tensor,
+    /// `[K]` bool: the overhead photo, whose gain is 1.
+    fixed: Tensor,
+}
+
+impl PhotoParams {
+    fn new(configs: &[LightView], overhead: usize, device: Device) -> Self {
+        let k = configs.len() as i64;
+        let position = |pick: fn(&LightView) -> [f64; 3]| {
+            let flat: Vec<f32> = configs.iter().flat_map(|c| pick(c).map(|v| v as f32)).collect();
+            Tensor::from_slice(&flat).to_device(device).view([1, k, 3])
+        };
+        PhotoParams {
+            lights: position(|c| c.light),
+            views: position(|c| c.view),
+            log_gains: Tensor::zeros([k], (Kind::Float, device)).set_requires_grad(true),
+            fixed: Tensor::arange(k, (Kind::Int64, device)).eq(overhead as i64),
+        }
+    }
+
+    /// Exposure gains `[K]` (1 for the overhead photo).
+    fn gains(&self) -> Tensor {
+        (&self.log_gains * PHOTO_STEP).where_self(&self.fixed.logical_not(), &self.log_gains.zeros_like()).exp()
+    }
+}
+
+/// First guess of the photos' log gains `[K]`: per photo, the median of
+/// ln(photo / render of the start) over the pixels both show above
+/// 0.01 and unclipped, less the overhead photo's. photos: `[K, 3, H, W]`
+/// linear; start: `[1, 10, H, W]`.
+fn start_log_gains(photos: &Tensor, level: &Level, start: &Tensor, photo: &PhotoParams, overhead: usize) -> Tensor {
+    let render = level.render(start, photo); // [K, 3, H, W]
+    let photos = photos.to_kind(Kind::Float);
+    let usable = photos.gt(0.01).logical_and(&render.gt(0.01)).logical_and(&level.clipped.logical_not());
+    let ratio = (&photos / render.clamp_min(1e-6)).log();
+    let k = photos.size()[0];
+    let medians: Vec<f32> = (0..k)
+        .map(|i| {
+            let values = ratio.get(i).masked_select(&usable.get(i));
+            if values.numel() == 0 { 0.0 } else { values.median().double_value(&[]) as f32 }
+        })
+        .collect();
+    let medians = Tensor::from_slice(&medians).to_device(photos.device());
+    &medians - medians.get(overhead as i64)
 }
 
 /// Unit normals again after resampling maps `[1, 10, H, W]`.
@@ -349,20 +412,27 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
     ensure!(crate::image::all_finite(start), "the start maps hold NaN/Inf values");
     let t0 = Instant::now();
     let device = photos.device();
-    let full = Level::new(photos, clipped, configs);
+    let full = Level::new(photos, clipped);
     // The start, as `decode` sees it (clamped into its range).
     let start = tch::no_grad(|| decode(&encode(&start.to_device(device).to_kind(Kind::Float).unsqueeze(0))));
+    let overhead = crate::data::captures::overhead_index(&configs.iter().map(|c| c.view).collect::<Vec<_>>());
+    let photo = PhotoParams::new(configs, overhead, device);
     let measure = |maps: &Tensor| {
         tch::no_grad(|| {
-            let (data, diff) = full.differences(maps);
+            let (data, diff) = full.differences(maps, &photo);
             (data.mean(Kind::Double).double_value(&[]), diff.mean_dim([1i64].as_slice(), false, Kind::Float))
         })
     };
     let (data_before, error_start) = measure(&start);
+    if cfg.photo_gains {
+        let guess = tch::no_grad(|| start_log_gains(photos, &full, &start, &photo, overhead) / PHOTO_STEP);
+        let mut gains = photo.log_gains.shallow_clone();
+        tch::no_grad(|| gains.copy_(&guess));
+    }
     let coarse_steps = if h >= MIN_COARSE_SIDE && w >= MIN_COARSE_SIDE && h % 2 == 0 && w % 2 == 0 { (cfg.steps as f64 * cfg.coarse_share).round() as usize } else { 0 };
     let init = if coarse_steps > 0 {
         let half_start = tch::no_grad(|| halved_maps(&start));
-        let coarse = Level::halved(photos, clipped, configs).fit(&half_start, &half_start, coarse_steps, cfg, &mut on_step)?;
+        let coarse = Level::halved(photos, clipped).fit(&half_start, &half_start, &photo, coarse_steps, cfg, &mut on_step)?;
         tch::no_grad(|| {
             let change = (coarse - &half_start).upsample_bilinear2d([h, w], false, None, None);
             decode(&encode(&renormalised(&(&start + change))))
@@ -370,7 +440,7 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
     } else {
         start.shallow_clone()
     };
-    let maps = full.fit(&init, &start, cfg.steps - coarse_steps, cfg, |step| on_step(coarse_steps + step))?;
+    let maps = full.fit(&init, &start, &photo, cfg.steps - coarse_steps, cfg, |step| on_step(coarse_steps + step))?;
     let (data_after, photo_error) = measure(&maps); // [K, H, W]
     let photo_errors = Vec::<f64>::try_from(photo_error.mean_dim([1i64, 2].as_slice(), false, Kind::Double))?;
     let error = photo_error.mean_dim(0, false, Kind::Float);
@@ -383,6 +453,7 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
         error_before: error_start.mean(Kind::Double).double_value(&[]),
         error_after: error.mean(Kind::Double).double_value(&[]),
         photo_errors,
+        photo_gains: Vec::<f64>::try_from(tch::no_grad(|| photo.gains()).to_kind(Kind::Double))?,
         seconds: t0.elapsed().as_secs_f64(),
     };
     Ok(PhotoFit { maps: maps.get(0).to_device(Device::Cpu), error: error.to_device(Device::Cpu), report })
