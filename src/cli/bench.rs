@@ -29,6 +29,22 @@ pub enum BenchCommand {
     Smoke(SmokeArgs),
     /// Milliseconds per step of the refinement on the photo (`--refine`), against one identity render of the same material.
     Refine(RefineBenchArgs),
+    /// Seconds of `estimate --capture` (start, fit, neural material) on a synthetic capture, against the single-photo
+    /// estimate of its overhead photo in the same run.
+    Capture(CaptureBenchArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct CaptureBenchArgs {
+    /// Side of the photos and fitted maps.
+    #[arg(long, default_value_t = 256)]
+    pub size: usize,
+    /// Photos in the capture (overhead first, then tilted ones with the highlight on the sample).
+    #[arg(long, default_value_t = 3)]
+    pub photos: usize,
+    /// cpu or cuda.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
 }
 
 #[derive(Args, Debug)]
@@ -146,6 +162,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Train(a) => bench_train(a),
         BenchCommand::Smoke(a) => smoke(a),
         BenchCommand::Refine(a) => bench_refine(a),
+        BenchCommand::Capture(a) => bench_capture(a),
         BenchCommand::Infer(a) => bench_infer(a),
     }
 }
@@ -268,6 +285,48 @@ fn peak_device_memory_gib(device: Device) -> Option<f64> {
 /// Refinement cost: ms per step (M_render forward + backward to the map,
 /// priors, Adam) against one identity render (ND_enc + M_render forward,
 /// no autograd) of the same material, measured in the same run.
+fn bench_capture(args: &CaptureBenchArgs) -> Result<()> {
+    use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, PhotoFitConfig};
+    use flashmat::geometry::LightView;
+    let device = flashmat::device::parse_device(&args.device)?;
+    let cfg = PhotoFitConfig { size: args.size, ..Default::default() };
+    cfg.validate()?;
+    anyhow::ensure!((1..=5).contains(&args.photos), "--photos must be between 1 and 5, got {}", args.photos);
+    // Overhead, then co-located phones whose flash reflections land in the sample's four quarters.
+    let overhead = LightView::colocated(flashmat::geometry::MODEL_FOV_DEG);
+    let tilted = [[0.9, -0.7, 3.7], [-0.8, 0.9, 3.8], [0.85, 0.8, 3.6], [-0.9, -0.75, 3.7]];
+    let configs: Vec<LightView> = std::iter::once(overhead).chain(tilted.iter().map(|&p| LightView { light: p, view: p })).take(args.photos).collect();
+    // The capture folder lives only while it is read.
+    let dir = std::env::temp_dir().join(format!("flashmat-bench-capture-{}", std::process::id()));
+    flashmat::data::captures::write_synthetic(&dir, &procedural::test_material(0, args.size), &configs, 2.0)?;
+    let capture = load_capture(&flashmat::data::captures::Captures::open(&dir)?, args.photos, args.size);
+    let _ = std::fs::remove_dir_all(&dir);
+    let capture = capture?;
+    let loaded = flashmat::infer::load_model(None, device)?;
+    let teacher = load_teacher(None, device)?;
+    let photo = capture.photos.get(capture.overhead as i64);
+    let t0 = std::time::Instant::now();
+    let image = flashmat::image::Image::from_tensor(&photo.clamp(0.0, 1.0))?;
+    let single = flashmat::infer::estimate(&loaded.model, &loaded.info, &flashmat::infer::PreparedPhoto::at_model_view(image, true, "bench"))?;
+    let _ = single.render(&[flashmat::infer::NeuralMaterial::identity_config()])?;
+    let single_s = t0.elapsed().as_secs_f64();
+    let t1 = std::time::Instant::now();
+    let fit = fit_capture(&loaded, &capture, &cfg, device, |_, _, _| {})?;
+    let _ = neural_material(&fit.maps, &photo, &teacher, "bench")?;
+    let capture_s = t1.elapsed().as_secs_f64();
+    println!(
+        "estimate --capture, {} photos at {}x{} on {:?}: {capture_s:.1} s ({:.1} s the fit, {} steps), {:.1}x the single-photo estimate and identity render of the overhead photo ({single_s:.1} s)",
+        args.photos,
+        args.size,
+        args.size,
+        device,
+        fit.report.seconds,
+        cfg.steps,
+        capture_s / single_s
+    );
+    Ok(())
+}
+
 fn bench_refine(args: &RefineBenchArgs) -> Result<()> {
     use flashmat::infer::refine::{refine, RefineConfig};
     use flashmat::infer::{NeuralMaterial, PreparedPhoto};
