@@ -39,8 +39,10 @@ fn a_capture_folder_becomes_one_loadable_material() {
 
     // --photos 2: the first two only.
     let two = d.join("two.nmat");
-    let err = assert_ok(&flashmat(&["estimate", "--capture", s(&capture), "--photos", "2", "--size", "32", "--steps", "5", "-o", s(&two)]));
+    let err = assert_ok(&flashmat(&["estimate", "--capture", s(&capture), "--photos", "2", "--size", "32", "--steps", "5", "--photo-gains", "-o", s(&two)]));
     assert!(err.contains("from 2 of 3 photos"), "{err}");
+    // --photo-gains: the overhead photo's gain is 1 by definition.
+    assert!(err.contains("exposure gains: 00.png 1.000, 01.png "), "{err}");
 }
 
 #[test]

@@ -18,7 +18,10 @@
 //! roughness and specular level are barely constrained, so there the
 //! single-photo estimate holds (the pull weighs them 10x kd's).
 //!
-//! Left for later: pose refinement, coarse-to-fine.
+//! Half the steps run at half the resolution first (coarse to fine); an
+//! exposure gain per photo and lobes shared by albedo regions are options
+//! (measured in reports/capture.md, off by default). Poses are taken as
+//! told: refining them by this fit moved them further off.
 
 use super::{decode, edge_weights, encode, fit_core, fit_material, sample_directions, CoreSettings, FitConfig, FitReport, FitResult, SharedLobes, CHARBONNIER_EPS, MAX_FIT_STEPS};
 use crate::data::captures::{falloff, load_photo_sized, Captures};
