@@ -16,7 +16,7 @@
 //! the whole renders under the moved lights (which no photo saw).
 //!
 //! ```sh
-//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS]
+//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG]
 //! # defaults: 128 0-5 1,2,3,5 and PhotoFitConfig's steps, pull and smoothness weights
 //! ```
 
@@ -64,6 +64,8 @@ fn main() -> Result<()> {
     let pictures: Option<std::path::PathBuf> = args.get(9).filter(|a| *a != "-").map(Into::into);
     let coarse_share: f64 = args.get(10).map_or(Ok(defaults.coarse_share), |s| s.parse())?;
     let photo_gains: bool = args.get(11).map_or(Ok(defaults.photo_gains), |s| s.parse())?;
+    // Phone photos: sensor noise, then JPEG at quality 90, instead of clean PNGs.
+    let phone_jpeg: bool = args.get(12).map_or(Ok(false), |s| s.parse())?;
     let loaded = flashmat::infer::load_model(None, Device::Cpu)?;
     let teacher = load_teacher(None, Device::Cpu)?;
     let lpips = Lpips::new(Device::Cpu)?;
@@ -97,6 +99,23 @@ fn main() -> Result<()> {
             let truths: Vec<LightView> = cameras.iter().map(|&c| LightView { light: [c[0] + FLASH_OFFSET, c[1], c[2]], view: c }).collect();
             let dir = tempfile::tempdir()?;
             write_synthetic(dir.path(), &m, &truths, 2.0)?;
+            if phone_jpeg {
+                for j in 0..k {
+                    let png = dir.path().join(format!("{j:02}.png"));
+                    let photo = flashmat::io::read_image(&png)?;
+                    // Noise of 1% of the display value plus 0.4% (about one 8-bit step), as a phone's processed photo.
+                    // Its own generator, so the told positions match the clean run's.
+                    let mut noise_rng = rand_pcg::Pcg64::seed_from_u64(7000 + 10 * i as u64 + j as u64);
+                    let (h, w) = (photo.height, photo.width);
+                    let z: Vec<f32> = (0..3 * h * w).map(|_| rand_distr::Distribution::<f32>::sample(&rand_distr::StandardNormal, &mut noise_rng)).collect();
+                    let noisy = flashmat::image::Image::from_fn(3, h, w, |c, y, x| {
+                        let v = photo.get(c, y, x);
+                        (v + (0.01 * v + 0.004) * z[(c * h + y) * w + x]).clamp(0.0, 1.0)
+                    });
+                    flashmat::io::write_jpeg(&dir.path().join(format!("{j:02}.jpg")), &noisy, 90)?;
+                    std::fs::remove_file(&png)?;
+                }
+            }
             // What the phone's pose estimate would say: a few millimetres off.
             let mut told = |p: [f64; 3]| p.map(|v| v + POSITION_ERROR * (rng.random::<f64>() * 2.0 - 1.0) * 3f64.sqrt());
             let lines = |pick: fn(&LightView) -> [f64; 3], told: &mut dyn FnMut([f64; 3]) -> [f64; 3]| -> String {
@@ -158,6 +177,6 @@ fn main() -> Result<()> {
         let k = if *k == 0 { "1 (model)".to_string() } else { k.to_string() };
         println!("| {k} | {method} | {} | {} | {lobe_8bit:.2} | {} | {:.3} | {:.3} |", cell(&s.ghost), cell(&s.lobe), cell(&s.rest), mean(|r| r.1), mean(|r| r.2));
     }
-    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
+    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
     Ok(())
 }

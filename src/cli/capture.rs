@@ -15,7 +15,7 @@ use std::time::Instant;
 /// The options of `estimate --capture`.
 #[derive(Args, Debug, Clone)]
 pub struct CaptureArgs {
-    /// A capture folder (photos 00.png, 01.png ..., camera_pos.txt, light_pos.txt, image_size.txt): one material from
+    /// A capture folder (photos 00.png or 00.jpg, 01 ..., camera_pos.txt, light_pos.txt, image_size.txt): one material from
     /// all its photos, a per-pixel GGX fit to them with their light and camera positions, started from the estimate
     /// of the most overhead photo, then a neural material of the fitted maps (the bundled teacher's encoder and renderer).
     /// --size sets the side of the fitted maps; --model the model of the start; --device where both run.

@@ -143,16 +143,19 @@ fn read_text(path: &Path) -> Result<String> {
     std::fs::read_to_string(path).map_err(|e| anyhow!("cannot read {}: {e}", path.display()))
 }
 
-/// `NN.png` files of `dir` sorted by number; errors when there are none.
+/// Extensions of capture photos: 8-bit, ^2.2-encoded files (a phone's JPEGs, or PNGs).
+const PHOTO_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
+
+/// `NN.png` / `NN.jpg` files of `dir` sorted by number; errors when there are none.
 fn numbered_photos(dir: &Path) -> Result<Vec<PathBuf>> {
     let mut found: Vec<(u64, PathBuf)> = Vec::new();
     for p in crate::io::sorted_entries(dir)? {
-        let is_png = p.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("png"));
-        if let (true, Some(n)) = (is_png, p.file_stem().and_then(|s| s.to_str()).and_then(|s| s.parse::<u64>().ok())) {
+        let is_photo = p.extension().and_then(|e| e.to_str()).is_some_and(|e| PHOTO_EXTENSIONS.iter().any(|x| e.eq_ignore_ascii_case(x)));
+        if let (true, Some(n)) = (is_photo, p.file_stem().and_then(|s| s.to_str()).and_then(|s| s.parse::<u64>().ok())) {
             found.push((n, p));
         }
     }
-    ensure!(!found.is_empty(), "no numbered photos (00.png, 01.png ...) in capture folder {}", dir.display());
+    ensure!(!found.is_empty(), "no numbered photos (00.png or 00.jpg, 01.png ...) in capture folder {}", dir.display());
     found.sort();
     if let Some(w) = found.windows(2).find(|w| w[0].0 == w[1].0) {
         bail!("capture folder {}: photos {} and {} have the same number", dir.display(), w[0].1.display(), w[1].1.display());
@@ -332,6 +335,28 @@ mod tests {
         assert!(fmin < 0.75, "{fmin}");
         let lin_err = (&raw - truth.get(3) * &f).abs().max().double_value(&[]);
         assert!(lin_err < 0.02, "{lin_err}");
+    }
+
+    #[test]
+    fn a_phones_jpegs_are_capture_photos_decoded_as_the_pngs() {
+        let t = tempfile::tempdir().unwrap();
+        fixture(t.path(), 2, "0,0,4\n0,0,5\n", "0,0,4\n0,0,5\n", "2");
+        // 01 as a JPEG of the same grey: read in number order, decoded with the same curve.
+        let grey = crate::image::Image::filled(3, 32, 32, 0.5);
+        crate::io::write_png(&t.path().join("00.png"), &grey, crate::io::BitDepth::Eight).unwrap();
+        std::fs::remove_file(t.path().join("01.png")).unwrap();
+        crate::io::write_jpeg(&t.path().join("01.jpg"), &grey, 95).unwrap();
+        let c = Captures::open(t.path()).unwrap();
+        let names: Vec<String> = c.photos.iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect();
+        assert_eq!(names, ["00.png", "01.jpg"]);
+        let (png, _) = load_photo_sized(&c.photos[0], 32).unwrap();
+        let (jpg, _) = load_photo_sized(&c.photos[1], 32).unwrap();
+        // 0.5 display is 0.5^2.2 = 0.2176 linear; a JPEG of a flat grey keeps it within a code step.
+        assert!((png.mean(Kind::Double).double_value(&[]) - 0.2176).abs() < 0.002);
+        assert!((jpg.mean(Kind::Double).double_value(&[]) - 0.2176).abs() < 0.005);
+        // 01.png beside 01.jpg: two photos with one number.
+        crate::io::write_png(&t.path().join("01.png"), &grey, crate::io::BitDepth::Eight).unwrap();
+        assert!(err(t.path()).contains("have the same number"));
     }
 
     #[test]
