@@ -21,7 +21,7 @@
 //! ```
 
 use anyhow::Result;
-use flashmat::data::captures::{write_synthetic, Captures};
+use flashmat::data::captures::{write_synthetic, Captures, TILTED_PHONES};
 use flashmat::eval::highlights::{self, HighlightConfig, MaterialHighlights};
 use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, PhotoFitConfig};
 use flashmat::geometry::{LightView, MODEL_FOV_DEG};
@@ -29,11 +29,6 @@ use flashmat::lpips::Lpips;
 use rand::{Rng, SeedableRng};
 use std::collections::BTreeMap;
 use tch::{Device, Tensor};
-
-/// Co-located phone positions (flashmat units; the sample spans [-1, 1]):
-/// overhead, then the issue's two with the highlight on the sample, then
-/// two more around it.
-const CAMERAS: [[f64; 3]; 5] = [[0.0, 0.0, 0.0], [0.9, -0.7, 3.7], [-0.8, 0.9, 3.8], [0.85, 0.8, 3.6], [-0.9, -0.75, 3.7]];
 
 /// The flash beside the lens (flashmat units: 0.15 is about 1 cm on a
 /// 13 cm sample), along +x.
@@ -95,7 +90,8 @@ fn main() -> Result<()> {
         // Relit grid columns (label, renders under the moved lights [L, 3, H, W]), truth first.
         let mut relit: Vec<(String, Tensor)> = vec![("truth".into(), truth.shallow_clone())];
         for &k in &counts {
-            let cameras: Vec<[f64; 3]> = CAMERAS.iter().take(k).map(|&c| if c == [0.0; 3] { overhead.view } else { c }).collect();
+            // Overhead, then the tilted phones of `TILTED_PHONES`.
+            let cameras: Vec<[f64; 3]> = std::iter::once(overhead.view).chain(TILTED_PHONES).take(k).collect();
             let truths: Vec<LightView> = cameras.iter().map(|&c| LightView { light: [c[0] + FLASH_OFFSET, c[1], c[2]], view: c }).collect();
             let dir = tempfile::tempdir()?;
             write_synthetic(dir.path(), &m, &truths, 2.0)?;

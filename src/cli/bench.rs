@@ -294,8 +294,8 @@ fn bench_capture(args: &CaptureBenchArgs) -> Result<()> {
     anyhow::ensure!((1..=5).contains(&args.photos), "--photos must be between 1 and 5, got {}", args.photos);
     // Overhead, then co-located phones whose flash reflections land in the sample's four quarters.
     let overhead = LightView::colocated(flashmat::geometry::MODEL_FOV_DEG);
-    let tilted = [[0.9, -0.7, 3.7], [-0.8, 0.9, 3.8], [0.85, 0.8, 3.6], [-0.9, -0.75, 3.7]];
-    let configs: Vec<LightView> = std::iter::once(overhead).chain(tilted.iter().map(|&p| LightView { light: p, view: p })).take(args.photos).collect();
+    let tilted = flashmat::data::captures::TILTED_PHONES.iter().map(|&p| LightView { light: p, view: p });
+    let configs: Vec<LightView> = std::iter::once(overhead).chain(tilted).take(args.photos).collect();
     // The capture folder lives only while it is read.
     let dir = std::env::temp_dir().join(format!("flashmat-bench-capture-{}", std::process::id()));
     flashmat::data::captures::write_synthetic(&dir, &procedural::test_material(0, args.size), &configs, 2.0)?;

@@ -185,6 +185,12 @@ fn read_positions(path: &Path, scale: f64, expected: usize) -> Result<Vec<[f64; 
     Ok(out)
 }
 
+/// Co-located phone positions after the overhead photo (flashmat units:
+/// the sample spans [-1, 1]) whose flash reflections land half-way to the
+/// edge in the sample's four quarters: the two, then two more
+/// (`flashmat bench capture`, `examples/capture_highlights`).
+pub const TILTED_PHONES: [[f64; 3]; 4] = [[0.9, -0.7, 3.7], [-0.8, 0.9, 3.8], [0.85, 0.8, 3.6], [-0.9, -0.75, 3.7]];
+
 /// Co-located flash configurations of a synthetic capture (a phone with
 /// its flash): photo 0 straight overhead at the model's camera distance,
 /// then `count - 1` around the sample at the same distance, elevations 65,

@@ -275,7 +275,7 @@ impl Level {
     /// The level at half the resolution: photos averaged over 2x2 pixels,
     /// a pixel clipped where any of its four was.
     fn halved(photos: &Tensor, clipped: &Tensor) -> Self {
-        let photos = photos.to_kind(Kind::Float).avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None::<i64>);
+        let photos = average_2x2(&photos.to_kind(Kind::Float));
         let clipped = clipped.to_kind(Kind::Float).max_pool2d([2, 2], [2, 2], [0, 0], [1, 1], false).gt(0.5);
         Self::new(&photos, &clipped)
     }
@@ -342,13 +342,10 @@ struct PhotoParams {
 impl PhotoParams {
     fn new(configs: &[LightView], overhead: usize, device: Device) -> Self {
         let k = configs.len() as i64;
-        let position = |pick: fn(&LightView) -> [f64; 3]| {
-            let flat: Vec<f32> = configs.iter().flat_map(|c| pick(c).map(|v| v as f32)).collect();
-            Tensor::from_slice(&flat).to_device(device).view([1, k, 3])
-        };
+        let (lights, views) = crate::geometry::config_tensors(configs, device);
         PhotoParams {
-            lights: position(|c| c.light),
-            views: position(|c| c.view),
+            lights: lights.unsqueeze(0),
+            views: views.unsqueeze(0),
             log_gains: Tensor::zeros([k], (Kind::Float, device)).set_requires_grad(true),
             fixed: Tensor::arange(k, (Kind::Int64, device)).eq(overhead as i64),
         }
@@ -382,14 +379,17 @@ fn start_log_gains(photos: &Tensor, level: &Level, start: &Tensor, photo: &Photo
 
 /// Unit normals again after resampling maps `[1, 10, H, W]`.
 fn renormalised(maps: &Tensor) -> Tensor {
-    let n = maps.narrow(1, 7, 3);
-    let n = &n / n.square().sum_dim_intlist([1i64].as_slice(), true, Kind::Float).sqrt().clamp_min(1e-6);
-    Tensor::cat(&[maps.narrow(1, 0, 7), n], 1)
+    Tensor::cat(&[maps.narrow(1, 0, 7), crate::geometry::normalize_channels(&maps.narrow(1, 7, 3))], 1)
+}
+
+/// `[N, C, H, W]` averaged over 2x2 pixels: the coarse level's pixels.
+fn average_2x2(t: &Tensor) -> Tensor {
+    t.avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None::<i64>)
 }
 
 /// Maps `[1, 10, H, W]` averaged over 2x2 pixels.
 fn halved_maps(maps: &Tensor) -> Tensor {
-    renormalised(&maps.avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None::<i64>))
+    renormalised(&average_2x2(maps))
 }
 
 /// Fits GGX maps to photos with known lights and cameras.
@@ -652,7 +652,7 @@ pub fn fit_capture(loaded: &LoadedModel, capture: &CapturePhotos, cfg: &PhotoFit
     let overhead = capture.photos.get(capture.overhead as i64);
     let (h, w) = (overhead.size()[1], overhead.size()[2]);
     let start = if h.max(w) > FULL_START_MAX_SIDE && h % 2 == 0 && w % 2 == 0 {
-        let half = overhead.unsqueeze(0).avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None::<i64>).get(0);
+        let half = average_2x2(&overhead.unsqueeze(0)).get(0);
         let start = estimated_start(loaded, &half, &start_cfg, |done, total| on_progress(0, done, total))?;
         tch::no_grad(|| renormalised(&start.unsqueeze(0).upsample_bilinear2d([h, w], false, None, None)).get(0))
     } else {
