@@ -3,6 +3,7 @@
 
 pub mod archive;
 pub mod baselines;
+pub mod capture;
 pub mod data;
 pub mod device;
 pub mod dist;

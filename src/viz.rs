@@ -133,6 +133,50 @@ pub fn line_chart_over(title: &str, x_desc: &str, series: &[Series], width: usiz
     Ok(im)
 }
 
+/// Something drawn over a picture by [`annotate`]: pixel coordinates (x
+/// along columns, y down rows), colours as RGB bytes.
+pub enum Mark {
+    /// A polyline, closed back to its first point when `closed`.
+    Line { points: Vec<(f64, f64)>, closed: bool, width: u32, color: [u8; 3] },
+    Dot { at: (f64, f64), radius: u32, color: [u8; 3] },
+    /// Text whose top-left corner is `at`, `size` pixels high.
+    Text { at: (f64, f64), text: String, size: f64, color: [u8; 3] },
+}
+
+/// A copy of a display image (`[1 or 3, H, W]`, values in [0, 1]) with
+/// `marks` drawn over it.
+pub fn annotate(image: &Image, marks: &[Mark]) -> Result<Image> {
+    register_font();
+    let (w, h) = (image.width, image.height);
+    let rgb = if image.channels == 1 { Image::concat_channels(&[image, image, image])? } else { image.clone() };
+    let mut buf: Vec<u8> = (0..h * w * 3).map(|i| crate::spaces::quantize_u8(rgb.get(i % 3, i / 3 / w, i / 3 % w))).collect();
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w as u32, h as u32)).into_drawing_area();
+        let p = |(x, y): (f64, f64)| (x.round() as i32, y.round() as i32);
+        for mark in marks {
+            match mark {
+                Mark::Line { points, closed, width, color } => {
+                    let mut pts: Vec<(i32, i32)> = points.iter().map(|&q| p(q)).collect();
+                    if *closed && !pts.is_empty() {
+                        pts.push(pts[0]);
+                    }
+                    let style = RGBColor(color[0], color[1], color[2]).stroke_width(*width);
+                    root.draw(&PathElement::new(pts, style))?;
+                }
+                Mark::Dot { at, radius, color } => {
+                    root.draw(&Circle::new(p(*at), *radius, RGBColor(color[0], color[1], color[2]).filled()))?;
+                }
+                Mark::Text { at, text, size, color } => {
+                    let style = ("sans-serif", *size).into_font().color(&RGBColor(color[0], color[1], color[2]));
+                    root.draw(&plotters::element::Text::new(text.clone(), p(*at), style))?;
+                }
+            }
+        }
+        root.present()?;
+    }
+    Ok(Image::from_fn(3, h, w, |c, y, x| buf[(y * w + x) * 3 + c] as f32 / 255.0))
+}
+
 /// Writes display frames (`[3, H, W]` in [0,1]) as a looping GIF,
 /// `delay_cs` hundredths of a second per frame (atomic write).
 pub fn write_gif(path: &Path, frames: &[Image], delay_cs: u16) -> Result<()> {
@@ -216,5 +260,19 @@ mod tests {
         let bytes = std::fs::read(&p).unwrap();
         assert_eq!(&bytes[..6], b"GIF89a");
         assert!(write_gif(&p, &[], 5).is_err());
+    }
+
+    #[test]
+    fn annotate_draws_where_it_is_told() {
+        let im = Image::filled(1, 40, 60, 1.0);
+        let marks = [
+            Mark::Line { points: vec![(5.0, 5.0), (55.0, 5.0)], closed: false, width: 1, color: [255, 0, 0] },
+            Mark::Dot { at: (30.0, 30.0), radius: 3, color: [0, 0, 255] },
+        ];
+        let out = annotate(&im, &marks).unwrap();
+        assert_eq!((out.channels, out.height, out.width), (3, 40, 60));
+        assert_eq!(out.pixel(5, 30), vec![1.0, 0.0, 0.0]);
+        assert_eq!(out.pixel(30, 30), vec![0.0, 0.0, 1.0]);
+        assert_eq!(out.pixel(20, 10), vec![1.0, 1.0, 1.0]);
     }
 }

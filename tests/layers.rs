@@ -17,6 +17,7 @@ const LAYERS: &[(&str, u32)] = &[
     ("infer", 6),
     ("baselines", 6),
     ("fit", 6),
+    ("capture", 6),
     ("model", 5),
     ("optim", 5),
     ("data", 4),

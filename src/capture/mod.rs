@@ -1,0 +1,338 @@
+//! Photos of the printed frame to a capture folder (`flashmat capture`):
+//! the frame's tags are found in each photo ([`markers`]), the camera is
+//! fitted over all photos ([`camera`]: one focal length and distortion, a
+//! pose per photo), the opening is cut out of each photo and made square
+//! ([`rectify`]), and the folder `data::captures` reads is written: photos
+//! sorted most overhead first, the lens and flash positions in mm, the
+//! opening's width. [`frame`] draws the frame to print; [`synthetic`]
+//! renders phone photos of it from known poses (tests, docs).
+//!
+//! A uniformly scaled print cannot be told from the photos (a frame at 90%
+//! seen from 27 cm looks as the true one from 30 cm), and the capture
+//! folder's positions are relative to the opening, so the fit does not
+//! care; only the material's size in mm would be off. The printed scale bar
+//! is the check. What the photos do show is a frame that is not the one
+//! its tags name: those tags disagree with the layout, and the photo is
+//! refused.
+
+pub mod camera;
+pub mod frame;
+pub mod markers;
+pub mod pictures;
+pub mod rectify;
+pub mod synthetic;
+
+use crate::geometry::{add, length, Vec3};
+use anyhow::{anyhow, bail, ensure, Result};
+use camera::{Calibration, Correspondences, Intrinsics, Pose};
+use frame::FrameLayout;
+use markers::{Gray, Marker};
+use rectify::Rgb8;
+use std::path::{Path, PathBuf};
+
+/// The options of `flashmat capture`.
+#[derive(Clone, Debug)]
+pub struct CaptureConfig {
+    /// The flash's offset from the lens, mm, in the camera frame of the
+    /// photo as the sensor stores it (x along its rows, y down its
+    /// columns); turned with the photo's EXIF orientation.
+    pub flash_offset_mm: [f64; 2],
+    /// The largest side of the rectified photos (they take the overhead
+    /// photo's own resolution of the opening up to this).
+    pub max_side: usize,
+    /// Threads of the tag detector.
+    pub threads: usize,
+}
+
+impl Default for CaptureConfig {
+    fn default() -> Self {
+        Self { flash_offset_mm: [0.0, 0.0], max_side: 1024, threads: 2 }
+    }
+}
+
+/// Fewest of the frame's tags a photo must show (16 corners).
+pub const MIN_TAGS: usize = 4;
+/// Most reprojection error a photo may keep after the fit, pixels per
+/// 1000 pixels of its longer side (2 px on a 12 MP photo's 4032).
+pub const MAX_RMS_PER_1000_PX: f64 = 0.5;
+/// How far the fitted focal length may stray from the EXIF's (relative).
+pub const FOCAL_AGREEMENT: f64 = 0.15;
+/// Below this sharpness ([`markers::sharpness`]: a Gaussian blur of about
+/// 4 pixels) a photo without tags is called blurred.
+pub const BLURRED_BELOW: f64 = 0.1;
+/// Smallest rectified side, pixels.
+const MIN_SIDE: usize = 64;
+
+/// A photo of the frame, decoded and turned upright by its EXIF.
+pub struct FramePhoto {
+    pub path: PathBuf,
+    pub rgb: Rgb8,
+    /// The focal length in pixels from the EXIF, if it says.
+    pub exif_focal: Option<f64>,
+    pub orientation: u16,
+}
+
+/// Reads a photo of the frame (JPEG, PNG, HEIC with the `heif` feature).
+pub fn load_frame_photo(path: &Path) -> Result<FramePhoto> {
+    let (image, format) = crate::io::read_image_with_format(path)?;
+    ensure!(!format.is_float(), "{}: a photo of the frame must be an 8-bit photo (JPEG, PNG, HEIC), not HDR", path.display());
+    let info = crate::infer::camera::read_camera(path, format, image.width, image.height)?;
+    let rgb = crate::io::to_rgb(&image).oriented(info.orientation);
+    let (w, h) = (rgb.width, rgb.height);
+    let data = (0..h).flat_map(|y| (0..w).flat_map(move |x| (0..3).map(move |c| (y, x, c)))).map(|(y, x, c)| crate::spaces::quantize_u8(rgb.get(c, y, x))).collect();
+    let exif_focal = info.fov.map(|(fov, _)| w.min(h) as f64 / 2.0 / (fov.to_radians() / 2.0).tan());
+    Ok(FramePhoto { path: path.to_path_buf(), rgb: Rgb8 { width: w, height: h, data }, exif_focal, orientation: info.orientation })
+}
+
+/// The flash's offset in the camera frame of a photo shown with EXIF
+/// `orientation`, from its offset in the stored photo's frame (the
+/// rotation [`crate::image::Image::oriented`] applies, on vectors).
+pub fn oriented_offset(offset: [f64; 2], orientation: u16) -> [f64; 2] {
+    let [x, y] = offset;
+    match orientation {
+        2 => [-x, y],
+        3 => [-x, -y],
+        4 => [x, -y],
+        5 => [y, x],
+        6 => [-y, x],
+        7 => [-y, -x],
+        8 => [y, -x],
+        _ => [x, y],
+    }
+}
+
+/// What one photo showed and where its camera was.
+#[derive(Clone, Debug)]
+pub struct PhotoResult {
+    pub source: PathBuf,
+    pub markers: Vec<Marker>,
+    pub intrinsics: Intrinsics,
+    pub pose: Pose,
+    /// Lens and flash, mm in the frame's axes.
+    pub camera: Vec3,
+    pub light: Vec3,
+    /// Reprojection error, pixels.
+    pub rms: f64,
+}
+
+/// A finished capture: the photos in the folder's order (most overhead
+/// first), their rectified openings and the frame.
+pub struct Capture {
+    pub layout: FrameLayout,
+    pub photos: Vec<PhotoResult>,
+    /// Linear `[3, side, side]` row-major, one per photo, in order.
+    pub rectified: Vec<Vec<f32>>,
+    pub side: usize,
+    pub distortion: bool,
+}
+
+fn name(path: &Path) -> String {
+    path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| path.display().to_string())
+}
+
+/// The frame's tags in one photo, with the frame they name. Errors are one
+/// line naming the photo: no tags (blurred, or another family), too few.
+pub fn find_frame(photo: &FramePhoto, threads: usize) -> Result<(FrameLayout, Vec<Marker>)> {
+    let values = photo.rgb.gray();
+    let gray = Gray { width: photo.rgb.width, height: photo.rgb.height, values: &values };
+    let found = markers::detect(&gray, threads);
+    let who = name(&photo.path);
+    if found.is_empty() {
+        let others = markers::other_families(&gray, threads);
+        if !others.is_empty() {
+            bail!("{who}: its tags are {}, not the frame's tag36h11: print the frame of `flashmat capture frame`", others.join(", "));
+        }
+        let s = markers::sharpness(&gray);
+        if s < BLURRED_BELOW {
+            bail!("{who}: no frame tags found, and the photo is blurred (sharpness {s:.2}, a sharp photo's is {BLURRED_BELOW} or more): hold still, let it focus");
+        }
+        bail!("{who}: no frame tags found: keep the whole printed frame in view, lit, and in focus");
+    }
+    // The frame is the one most of the tags name.
+    let mut openings: Vec<(u32, usize)> = Vec::new();
+    for m in &found {
+        if let Some(cm) = FrameLayout::opening_of(m.id) {
+            match openings.iter_mut().find(|(o, _)| *o == cm) {
+                Some(e) => e.1 += 1,
+                None => openings.push((cm, 1)),
+            }
+        }
+    }
+    openings.sort_by_key(|&(cm, n)| (std::cmp::Reverse(n), cm));
+    let Some(&(cm, _)) = openings.first() else {
+        bail!("{who}: its tag36h11 tags (ids {}) are not those of a flashmat frame", found.iter().map(|m| m.id.to_string()).collect::<Vec<_>>().join(", "));
+    };
+    let layout = FrameLayout::new(cm)?;
+    let ours: Vec<Marker> = found.into_iter().filter(|m| layout.find(m.id).is_some()).collect();
+    if ours.len() < MIN_TAGS {
+        let s = markers::sharpness(&gray);
+        let blur = if s < BLURRED_BELOW { format!("; the photo is blurred (sharpness {s:.2})") } else { String::new() };
+        bail!("{who}: only {} of the frame's tags were found (at least {MIN_TAGS} are needed): keep the whole frame in view and in focus{blur}", ours.len());
+    }
+    Ok((layout, ours))
+}
+
+fn correspondences(layout: &FrameLayout, found: &[Marker]) -> Correspondences {
+    found
+        .iter()
+        .filter_map(|m| layout.find(m.id).map(|t| (FrameLayout::corners(t), m.corners)))
+        .flat_map(|(world, pixels)| world.into_iter().zip(pixels))
+        .collect()
+}
+
+/// From photos of the frame to a capture: tags, camera, poses, rectified
+/// openings. `on_progress(stage, done, total)`: stage 0 finds the tags
+/// (per photo), 1 fits the camera, 2 rectifies (per photo).
+pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl FnMut(usize, usize, usize)) -> Result<Capture> {
+    ensure!(photos.len() >= 2, "a capture needs at least 2 photos of the frame, got {}", photos.len());
+    ensure!(cfg.max_side >= MIN_SIDE, "--max-size must be at least {MIN_SIDE}, got {}", cfg.max_side);
+    let mut found = Vec::new();
+    for (i, photo) in photos.iter().enumerate() {
+        on_progress(0, i, photos.len());
+        found.push(find_frame(photo, cfg.threads)?);
+    }
+    on_progress(0, photos.len(), photos.len());
+    let layout = found[0].0.clone();
+    if let Some((i, (other, _))) = found.iter().enumerate().find(|(_, (l, _))| l.opening_cm != layout.opening_cm) {
+        bail!(
+            "{}: it shows the {} cm frame, {} the {} cm one: one capture, one frame",
+            name(&photos[i].path),
+            other.opening_cm,
+            name(&photos[0].path),
+            layout.opening_cm
+        );
+    }
+    let obs: Vec<Correspondences> = found.iter().map(|(_, m)| correspondences(&layout, m)).collect();
+    let calibration = calibrate_photos(photos, &obs)?;
+    on_progress(1, 1, 1);
+
+    let mut results: Vec<PhotoResult> = Vec::new();
+    for (i, photo) in photos.iter().enumerate() {
+        let (k, pose) = (calibration.intrinsics[i], calibration.poses[i]);
+        let camera = pose.centre();
+        let offset = oriented_offset(cfg.flash_offset_mm, photo.orientation);
+        let light = add(camera, pose.to_world_dir([offset[0], offset[1], 0.0]));
+        ensure!(camera[2] > 0.0 && light[2] > 0.0, "{}: the camera is below the frame: the photo was taken from underneath?", name(&photo.path));
+        results.push(PhotoResult { source: photo.path.clone(), markers: found[i].1.clone(), intrinsics: k, pose, camera, light, rms: calibration.rms[i] });
+    }
+    // Most overhead first, the others in the order given.
+    let cameras: Vec<[f64; 3]> = results.iter().map(|r| r.camera).collect();
+    let first = crate::data::captures::overhead_index(&cameras);
+    let mut order: Vec<usize> = (0..results.len()).collect();
+    order.remove(first);
+    order.insert(0, first);
+
+    let half = layout.opening_mm() / 2.0;
+    let overhead = &results[first];
+    let side = rectified_side(&overhead.intrinsics, &overhead.pose, half, cfg.max_side);
+    let decode = |v: u8| crate::spaces::photo_decode(v as f32 / 255.0);
+    let mut rectified = Vec::new();
+    for (n, &i) in order.iter().enumerate() {
+        on_progress(2, n, order.len());
+        rectified.push(rectify::rectify(&photos[i].rgb, &results[i].intrinsics, &results[i].pose, half, side, &decode));
+    }
+    on_progress(2, order.len(), order.len());
+    let photos_out = order.iter().map(|&i| results[i].clone()).collect();
+    Ok(Capture { layout, photos: photos_out, rectified, side, distortion: calibration.distortion })
+}
+
+/// The opening's side in the photo's pixels (the mean of its four edges),
+/// capped at `max_side`, a multiple of 8.
+fn rectified_side(k: &Intrinsics, pose: &Pose, half: f64, max_side: usize) -> usize {
+    let c = [[-half, -half], [half, -half], [half, half], [-half, half]].map(|[x, y]| pose.project(k, [x, y, 0.0]).unwrap_or([0.0, 0.0]));
+    let edges = (0..4).map(|i| (c[i][0] - c[(i + 1) % 4][0]).hypot(c[i][1] - c[(i + 1) % 4][1])).sum::<f64>() / 4.0;
+    ((edges.min(max_side as f64) as usize) / 8 * 8).max(MIN_SIDE)
+}
+
+/// First guesses (EXIF focal or the homographies', poses from each
+/// homography), then the joint fit, then the checks that name a photo.
+fn calibrate_photos(photos: &[FramePhoto], obs: &[Correspondences]) -> Result<Calibration> {
+    let homographies: Vec<camera::Mat3> = obs.iter().map(|o| camera::homography(o)).collect::<Result<_>>()?;
+    let sizes: Vec<(usize, usize)> = photos.iter().map(|p| (p.rgb.width, p.rgb.height)).collect();
+    let exif = photos.iter().find_map(|p| p.exif_focal.map(|f| (f, p.rgb.width.max(p.rgb.height))));
+    let (w0, h0) = sizes[0];
+    let from_tags = camera::focal_from_homographies(&homographies, [w0 as f64 / 2.0, h0 as f64 / 2.0]);
+    // EXIF focals are for their own photo's size; all photos of one phone share it.
+    let focal = match (exif, from_tags) {
+        (Some((f, _)), _) => f,
+        (None, Some(f)) => f,
+        (None, None) => bail!("no focal length: the photos have no EXIF focal length, and all face the frame straight on; add a photo taken at a tilt"),
+    };
+    let poses: Vec<Pose> = homographies
+        .iter()
+        .zip(&sizes)
+        .zip(photos)
+        .map(|((h, &(w, hh)), p)| camera::pose_from_homography(h, &Intrinsics::centred(focal, w, hh)).ok_or_else(|| anyhow!("{}: no camera pose fits its tags", name(&p.path))))
+        .collect::<Result<_>>()?;
+    let cal = camera::calibrate(obs, &sizes, focal, &poses)?;
+    for (i, p) in photos.iter().enumerate() {
+        let limit = MAX_RMS_PER_1000_PX * sizes[i].0.max(sizes[i].1) as f64 / 1000.0;
+        let limit = limit.max(1.0);
+        if cal.rms[i] > limit {
+            bail!(
+                "{}: its tags are {:.1} px off the frame's layout after the fit (at most {limit:.1}): the print is not flat, or was scaled unevenly, or the photo is of another frame",
+                name(&p.path),
+                cal.rms[i]
+            );
+        }
+    }
+    if let Some((f, _)) = exif {
+        let fitted = cal.intrinsics[0].focal;
+        if (fitted / f - 1.0).abs() > FOCAL_AGREEMENT {
+            bail!(
+                "the tags say a focal length of {fitted:.0} px, the EXIF {f:.0} px: the photos are cropped or zoomed, or the frame is not flat"
+            );
+        }
+    }
+    Ok(cal)
+}
+
+/// Writes the capture folder (`NN.png` rectified photos, ^2.2-encoded as
+/// capture folders are; `camera_pos.txt`, `light_pos.txt` in mm;
+/// `image_size.txt`: the opening in mm) and its picture `capture.jpg`, all
+/// at once: into a temporary folder beside `dir`, renamed at the end, so
+/// nothing is left half-written. `dir` must not exist, or be empty.
+pub fn write_folder(capture: &Capture, dir: &Path, photos: &[FramePhoto]) -> Result<()> {
+    if dir.exists() {
+        let empty = std::fs::read_dir(dir).map_err(|e| anyhow!("cannot read {}: {e}", dir.display()))?.next().is_none();
+        ensure!(empty, "{} exists and is not empty: choose a new folder for the capture", dir.display());
+    }
+    let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).map_err(|e| anyhow!("cannot create {}: {e}", parent.display()))?;
+    let tmp = parent.join(format!(".{}.tmp-{}", name(dir), std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir(&tmp).map_err(|e| anyhow!("cannot create {}: {e}", tmp.display()))?;
+    let written = (|| -> Result<()> {
+        let side = capture.side;
+        for (i, linear) in capture.rectified.iter().enumerate() {
+            let image = crate::image::Image::from_data(3, side, side, linear.iter().map(|&v| crate::spaces::gamma_encode(v.clamp(0.0, 1.0))).collect())?;
+            crate::io::write_png(&tmp.join(format!("{i:02}.png")), &image, crate::io::BitDepth::Eight)?;
+        }
+        let lines = |pick: fn(&PhotoResult) -> Vec3| -> String { capture.photos.iter().map(pick).map(|p| format!("{:.3},{:.3},{:.3}\n", p[0], p[1], p[2])).collect() };
+        std::fs::write(tmp.join("camera_pos.txt"), lines(|p| p.camera))?;
+        std::fs::write(tmp.join("light_pos.txt"), lines(|p| p.light))?;
+        std::fs::write(tmp.join("image_size.txt"), format!("{}\n", capture.layout.opening_mm()))?;
+        let picture = pictures::capture_picture(capture, photos)?;
+        crate::io::write_jpeg(&tmp.join("capture.jpg"), &picture, 85)?;
+        Ok(())
+    })();
+    if let Err(e) = written {
+        let _ = std::fs::remove_dir_all(&tmp);
+        return Err(e);
+    }
+    if dir.exists() {
+        std::fs::remove_dir(dir).map_err(|e| anyhow!("cannot replace the empty folder {}: {e}", dir.display()))?;
+    }
+    std::fs::rename(&tmp, dir).map_err(|e| {
+        let _ = std::fs::remove_dir_all(&tmp);
+        anyhow!("cannot move the capture into {}: {e}", dir.display())
+    })
+}
+
+/// Tilt of a camera from straight overhead, degrees.
+pub fn tilt_deg(camera: Vec3) -> f64 {
+    (camera[2] / length(camera)).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+#[cfg(test)]
+mod tests;

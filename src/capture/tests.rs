@@ -1,0 +1,234 @@
+use super::synthetic::{as_phone_photo, opening_truth, phone_views, render_photo, PhoneEffects, PhoneView};
+use super::*;
+use crate::geometry::sub;
+
+/// A phone at 26 mm equivalent on a 1200 x 900 sensor: f = 26 / 43.27 * 1500 px.
+const FOCAL: f64 = 901.3;
+const W: usize = 1200;
+const H: usize = 900;
+
+/// The overhead photo and three tilted ones whose reflections land inside
+/// the opening (mm, 10 cm frame).
+const EYES: [Vec3; 4] = [[0.0, 0.0, 260.0], [60.0, -47.0, 250.0], [-54.0, 61.0, 255.0], [57.0, 54.0, 243.0]];
+
+fn material() -> crate::svbrdf::Svbrdf {
+    crate::data::procedural::test_material(3, 96)
+}
+
+/// Synthetic photos of the 10 cm frame from `views`, the flash `offset` mm
+/// beside each lens (camera frame), with the truth of each opening.
+fn shoot(views: &[PhoneView], offset: [f64; 2], fx: PhoneEffects, dir: &Path) -> (Vec<FramePhoto>, Vec<crate::image::Image>) {
+    let layout = FrameLayout::new(10).unwrap();
+    let m = material();
+    let r0 = EYES[0][2];
+    let mut photos = vec![];
+    let mut truths = vec![];
+    for (i, v) in views.iter().enumerate() {
+        let camera = v.pose.centre();
+        let light = add(camera, v.pose.to_world_dir([offset[0], offset[1], 0.0]));
+        let truth = opening_truth(&m, &layout, light, camera, r0).unwrap();
+        let linear = render_photo(&layout, &truth, light, r0, v).unwrap();
+        let rgb = as_phone_photo(&linear, &PhoneEffects { seed: i as u64, ..fx }).unwrap();
+        photos.push(FramePhoto { path: dir.join(format!("IMG_{i}.jpg")), rgb, exif_focal: Some(FOCAL), orientation: 1 });
+        truths.push(truth);
+    }
+    (photos, truths)
+}
+
+fn views(k1: f64) -> Vec<PhoneView> {
+    phone_views(&EYES, &[0.0, 12.0, -20.0, 35.0], W, H, FOCAL, k1, 0.0)
+}
+
+#[test]
+fn detected_corners_land_on_the_projected_frame() {
+    // Straight overhead, no distortion, no blur or noise: the detector's
+    // corners on the true projection (both put pixel centres at +0.5).
+    let v = phone_views(&[[0.0, 0.0, 260.0]], &[0.0], W, H, FOCAL, 0.0, 0.0);
+    let fx = PhoneEffects { blur_px: 0.0, noise: 0.0, jpeg_quality: None, seed: 0 };
+    let (photos, _) = shoot(&v, [0.0, 0.0], fx, Path::new("."));
+    let (layout, found) = find_frame(&photos[0], 2).unwrap();
+    assert_eq!(layout.opening_cm, 10);
+    assert_eq!(found.len(), layout.tags.len(), "every tag is seen");
+    let (mut worst, mut mean): (f64, f64) = (0.0, 0.0);
+    for m in &found {
+        let tag = layout.find(m.id).unwrap();
+        for (w, px) in FrameLayout::corners(tag).iter().zip(&m.corners) {
+            let truth = v[0].pose.project(&v[0].intrinsics, [w[0], w[1], 0.0]).unwrap();
+            worst = worst.max((truth[0] - px[0]).hypot(truth[1] - px[1]));
+            mean += (truth[0] - px[0]).hypot(truth[1] - px[1]) / (4 * found.len()) as f64;
+        }
+    }
+    // The detector's corners scatter by a few tenths of a pixel (its edge
+    // fits); no offset is left (a pixel-centre mix-up would make it 0.7).
+    assert!(mean < 0.3 && worst < 0.8, "corners are {mean:.3} px off their projection on average, {worst:.3} at worst");
+}
+
+#[test]
+fn a_phone_capture_comes_back_within_2_mm_half_a_degree_and_a_pixel() {
+    let dir = tempfile::tempdir().unwrap();
+    let views = views(-0.06);
+    let (photos, truths) = shoot(&views, [8.0, -3.0], PhoneEffects::default(), dir.path());
+    let cfg = CaptureConfig { flash_offset_mm: [8.0, -3.0], ..Default::default() };
+    let cap = capture(&photos, &cfg, |_, _, _| {}).unwrap();
+    assert_eq!(cap.photos[0].source, photos[0].path, "the overhead photo comes first");
+    let half = cap.layout.opening_mm() / 2.0;
+    for (result, view) in cap.photos.iter().zip(&views) {
+        let truth = view.pose.centre();
+        let d = length(sub(result.camera, truth));
+        let angle = camera::rotation_angle_deg(&result.pose.rotation, &view.pose.rotation);
+        assert!(d < 2.0, "{}: camera {d:.2} mm off", result.source.display());
+        assert!(angle < 0.5, "{}: {angle:.3} degrees off", result.source.display());
+        let light = add(truth, view.pose.to_world_dir([8.0, -3.0, 0.0]));
+        assert!(length(sub(result.light, light)) < 2.0);
+        // Each rectified pixel's centre, followed through the fitted camera
+        // back onto the true plane, lands within a pixel of where it belongs.
+        let mut worst: f64 = 0.0;
+        for i in 0..=10 {
+            for j in 0..=10 {
+                let w = [-half + 2.0 * half * i as f64 / 10.0, -half + 2.0 * half * j as f64 / 10.0];
+                let px = result.pose.project(&result.intrinsics, [w[0], w[1], 0.0]).unwrap();
+                let back = view.pose.plane_point(&view.intrinsics, px).unwrap();
+                worst = worst.max((back[0] - w[0]).hypot(back[1] - w[1]) * cap.side as f64 / (2.0 * half));
+            }
+        }
+        assert!(worst < 1.0, "{}: the rectified sample is {worst:.2} px off", result.source.display());
+    }
+    assert!(cap.distortion, "k1 = -0.06 is fitted");
+    // The rectified openings match the truth they were rendered from.
+    for (n, rect) in cap.rectified.iter().enumerate() {
+        let truth = truths[n].resize_bilinear(cap.side, cap.side);
+        let err = rect.iter().zip(&truth.data).map(|(a, b)| (a - b).abs() as f64).sum::<f64>() / rect.len() as f64;
+        let level = truth.data.iter().map(|&v| v as f64).sum::<f64>() / rect.len() as f64;
+        assert!(err < 0.12 * level, "photo {n}: mean error {err:.4} on a level of {level:.4}");
+    }
+
+    let out = dir.path().join("capture");
+    write_folder(&cap, &out, &photos).unwrap();
+    let folder = crate::data::captures::Captures::open(&out).unwrap();
+    assert_eq!(folder.photos.len(), 4);
+    assert_eq!(folder.sample_width, 100.0);
+    // Positions in flashmat units: mm / 50.
+    let c = cap.photos[1].camera;
+    assert!((folder.cameras[1][0] - c[0] / 50.0).abs() < 1e-3 && (folder.cameras[1][2] - c[2] / 50.0).abs() < 1e-3);
+    assert!(out.join("capture.jpg").is_file());
+}
+
+#[test]
+fn bad_photos_are_named_and_leave_no_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let views = views(0.0);
+    let fx = PhoneEffects { jpeg_quality: None, ..Default::default() };
+    let (mut photos, _) = shoot(&views[..3], [0.0, 0.0], fx, dir.path());
+    let cfg = CaptureConfig::default();
+    let out = dir.path().join("capture");
+    let err = |photos: &[FramePhoto]| format!("{:#}", capture(photos, &cfg, |_, _, _| {}).err().expect("an error"));
+
+    // Fewer than two photos.
+    assert!(err(&photos[..1]).contains("at least 2 photos"));
+
+    // Most of the frame covered: too few tags.
+    let mut covered = FramePhoto { path: dir.path().join("covered.jpg"), rgb: Rgb8 { width: W, height: H, data: photos[1].rgb.data.clone() }, exif_focal: Some(FOCAL), orientation: 1 };
+    for y in 0..H {
+        for x in (W / 3)..W {
+            covered.rgb.data[3 * (y * W + x)..3 * (y * W + x) + 3].fill(128);
+        }
+    }
+    let e = err(&[photos[0].clone_photo(), covered]);
+    assert!(e.starts_with("covered.jpg: only ") && e.contains("at least 4"), "{e}");
+
+    // Blurred beyond detection.
+    let blurred_view = PhoneEffects { blur_px: 7.0, jpeg_quality: None, ..Default::default() };
+    let (blurred, _) = shoot(&views[1..2], [0.0, 0.0], blurred_view, &dir.path().join("b"));
+    let e = err(&[photos[0].clone_photo(), blurred.into_iter().next().unwrap()]);
+    assert!(e.contains("IMG_0.jpg: no frame tags found") && e.contains("blurred"), "{e}");
+
+    // Tags of a layout they do not belong to: the 10 cm frame's tags
+    // moved 4 mm outward (a frame scaled unevenly, or another layout).
+    let mut moved = photos[2].clone_photo();
+    moved.path = dir.path().join("moved.jpg");
+    let layout = FrameLayout::new(10).unwrap();
+    let stretched = FrameLayout { tags: layout.tags.iter().map(|t| frame::TagPlace { id: t.id, centre: t.centre.map(|c| c * 1.07) }).collect(), ..layout.clone() };
+    let m = material();
+    let truth = opening_truth(&m, &layout, views[2].pose.centre(), views[2].pose.centre(), 260.0).unwrap();
+    let linear = render_photo(&stretched, &truth, views[2].pose.centre(), 260.0, &views[2]).unwrap();
+    moved.rgb = as_phone_photo(&linear, &fx).unwrap();
+    let e = err(&[photos[0].clone_photo(), photos[1].clone_photo(), moved]);
+    assert!(e.contains("off the frame's layout") || e.contains("focal length"), "{e}");
+
+    // Nothing was written by any of them, and a good capture still works.
+    assert!(!out.exists());
+    photos.truncate(2);
+    assert!(capture(&photos, &cfg, |_, _, _| {}).is_ok());
+}
+
+impl FramePhoto {
+    fn clone_photo(&self) -> FramePhoto {
+        FramePhoto { path: self.path.clone(), rgb: Rgb8 { width: self.rgb.width, height: self.rgb.height, data: self.rgb.data.clone() }, exif_focal: self.exif_focal, orientation: self.orientation }
+    }
+}
+
+#[test]
+fn flash_offsets_turn_with_the_photo() {
+    // A stored 3x2 photo with a dot at (row 0, col 0) and one at (row 0,
+    // col 1): the vector between them is (+1, 0); after `oriented`, the
+    // vector between the dots is what `oriented_offset` says.
+    let mut image = crate::image::Image::new(1, 2, 3);
+    image.set(0, 0, 0, 1.0);
+    image.set(0, 0, 1, 2.0);
+    let image_pos = |im: &crate::image::Image, v: f32| {
+        let i = im.data.iter().position(|&x| x == v).unwrap();
+        [(i % im.width) as f64, (i / im.width) as f64]
+    };
+    for o in 1..=8u16 {
+        let turned = image.oriented(o);
+        let (a, b) = (image_pos(&turned, 1.0), image_pos(&turned, 2.0));
+        assert_eq!(oriented_offset([1.0, 0.0], o), [b[0] - a[0], b[1] - a[1]], "orientation {o}");
+    }
+    let mut image = crate::image::Image::new(1, 3, 2);
+    image.set(0, 0, 0, 1.0);
+    image.set(0, 1, 0, 2.0);
+    for o in 1..=8u16 {
+        let turned = image.oriented(o);
+        let (a, b) = (image_pos(&turned, 1.0), image_pos(&turned, 2.0));
+        assert_eq!(oriented_offset([0.0, 1.0], o), [b[0] - a[0], b[1] - a[1]], "orientation {o}");
+    }
+}
+
+#[test]
+fn the_frame_picture_has_its_tags_and_caption_room() {
+    let layout = FrameLayout::new(10).unwrap();
+    let (image, baselines) = frame::frame_raster(&layout, frame::Paper::A4, 100.0).unwrap();
+    // A4 at 100 dpi: 827 x 1169 pixels.
+    assert_eq!((image.width, image.height), (827, 1169));
+    let ink = image.data.iter().filter(|&&v| v < 0.5).count() as f64 / image.data.len() as f64;
+    assert!(ink > 0.02 && ink < 0.2, "{ink}");
+    assert!(baselines.iter().all(|&b| b < image.height));
+    // The detector finds every tag of the printed page.
+    let rgb = Rgb8 { width: image.width, height: image.height, data: image.data.iter().flat_map(|&v| [crate::spaces::quantize_u8(v); 3]).collect() };
+    let photo = FramePhoto { path: "frame.png".into(), rgb, exif_focal: None, orientation: 1 };
+    let (found_layout, found) = find_frame(&photo, 2).unwrap();
+    assert_eq!(found_layout, layout);
+    assert_eq!(found.len(), layout.tags.len());
+}
+
+#[test]
+fn sharpness_falls_with_blur_and_ignores_noise() {
+    // A black-white step, blurred by sigma, with and without noise.
+    let step = |sigma: f64, noise: f64| {
+        let image = crate::image::Image::from_fn(1, 64, 64, |_, _, x| if x < 32 { 0.05 } else { 0.8 });
+        let fx = PhoneEffects { blur_px: sigma, noise, jpeg_quality: None, seed: 1 };
+        let rgb = as_phone_photo(&crate::image::Image::concat_channels(&[&image, &image, &image]).unwrap(), &fx).unwrap();
+        let values = rgb.gray();
+        markers::sharpness(&Gray { width: 64, height: 64, values: &values })
+    };
+    let sharp = step(0.0, 0.0);
+    assert!((sharp - 0.5).abs() < 0.01, "{sharp}");
+    for sigma in [1.5f64, 3.0, 6.0] {
+        let s = step(sigma, 0.004);
+        // A Gaussian edge's steepest slope: spread / (sigma sqrt(2 pi)), and
+        // the sRGB curve steepens the dark side a little.
+        let expect = 1.0 / (sigma * (2.0 * std::f64::consts::PI).sqrt());
+        assert!(s > 0.8 * expect && s < 2.0 * expect, "sigma {sigma}: {s} against {expect}");
+    }
+    assert!(step(6.0, 0.004) < BLURRED_BELOW && step(1.5, 0.004) > BLURRED_BELOW);
+}
