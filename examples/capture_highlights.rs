@@ -15,9 +15,16 @@
 //! LPIPS of the identity (the overhead photo, which the fits saw) and of
 //! the whole renders under the moved lights (which no photo saw).
 //!
+//! With FRAME true, nobody tells the positions: each capture is phone
+//! photos of the printed frame with the material in its opening
+//! (`capture::synthetic`: 1200x900, 26 mm equivalent, lens distortion,
+//! blur, noise, JPEG), made into a capture folder by `flashmat capture`'s
+//! path (`capture::capture`: tags, camera fit, rectification), then fitted
+//! as above (counts of 2 or more).
+//!
 //! ```sh
-//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG]
-//! # defaults: 128 0-5 1,2,3,5 and PhotoFitConfig's steps, pull and smoothness weights
+//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG] [FRAME]
+//! # defaults: 128 0-5 1,2,3,5 and PhotoFitConfig's steps, pull and smoothness weights; "-" keeps a default
 //! ```
 
 use anyhow::Result;
@@ -40,7 +47,7 @@ const POSITION_ERROR: f64 = 0.03;
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
-    let size: usize = args.get(1).map_or(Ok(128), |s| s.parse())?;
+    let size: usize = args.get(1).filter(|a| *a != "-").map_or(Ok(128), |s| s.parse())?;
     let (first, last): (usize, usize) = match args.get(2) {
         Some(r) => {
             let (a, b) = r.split_once('-').unwrap_or((r, r));
@@ -48,19 +55,20 @@ fn main() -> Result<()> {
         }
         None => (0, 5),
     };
-    let counts: Vec<usize> = args.get(3).map_or(Ok(vec![1, 2, 3, 5]), |s| s.split(',').map(|c| c.parse()).collect())?;
+    let counts: Vec<usize> = args.get(3).filter(|a| *a != "-").map_or(Ok(vec![1, 2, 3, 5]), |s| s.split(',').map(|c| c.parse()).collect())?;
     let defaults = PhotoFitConfig::default();
-    let steps: usize = args.get(4).map_or(Ok(defaults.steps), |s| s.parse())?;
-    let pull_weight: f64 = args.get(5).map_or(Ok(defaults.pull_weight), |s| s.parse())?;
-    let smooth_weight: f64 = args.get(6).map_or(Ok(defaults.smooth_weight), |s| s.parse())?;
-    let lobe_regions: usize = args.get(7).map_or(Ok(defaults.lobe_regions), |s| s.parse())?;
-    let lobe_weight: f64 = args.get(8).map_or(Ok(defaults.lobe_weight), |s| s.parse())?;
+    let steps: usize = args.get(4).filter(|a| *a != "-").map_or(Ok(defaults.steps), |s| s.parse())?;
+    let pull_weight: f64 = args.get(5).filter(|a| *a != "-").map_or(Ok(defaults.pull_weight), |s| s.parse())?;
+    let smooth_weight: f64 = args.get(6).filter(|a| *a != "-").map_or(Ok(defaults.smooth_weight), |s| s.parse())?;
+    let lobe_regions: usize = args.get(7).filter(|a| *a != "-").map_or(Ok(defaults.lobe_regions), |s| s.parse())?;
+    let lobe_weight: f64 = args.get(8).filter(|a| *a != "-").map_or(Ok(defaults.lobe_weight), |s| s.parse())?;
     // Pictures per material: the photos of the largest capture and the relit grid.
     let pictures: Option<std::path::PathBuf> = args.get(9).filter(|a| *a != "-").map(Into::into);
-    let coarse_share: f64 = args.get(10).map_or(Ok(defaults.coarse_share), |s| s.parse())?;
-    let photo_gains: bool = args.get(11).map_or(Ok(defaults.photo_gains), |s| s.parse())?;
+    let coarse_share: f64 = args.get(10).filter(|a| *a != "-").map_or(Ok(defaults.coarse_share), |s| s.parse())?;
+    let photo_gains: bool = args.get(11).filter(|a| *a != "-").map_or(Ok(defaults.photo_gains), |s| s.parse())?;
     // Phone photos: sensor noise, then JPEG at quality 90, instead of clean PNGs.
-    let phone_jpeg: bool = args.get(12).map_or(Ok(false), |s| s.parse())?;
+    let phone_jpeg: bool = args.get(12).filter(|a| *a != "-").map_or(Ok(false), |s| s.parse())?;
+    let frame: bool = args.get(13).filter(|a| *a != "-").map_or(Ok(false), |s| s.parse())?;
     let loaded = flashmat::infer::load_model(None, Device::Cpu)?;
     let teacher = load_teacher(None, Device::Cpu)?;
     let lpips = Lpips::new(Device::Cpu)?;
@@ -94,33 +102,38 @@ fn main() -> Result<()> {
             let cameras: Vec<[f64; 3]> = std::iter::once(overhead.view).chain(TILTED_PHONES).take(k).collect();
             let truths: Vec<LightView> = cameras.iter().map(|&c| LightView { light: [c[0] + FLASH_OFFSET, c[1], c[2]], view: c }).collect();
             let dir = tempfile::tempdir()?;
-            write_synthetic(dir.path(), &m, &truths, 2.0)?;
-            if phone_jpeg {
-                for j in 0..k {
-                    let png = dir.path().join(format!("{j:02}.png"));
-                    let photo = flashmat::io::read_image(&png)?;
-                    // Noise of 1% of the display value plus 0.4% (about one 8-bit step), as a phone's processed photo.
-                    // Its own generator, so the told positions match the clean run's.
-                    let mut noise_rng = rand_pcg::Pcg64::seed_from_u64(7000 + 10 * i as u64 + j as u64);
-                    let (h, w) = (photo.height, photo.width);
-                    let z: Vec<f32> = (0..3 * h * w).map(|_| rand_distr::Distribution::<f32>::sample(&rand_distr::StandardNormal, &mut noise_rng)).collect();
-                    let noisy = flashmat::image::Image::from_fn(3, h, w, |c, y, x| {
-                        let v = photo.get(c, y, x);
-                        (v + (0.01 * v + 0.004) * z[(c * h + y) * w + x]).clamp(0.0, 1.0)
-                    });
-                    flashmat::io::write_jpeg(&dir.path().join(format!("{j:02}.jpg")), &noisy, 90)?;
-                    std::fs::remove_file(&png)?;
+            if frame {
+                anyhow::ensure!(k >= 2, "a capture of the printed frame needs 2 or more photos");
+                frame_capture(&m, &cameras, dir.path(), i)?;
+            } else {
+                write_synthetic(dir.path(), &m, &truths, 2.0)?;
+                if phone_jpeg {
+                    for j in 0..k {
+                        let png = dir.path().join(format!("{j:02}.png"));
+                        let photo = flashmat::io::read_image(&png)?;
+                        // Noise of 1% of the display value plus 0.4% (about one 8-bit step), as a phone's processed photo.
+                        // Its own generator, so the told positions match the clean run's.
+                        let mut noise_rng = rand_pcg::Pcg64::seed_from_u64(7000 + 10 * i as u64 + j as u64);
+                        let (h, w) = (photo.height, photo.width);
+                        let z: Vec<f32> = (0..3 * h * w).map(|_| rand_distr::Distribution::<f32>::sample(&rand_distr::StandardNormal, &mut noise_rng)).collect();
+                        let noisy = flashmat::image::Image::from_fn(3, h, w, |c, y, x| {
+                            let v = photo.get(c, y, x);
+                            (v + (0.01 * v + 0.004) * z[(c * h + y) * w + x]).clamp(0.0, 1.0)
+                        });
+                        flashmat::io::write_jpeg(&dir.path().join(format!("{j:02}.jpg")), &noisy, 90)?;
+                        std::fs::remove_file(&png)?;
+                    }
                 }
+                // What the phone's pose estimate would say: a few millimetres off.
+                let mut told = |p: [f64; 3]| p.map(|v| v + POSITION_ERROR * (rng.random::<f64>() * 2.0 - 1.0) * 3f64.sqrt());
+                let lines = |pick: fn(&LightView) -> [f64; 3], told: &mut dyn FnMut([f64; 3]) -> [f64; 3]| -> String {
+                    truths.iter().map(|c| told(pick(c))).map(|p| format!("{:.6},{:.6},{:.6}\n", p[0], p[1], p[2])).collect()
+                };
+                let cams = lines(|c| c.view, &mut told);
+                let lights = lines(|c| c.light, &mut told);
+                std::fs::write(dir.path().join("camera_pos.txt"), cams)?;
+                std::fs::write(dir.path().join("light_pos.txt"), lights)?;
             }
-            // What the phone's pose estimate would say: a few millimetres off.
-            let mut told = |p: [f64; 3]| p.map(|v| v + POSITION_ERROR * (rng.random::<f64>() * 2.0 - 1.0) * 3f64.sqrt());
-            let lines = |pick: fn(&LightView) -> [f64; 3], told: &mut dyn FnMut([f64; 3]) -> [f64; 3]| -> String {
-                truths.iter().map(|c| told(pick(c))).map(|p| format!("{:.6},{:.6},{:.6}\n", p[0], p[1], p[2])).collect()
-            };
-            let cams = lines(|c| c.view, &mut told);
-            let lights = lines(|c| c.light, &mut told);
-            std::fs::write(dir.path().join("camera_pos.txt"), cams)?;
-            std::fs::write(dir.path().join("light_pos.txt"), lights)?;
             let capture = load_capture(&Captures::open(dir.path())?, k, size)?;
             let photo = capture.photos.get(capture.overhead as i64);
             if k == counts[0] {
@@ -174,5 +187,45 @@ fn main() -> Result<()> {
         println!("| {k} | {method} | {} | {} | {lobe_8bit:.2} | {} | {:.3} | {:.3} |", cell(&s.ghost), cell(&s.lobe), cell(&s.rest), mean(|r| r.1), mean(|r| r.2));
     }
     println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// A capture folder in `dir` made as `flashmat capture` makes it: phone
+/// photos of the 10 cm frame from `cameras` (flashmat units, the opening
+/// spanning [-1, 1]: 50 mm a unit), the flash `FLASH_OFFSET` beside each
+/// lens along the camera's x, the material in the opening (its texels
+/// about 2.8 photo pixels across).
+fn frame_capture(m: &flashmat::svbrdf::Svbrdf, cameras: &[[f64; 3]], dir: &std::path::Path, seed: usize) -> Result<()> {
+    let size = m.width();
+    use flashmat::capture::{frame::FrameLayout, synthetic, CaptureConfig, FramePhoto};
+    let layout = FrameLayout::new(10)?;
+    let unit = layout.opening_mm() / 2.0;
+    let eyes: Vec<[f64; 3]> = cameras.iter().map(|c| c.map(|v| v * unit)).collect();
+    let views = synthetic::phone_views(&eyes, &[0.0, 12.0, -20.0, 35.0, 8.0], 1200, 900, 901.3, -0.03, 0.0);
+    let offset = [FLASH_OFFSET * unit, 0.0];
+    let light_of = |v: &synthetic::PhoneView| flashmat::geometry::add(v.pose.centre(), v.pose.to_world_dir([offset[0], offset[1], 0.0]));
+    let r0 = flashmat::geometry::length(light_of(&views[0]));
+    let mut photos = Vec::new();
+    for (j, v) in views.iter().enumerate() {
+        let light = light_of(v);
+        let truth = synthetic::opening_truth(m, &layout, light, v.pose.centre(), r0)?;
+        let linear = synthetic::render_photo(&layout, &truth, light, r0, v, synthetic::SUPERSAMPLE)?;
+        let fx = synthetic::PhoneEffects { seed: (100 * seed + j) as u64, ..Default::default() };
+        let rgb = synthetic::as_phone_photo(&linear, &fx)?;
+        photos.push(FramePhoto { path: format!("IMG_{j}.jpg").into(), rgb, exif_focal: Some(901.3), orientation: 1 });
+    }
+    // Rectified at twice the material's side, so the fit's 2x2 shrink lines up with its texels.
+    let cfg = CaptureConfig { flash_offset_mm: offset, max_side: 2 * size, ..Default::default() };
+    let capture = flashmat::capture::capture(&photos, &cfg, |_, _, _| {})?;
+    for (p, v) in capture.photos.iter().zip(&views) {
+        let off = flashmat::geometry::length(flashmat::geometry::sub(p.camera, v.pose.centre()));
+        eprintln!("    {}: lens {off:.2} mm off, reprojection {:.2} px", p.source.display(), p.rms);
+    }
+    let folder = dir.join("capture");
+    flashmat::capture::write_folder(&capture, &folder, &photos)?;
+    for entry in std::fs::read_dir(&folder)? {
+        let entry = entry?;
+        std::fs::rename(entry.path(), dir.join(entry.file_name()))?;
+    }
     Ok(())
 }

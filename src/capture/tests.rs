@@ -27,7 +27,7 @@ fn shoot(views: &[PhoneView], offset: [f64; 2], fx: PhoneEffects, dir: &Path) ->
         let camera = v.pose.centre();
         let light = add(camera, v.pose.to_world_dir([offset[0], offset[1], 0.0]));
         let truth = opening_truth(&m, &layout, light, camera, r0).unwrap();
-        let linear = render_photo(&layout, &truth, light, r0, v).unwrap();
+        let linear = render_photo(&layout, &truth, light, r0, v, super::synthetic::SUPERSAMPLE).unwrap();
         let rgb = as_phone_photo(&linear, &PhoneEffects { seed: i as u64, ..fx }).unwrap();
         photos.push(FramePhoto { path: dir.join(format!("IMG_{i}.jpg")), rgb, exif_focal: Some(FOCAL), orientation: 1 });
         truths.push(truth);
@@ -150,7 +150,7 @@ fn bad_photos_are_named_and_leave_no_folder() {
     let stretched = FrameLayout { tags: layout.tags.iter().map(|t| frame::TagPlace { id: t.id, centre: t.centre.map(|c| c * 1.07) }).collect(), ..layout.clone() };
     let m = material();
     let truth = opening_truth(&m, &layout, views[2].pose.centre(), views[2].pose.centre(), 260.0).unwrap();
-    let linear = render_photo(&stretched, &truth, views[2].pose.centre(), 260.0, &views[2]).unwrap();
+    let linear = render_photo(&stretched, &truth, views[2].pose.centre(), 260.0, &views[2], super::synthetic::SUPERSAMPLE).unwrap();
     moved.rgb = as_phone_photo(&linear, &fx).unwrap();
     let e = err(&[photos[0].clone_photo(), photos[1].clone_photo(), moved]);
     assert!(e.contains("off the frame's layout") || e.contains("focal length"), "{e}");

@@ -32,6 +32,19 @@ pub enum BenchCommand {
     /// Seconds of `estimate --capture` (start, fit, neural material) on a synthetic capture, against the single-photo
     /// estimate of its overhead photo in the same run.
     Capture(CaptureBenchArgs),
+    /// Seconds of `flashmat capture` on synthetic phone photos of the printed frame (JPEG): the tag detection and
+    /// pose of one photo against its decode, and the whole capture folder.
+    Frame(FrameBenchArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct FrameBenchArgs {
+    /// Photos in the capture.
+    #[arg(long, default_value_t = 9)]
+    pub photos: usize,
+    /// Megapixels of each photo (4:3).
+    #[arg(long, default_value_t = 12.0)]
+    pub megapixels: f64,
 }
 
 #[derive(Args, Debug)]
@@ -163,6 +176,7 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Smoke(a) => smoke(a),
         BenchCommand::Refine(a) => bench_refine(a),
         BenchCommand::Capture(a) => bench_capture(a),
+        BenchCommand::Frame(a) => bench_frame(a),
         BenchCommand::Infer(a) => bench_infer(a),
     }
 }
@@ -323,6 +337,76 @@ fn bench_capture(args: &CaptureBenchArgs) -> Result<()> {
         fit.report.seconds,
         cfg.steps,
         capture_s / single_s
+    );
+    Ok(())
+}
+
+fn bench_frame(args: &FrameBenchArgs) -> Result<()> {
+    use flashmat::capture::{frame::FrameLayout, synthetic};
+    anyhow::ensure!((2..=20).contains(&args.photos), "--photos must be from 2 to 20, got {}", args.photos);
+    anyhow::ensure!(args.megapixels.is_finite() && (0.5..=50.0).contains(&args.megapixels), "--megapixels must be from 0.5 to 50");
+    let height = ((args.megapixels * 1e6 * 0.75).sqrt() as usize) / 8 * 8;
+    let width = height * 4 / 3;
+    // A 26 mm-equivalent lens: f = 26 / 43.27 * the diagonal.
+    let focal = 26.0 / flashmat::infer::camera::FULL_FRAME_DIAGONAL_MM * (width as f64).hypot(height as f64);
+    let layout = FrameLayout::new(10)?;
+    // Around the frame at 25-30 cm, the reflections inside the opening.
+    let eyes: Vec<[f64; 3]> = (0..args.photos)
+        .map(|i| {
+            if i == 0 {
+                return [0.0, 0.0, 280.0];
+            }
+            let a = 2.0 * std::f64::consts::PI * i as f64 / (args.photos - 1) as f64;
+            [70.0 * a.cos(), 70.0 * a.sin(), 260.0]
+        })
+        .collect();
+    let views = synthetic::phone_views(&eyes, &[0.0, 15.0, -25.0, 40.0], width, height, focal, -0.03, 0.0);
+    // The photos and the capture folder live only while the benchmark runs.
+    let root = std::env::temp_dir().join(format!("flashmat-bench-frame-{}", std::process::id()));
+    std::fs::create_dir_all(&root)?;
+    let result = frame_bench_in(&root, &views, &layout, width, height, focal, args.photos);
+    let _ = std::fs::remove_dir_all(&root);
+    result
+}
+
+fn frame_bench_in(root: &std::path::Path, views: &[flashmat::capture::synthetic::PhoneView], layout: &flashmat::capture::frame::FrameLayout, width: usize, height: usize, focal: f64, count: usize) -> Result<()> {
+    use flashmat::capture::{find_frame, frame::FrameLayout, load_frame_photo, synthetic, CaptureConfig};
+    let material = procedural::test_material(3, 256);
+    let bar = indicatif::ProgressBar::new(views.len() as u64).with_message("rendering photos (not timed)");
+    let mut paths = vec![];
+    for (i, v) in views.iter().enumerate() {
+        let c = v.pose.centre();
+        let truth = synthetic::opening_truth(&material, layout, c, c, 280.0)?;
+        let linear = synthetic::render_photo(layout, &truth, c, 280.0, v, 1)?;
+        let rgb = synthetic::as_phone_photo(&linear, &synthetic::PhoneEffects { seed: i as u64, jpeg_quality: None, ..Default::default() })?;
+        let image = flashmat::image::Image::from_fn(3, height, width, |ch, y, x| rgb.data[3 * (y * width + x) + ch] as f32 / 255.0);
+        let path = root.join(format!("IMG_{i:02}.jpg"));
+        flashmat::io::write_jpeg(&path, &image, 90)?;
+        paths.push(path);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let t = std::time::Instant::now();
+    let photo = load_frame_photo(&paths[0])?;
+    let decode_s = t.elapsed().as_secs_f64();
+    let t = std::time::Instant::now();
+    let (layout, found) = find_frame(&photo, 2)?;
+    let pairs: Vec<_> = found.iter().filter_map(|m| layout.find(m.id).map(|tag| (FrameLayout::corners(tag), m.corners))).flat_map(|(w, p)| w.into_iter().zip(p)).collect();
+    let h = flashmat::capture::camera::homography(&pairs)?;
+    let _ = flashmat::capture::camera::pose_from_homography(&h, &flashmat::capture::camera::Intrinsics::centred(focal, width, height));
+    let detect_s = t.elapsed().as_secs_f64();
+    let t = std::time::Instant::now();
+    let photos = paths.iter().map(|p| load_frame_photo(p)).collect::<Result<Vec<_>>>()?;
+    let capture = flashmat::capture::capture(&photos, &CaptureConfig::default(), |_, _, _| {})?;
+    flashmat::capture::write_folder(&capture, &root.join("capture"), &photos)?;
+    let total_s = t.elapsed().as_secs_f64();
+    let off = capture.photos.iter().zip(views).map(|(p, v)| flashmat::geometry::length(flashmat::geometry::sub(p.camera, v.pose.centre()))).fold(0.0, f64::max);
+    println!(
+        "capture of {} photos of {width}x{height} ({:.1} MP, JPEG): tags and pose of one photo {detect_s:.2} s ({:.2}x its decode, {decode_s:.2} s; {} tags); the whole capture folder {total_s:.1} s; lenses at most {off:.2} mm off",
+        count,
+        (width * height) as f64 / 1e6,
+        detect_s / decode_s,
+        found.len()
     );
     Ok(())
 }

@@ -1,109 +1,186 @@
-//! `flashmat estimate --capture DIR`: one neural material from all photos
-//! of a capture folder (work done in `flashmat::fit::photos`).
+//! `flashmat capture frame`: the frame to print; `flashmat capture
+//! PHOTOS... -o DIR`: phone photos of it to a capture folder (work done in
+//! `flashmat::capture`), and with `--estimate` on to one material.
 
+use super::estimate_capture::CaptureArgs;
 use super::infer::EstimateOptions;
-use flashmat::data::captures::Captures;
-use flashmat::fit::export::{check_output_dir, write_fit};
-use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, outlier_warnings, PhotoFitConfig};
-use flashmat::fit::relief::ReliefConfig;
 use anyhow::{bail, ensure, Result};
-use clap::Args;
+use clap::{Args, Parser, Subcommand};
+use flashmat::capture::frame::{self, FrameLayout, Paper};
+use flashmat::capture::{load_frame_photo, tilt_deg, CaptureConfig};
 use indicatif::{ProgressBar, ProgressStyle};
-use std::path::Path;
+use std::path::PathBuf;
 use std::time::Instant;
 
-/// The options of `estimate --capture`.
-#[derive(Args, Debug, Clone)]
-pub struct CaptureArgs {
-    /// A capture folder (photos 00.png or 00.jpg, 01 ..., camera_pos.txt, light_pos.txt, image_size.txt): one material from
-    /// all its photos, a per-pixel GGX fit to them with their light and camera positions, started from the estimate
-    /// of the most overhead photo, then a neural material of the fitted maps (the bundled teacher's encoder and renderer).
-    /// --size sets the side of the fitted maps; --model the model of the start; --device where both run.
-    #[arg(long, value_name = "DIR", conflicts_with = "photo")]
-    pub capture: Option<std::path::PathBuf>,
-    /// With --capture: use the first K photos (default: all).
-    #[arg(long, value_name = "K", requires = "capture")]
-    pub photos: Option<usize>,
-    /// With --capture: Adam steps of the fit to the photos.
-    #[arg(long, requires = "capture", default_value_t = PhotoFitConfig::default().steps)]
-    pub steps: usize,
-    /// With --capture: fit an exposure gain per photo (photos taken with auto exposure; the overhead photo's is 1).
-    /// Off by default: with one exposure it costs a little (reports/capture.md).
-    #[arg(long, requires = "capture")]
-    pub photo_gains: bool,
-    /// With --capture: also write the fitted GGX maps as PBR texture sets into DIR (as `flashmat fit` does).
-    #[arg(long, value_name = "DIR", requires = "capture")]
-    pub pbr: Option<std::path::PathBuf>,
+/// The options of `flashmat capture`.
+#[derive(Args, Debug)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
+pub struct CaptureCommandArgs {
+    #[command(subcommand)]
+    pub frame: Option<FrameCommand>,
+    /// Flash photos of the printed frame lying flat on the material (JPEG, PNG, HEIC; 2 or more, 3-5 is best:
+    /// docs/CAPTURE.md). Each must show at least 4 of the frame's tags.
+    #[arg(value_name = "PHOTO", required = true)]
+    pub photos: Vec<PathBuf>,
+    /// The capture folder to write (it must not exist, or be empty). With --estimate: the material (.nmat), and
+    /// the capture folder is written beside it as NAME-capture/.
+    #[arg(short, long, required = true)]
+    pub output: Option<PathBuf>,
+    /// The flash's offset from the lens in mm, X,Y in the camera frame of the photo as the phone's sensor stores
+    /// it (X along its rows, Y down its columns; turned with each photo's EXIF orientation). 0,0 takes them as
+    /// one point; docs/CAPTURE.md has a few phones' values.
+    #[arg(long, value_name = "X,Y", default_value = "0,0", value_parser = parse_offset, allow_negative_numbers = true)]
+    pub flash_offset: [f64; 2],
+    /// The largest side of the rectified photos, pixels (they keep the overhead photo's resolution of the opening up to it).
+    #[arg(long, default_value_t = CaptureConfig::default().max_side)]
+    pub max_size: usize,
+    /// Go on to one material from the capture (`flashmat estimate --capture`), written to -o.
+    #[arg(long)]
+    pub estimate: bool,
+    /// With --estimate: side of the fitted maps, pixels (a multiple of 8).
+    #[arg(long, requires = "estimate", default_value_t = 256)]
+    pub size: usize,
+    /// With --estimate: cpu, cuda or cuda:N.
+    #[arg(long, requires = "estimate", default_value = "cpu")]
+    pub device: String,
 }
 
-pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &EstimateOptions) -> Result<()> {
-    let t0 = Instant::now();
-    ensure!(output.extension().is_some_and(|e| e.eq_ignore_ascii_case("nmat")), "{}: the output must end in .nmat", output.display());
-    if opts.refine.is_some() || opts.tile || opts.highlight_fill.is_some() || opts.fov.is_some() || opts.exposure.is_some() || opts.square {
-        bail!("--capture takes none of --refine, --tile, --highlight-fill, --fov, --exposure, --square (capture photos are rectified to the sample)");
-    }
-    let cfg = PhotoFitConfig { steps: a.steps, size: opts.size, photo_gains: a.photo_gains, ..Default::default() };
-    cfg.validate()?;
-    if let Some(pbr) = &a.pbr {
-        check_output_dir(pbr)?;
-    }
-    let device = flashmat::device::parse_device(&opts.device)?;
-    let captures = Captures::open(dir)?;
-    let count = a.photos.unwrap_or(captures.photos.len());
-    let capture = load_capture(&captures, count, cfg.size)?;
-    for warning in &capture.warnings {
-        eprintln!("warning: {warning}");
-    }
-    let loaded = flashmat::infer::load_model(opts.model.as_deref(), device)?;
-    let teacher = load_teacher(None, device)?;
+#[derive(Subcommand, Debug)]
+pub enum FrameCommand {
+    /// Write the frame to print: tag36h11 tags around a square opening, a 100 mm scale bar and what the frame is.
+    /// PDF (vector, prints at its true size) or PNG (--dpi).
+    Frame(FrameArgs),
+}
 
-    let style = |what: &str| ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} ETA {{eta}}"));
-    let stages = [style("start: estimate of the overhead photo, GGX fit")?, style(&format!("fitting {count} photos"))?];
-    let bar = ProgressBar::new(0);
-    let mut stage = usize::MAX;
-    let fit = fit_capture(&loaded, &capture, &cfg, device, |s, done, total| {
-        if s != stage {
-            stage = s;
-            bar.set_style(stages[s].clone());
-            bar.set_length(total as u64);
+#[derive(Args, Debug)]
+pub struct FrameArgs {
+    /// frame.pdf or frame.png.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[arg(long, value_enum, default_value_t = Paper::A4)]
+    pub paper: Paper,
+    /// Side of the square opening, whole centimetres (5 to 14): the sample that shows through it.
+    #[arg(long, value_name = "CM", default_value_t = 10)]
+    pub opening: u32,
+    /// Resolution of a PNG, dots per inch.
+    #[arg(long, default_value_t = 300.0)]
+    pub dpi: f64,
+}
+
+fn parse_offset(s: &str) -> std::result::Result<[f64; 2], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let values: Vec<f64> = parts.iter().filter_map(|p| p.parse().ok()).filter(|v: &f64| v.is_finite() && v.abs() <= 100.0).collect();
+    match (parts.len(), values.as_slice()) {
+        (2, &[x, y]) => Ok([x, y]),
+        _ => Err(format!("'{s}' is not X,Y: two numbers of mm within +-100")),
+    }
+}
+
+pub fn run(a: &CaptureCommandArgs) -> Result<()> {
+    if let Some(FrameCommand::Frame(f)) = &a.frame {
+        return write_frame(f);
+    }
+    let output = a.output.as_ref().expect("clap requires -o without a subcommand");
+    let t0 = Instant::now();
+    let (folder, material) = if a.estimate {
+        ensure!(output.extension().is_some_and(|e| e.eq_ignore_ascii_case("nmat")), "{}: with --estimate, -o names the material (.nmat)", output.display());
+        let stem = output.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        (output.with_file_name(format!("{stem}-capture")), Some(output.clone()))
+    } else {
+        if output.extension().is_some_and(|e| e.eq_ignore_ascii_case("nmat")) {
+            bail!("{}: -o is the capture folder; pass --estimate to go on to a material", output.display());
         }
+        (output.clone(), None)
+    };
+    if folder.exists() && std::fs::read_dir(&folder).map(|mut d| d.next().is_some()).unwrap_or(true) {
+        bail!("{} exists and is not empty: choose a new folder for the capture", folder.display());
+    }
+    let cfg = CaptureConfig { flash_offset_mm: a.flash_offset, max_side: a.max_size, ..Default::default() };
+    let bar = ProgressBar::new(a.photos.len() as u64).with_style(ProgressStyle::with_template("{msg} {bar:40} {pos}/{len}")?);
+    bar.set_message("reading photos");
+    let mut photos = Vec::new();
+    for (i, p) in a.photos.iter().enumerate() {
+        photos.push(load_frame_photo(p)?);
+        bar.set_position(i as u64 + 1);
+    }
+    let messages = ["finding the frame's tags", "fitting the camera", "rectifying the opening"];
+    let capture = flashmat::capture::capture(&photos, &cfg, |stage, done, total| {
+        bar.set_message(messages[stage]);
+        bar.set_length(total as u64);
         bar.set_position(done as u64);
     })?;
     bar.finish_and_clear();
-    for warning in outlier_warnings(&fit, &capture.names) {
-        eprintln!("warning: {warning}");
-    }
-    let overhead = capture.photos.get(capture.overhead as i64);
-
-    let source = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
-    let material = neural_material(&fit.maps, &overhead, &teacher, &source)?;
-    let out_dir = super::prepare_output(output)?;
-    material.save(output)?;
-    out_dir.keep();
-    if let Some(pbr) = &a.pbr {
-        write_fit(pbr, &fit.as_fit_result(), &ReliefConfig::default(), &dir.display().to_string())?;
-    }
-    let r = &fit.report;
+    flashmat::capture::write_folder(&capture, &folder, &photos)?;
+    let k = &capture.photos[0].intrinsics;
     eprintln!(
-        "estimated {} from {} of {} photos at {}x{}: data term {:.4} -> {:.4} (mean |ln(1+R) diff| {:.4} -> {:.4}), {} steps, {:.1} s ({:.1} s fit)",
-        output.display(),
-        r.photos,
-        captures.photos.len(),
-        cfg.size,
-        cfg.size,
-        r.data_before,
-        r.data_after,
-        r.error_before,
-        r.error_after,
-        cfg.steps,
+        "wrote capture folder {} in {:.1} s: {} photos, the {} cm opening at {}x{} pixels; focal length {:.0} px{}",
+        folder.display(),
         t0.elapsed().as_secs_f64(),
-        r.seconds
+        capture.photos.len(),
+        capture.layout.opening_cm,
+        capture.side,
+        capture.side,
+        k.focal,
+        if capture.distortion { format!(", distortion k1 {:.3} k2 {:.3}", k.k1, k.k2) } else { String::new() }
     );
-    if cfg.photo_gains {
-        eprintln!("exposure gains: {}", capture.names.iter().zip(&r.photo_gains).map(|(n, g)| format!("{n} {g:.3}")).collect::<Vec<_>>().join(", "));
+    for (n, p) in capture.photos.iter().enumerate() {
+        let source = p.source.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
+        eprintln!(
+            "  {n:02} {source}: lens at ({:.0}, {:.0}, {:.0}) mm, tilt {:.0} deg, {} tags, {:.2} px reprojection",
+            p.camera[0],
+            p.camera[1],
+            p.camera[2],
+            tilt_deg(p.camera),
+            p.markers.len(),
+            p.rms
+        );
     }
-    if let Some(pbr) = &a.pbr {
-        eprintln!("wrote PBR maps of the fit to {}", pbr.display());
+    eprintln!("look at {}", folder.join("capture.jpg").display());
+    if let Some(material) = material {
+        #[derive(Parser)]
+        struct Defaults {
+            #[command(flatten)]
+            options: EstimateOptions,
+        }
+        let mut opts = Defaults::try_parse_from(["flashmat"])?.options;
+        opts.size = a.size;
+        opts.device = a.device.clone();
+        let fit = flashmat::fit::photos::PhotoFitConfig::default();
+        let args = CaptureArgs { capture: Some(folder.clone()), photos: None, steps: fit.steps, photo_gains: false, pbr: None };
+        super::estimate_capture::estimate_capture(&folder, &material, &args, &opts)?;
     }
+    Ok(())
+}
+
+fn write_frame(f: &FrameArgs) -> Result<()> {
+    let layout = FrameLayout::new(f.opening)?;
+    let ext = f.output.extension().map(|e| e.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    let out = super::prepare_output(&f.output)?;
+    match ext.as_str() {
+        "pdf" => flashmat::io::atomic_write_bytes(&f.output, &frame::frame_pdf(&layout, f.paper)?)?,
+        "png" => {
+            let (image, baselines) = frame::frame_raster(&layout, f.paper, f.dpi)?;
+            let size = f.dpi / 72.0 * 9.0;
+            let marks: Vec<flashmat::viz::Mark> = frame::caption(&layout)
+                .into_iter()
+                .zip(baselines)
+                .map(|(text, row)| flashmat::viz::Mark::Text { at: (15.0 * f.dpi / 25.4, row as f64 - size), text, size: size * 1.3, color: [0, 0, 0] })
+                .collect();
+            let page = flashmat::viz::annotate(&image, &marks)?;
+            flashmat::io::write_png(&f.output, &page, flashmat::io::BitDepth::Eight)?;
+        }
+        _ => bail!("{}: the frame is written as .pdf or .png", f.output.display()),
+    }
+    out.keep();
+    eprintln!(
+        "wrote {}: the {} cm opening's frame ({} tag36h11 tags, ids {}-{}) on {:?} paper; print at 100% and check the {} mm bar",
+        f.output.display(),
+        layout.opening_cm,
+        layout.tags.len(),
+        layout.tags[0].id,
+        layout.tags.last().map_or(0, |t| t.id),
+        f.paper,
+        frame::SCALE_BAR_MM
+    );
     Ok(())
 }

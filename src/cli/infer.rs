@@ -168,7 +168,7 @@ pub struct EstimateArgs {
     #[arg(short, long)]
     pub output: PathBuf,
     #[command(flatten)]
-    pub capture: super::capture::CaptureArgs,
+    pub capture: super::estimate_capture::CaptureArgs,
     #[command(flatten)]
     pub estimate: EstimateOptions,
 }
@@ -343,7 +343,7 @@ fn looks_like_image(path: &Path) -> bool {
 
 pub fn estimate(a: &EstimateArgs) -> Result<()> {
     if let Some(dir) = &a.capture.capture {
-        return super::capture::estimate_capture(dir, &a.output, &a.capture, &a.estimate);
+        return super::estimate_capture::estimate_capture(dir, &a.output, &a.capture, &a.estimate);
     }
     if super::batch::is_batch(&a.photo) {
         // Settings are checked once, before any photo.

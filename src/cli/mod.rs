@@ -4,6 +4,7 @@
 pub mod batch;
 pub mod bench;
 pub mod capture;
+pub mod estimate_capture;
 pub mod eval;
 pub mod fit;
 pub mod infer;
@@ -44,6 +45,9 @@ pub enum Command {
     /// Estimate a neural material (.nmat) from one flash photo (or one each from several photos or a folder), or one from all
     /// photos of a capture folder (--capture).
     Estimate(infer::EstimateArgs),
+    /// Phone photos of the printed frame to a capture folder (tags, camera poses, rectified sample), or with --estimate
+    /// to one material; `capture frame` writes the frame to print.
+    Capture(capture::CaptureCommandArgs),
     /// Render a neural material (or a photo, estimated first) under a new light and view, or an orbit GIF.
     Relight(infer::RelightArgs),
     /// One picture of a neural material: photo, neural map (norm, PCA), identity render, relit views.
@@ -281,7 +285,7 @@ pub fn memory_hint(command: &Command) -> &'static str {
     match command {
         Command::Train(_) => "lower --batch, --crop or --outputs",
         Command::TrainTeacher(_) => "lower --pixels",
-        Command::Estimate(_) | Command::Relight(_) | Command::Show(_) | Command::View(_) | Command::Fit(_) => {
+        Command::Estimate(_) | Command::Capture(_) | Command::Relight(_) | Command::Show(_) | Command::View(_) | Command::Fit(_) => {
             "lower --max-memory (M_est then runs in tiles) or --size"
         }
         Command::Bench(_) => "lower --max-memory (bench infer: M_est then runs in tiles), --size, --crop or --batch",
@@ -297,6 +301,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Svbrdf(SvbrdfCommand::Preview(a)) => materials::preview(&a),
         Command::Svbrdf(SvbrdfCommand::Captures(a)) => materials::captures(&a),
         Command::Estimate(a) => infer::estimate(&a),
+        Command::Capture(a) => capture::run(&a),
         Command::Relight(a) => infer::relight(&a),
         Command::Show(a) => infer::show(&a),
         Command::View(a) => view::view(&a),

@@ -1,0 +1,109 @@
+//! `flashmat estimate --capture DIR`: one neural material from all photos
+//! of a capture folder (work done in `flashmat::fit::photos`).
+
+use super::infer::EstimateOptions;
+use flashmat::data::captures::Captures;
+use flashmat::fit::export::{check_output_dir, write_fit};
+use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, outlier_warnings, PhotoFitConfig};
+use flashmat::fit::relief::ReliefConfig;
+use anyhow::{bail, ensure, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::Path;
+use std::time::Instant;
+
+/// The options of `estimate --capture`.
+#[derive(Args, Debug, Clone)]
+pub struct CaptureArgs {
+    /// A capture folder (photos 00.png or 00.jpg, 01 ..., camera_pos.txt, light_pos.txt, image_size.txt): one material from
+    /// all its photos, a per-pixel GGX fit to them with their light and camera positions, started from the estimate
+    /// of the most overhead photo, then a neural material of the fitted maps (the bundled teacher's encoder and renderer).
+    /// --size sets the side of the fitted maps; --model the model of the start; --device where both run.
+    #[arg(long, value_name = "DIR", conflicts_with = "photo")]
+    pub capture: Option<std::path::PathBuf>,
+    /// With --capture: use the first K photos (default: all).
+    #[arg(long, value_name = "K", requires = "capture")]
+    pub photos: Option<usize>,
+    /// With --capture: Adam steps of the fit to the photos.
+    #[arg(long, requires = "capture", default_value_t = PhotoFitConfig::default().steps)]
+    pub steps: usize,
+    /// With --capture: fit an exposure gain per photo (photos taken with auto exposure; the overhead photo's is 1).
+    /// Off by default: with one exposure it costs a little (reports/capture.md).
+    #[arg(long, requires = "capture")]
+    pub photo_gains: bool,
+    /// With --capture: also write the fitted GGX maps as PBR texture sets into DIR (as `flashmat fit` does).
+    #[arg(long, value_name = "DIR", requires = "capture")]
+    pub pbr: Option<std::path::PathBuf>,
+}
+
+pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &EstimateOptions) -> Result<()> {
+    let t0 = Instant::now();
+    ensure!(output.extension().is_some_and(|e| e.eq_ignore_ascii_case("nmat")), "{}: the output must end in .nmat", output.display());
+    if opts.refine.is_some() || opts.tile || opts.highlight_fill.is_some() || opts.fov.is_some() || opts.exposure.is_some() || opts.square {
+        bail!("--capture takes none of --refine, --tile, --highlight-fill, --fov, --exposure, --square (capture photos are rectified to the sample)");
+    }
+    let cfg = PhotoFitConfig { steps: a.steps, size: opts.size, photo_gains: a.photo_gains, ..Default::default() };
+    cfg.validate()?;
+    if let Some(pbr) = &a.pbr {
+        check_output_dir(pbr)?;
+    }
+    let device = flashmat::device::parse_device(&opts.device)?;
+    let captures = Captures::open(dir)?;
+    let count = a.photos.unwrap_or(captures.photos.len());
+    let capture = load_capture(&captures, count, cfg.size)?;
+    for warning in &capture.warnings {
+        eprintln!("warning: {warning}");
+    }
+    let loaded = flashmat::infer::load_model(opts.model.as_deref(), device)?;
+    let teacher = load_teacher(None, device)?;
+
+    let style = |what: &str| ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} ETA {{eta}}"));
+    let stages = [style("start: estimate of the overhead photo, GGX fit")?, style(&format!("fitting {count} photos"))?];
+    let bar = ProgressBar::new(0);
+    let mut stage = usize::MAX;
+    let fit = fit_capture(&loaded, &capture, &cfg, device, |s, done, total| {
+        if s != stage {
+            stage = s;
+            bar.set_style(stages[s].clone());
+            bar.set_length(total as u64);
+        }
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    for warning in outlier_warnings(&fit, &capture.names) {
+        eprintln!("warning: {warning}");
+    }
+    let overhead = capture.photos.get(capture.overhead as i64);
+
+    let source = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
+    let material = neural_material(&fit.maps, &overhead, &teacher, &source)?;
+    let out_dir = super::prepare_output(output)?;
+    material.save(output)?;
+    out_dir.keep();
+    if let Some(pbr) = &a.pbr {
+        write_fit(pbr, &fit.as_fit_result(), &ReliefConfig::default(), &dir.display().to_string())?;
+    }
+    let r = &fit.report;
+    eprintln!(
+        "estimated {} from {} of {} photos at {}x{}: data term {:.4} -> {:.4} (mean |ln(1+R) diff| {:.4} -> {:.4}), {} steps, {:.1} s ({:.1} s fit)",
+        output.display(),
+        r.photos,
+        captures.photos.len(),
+        cfg.size,
+        cfg.size,
+        r.data_before,
+        r.data_after,
+        r.error_before,
+        r.error_after,
+        cfg.steps,
+        t0.elapsed().as_secs_f64(),
+        r.seconds
+    );
+    if cfg.photo_gains {
+        eprintln!("exposure gains: {}", capture.names.iter().zip(&r.photo_gains).map(|(n, g)| format!("{n} {g:.3}")).collect::<Vec<_>>().join(", "));
+    }
+    if let Some(pbr) = &a.pbr {
+        eprintln!("wrote PBR maps of the fit to {}", pbr.display());
+    }
+    Ok(())
+}
