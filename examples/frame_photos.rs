@@ -22,9 +22,9 @@ fn main() -> Result<()> {
     let height = width * 3 / 4;
     let focal = 26.0 / flashmat::infer::camera::FULL_FRAME_DIAGONAL_MM * (width as f64).hypot(height as f64);
     let layout = FrameLayout::new(10)?;
-    // The overhead photo, then the tilted phones of `TILTED_PHONES` at 60 mm a unit (a little further than the
-    // opening's 50, so the whole frame is in view): their reflections land in the opening.
-    let eyes: Vec<[f64; 3]> = std::iter::once([0.0, 0.0, 4.0]).chain(flashmat::data::captures::TILTED_PHONES).take(count).map(|c| c.map(|v| v * 60.0)).collect();
+    // The overhead photo, then the tilted phones of `TILTED_PHONES` (50 mm a unit): the reflections of their
+    // flashes, about straight below them, land in the opening's four quarters.
+    let eyes: Vec<[f64; 3]> = std::iter::once([0.0, 0.0, 4.0]).chain(flashmat::data::captures::TILTED_PHONES).take(count).map(|c| c.map(|v| v * 50.0)).collect();
     let views = phone_views(&eyes, &[0.0, 12.0, -20.0, 35.0, 8.0], width, height, focal, -0.03, 0.0);
     let m = flashmat::data::procedural::test_material(material, 256);
     std::fs::create_dir_all(&out)?;

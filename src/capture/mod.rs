@@ -138,7 +138,7 @@ pub fn find_frame(photo: &FramePhoto, threads: usize) -> Result<(FrameLayout, Ve
     let found = markers::detect(&gray, threads);
     let who = name(&photo.path);
     if found.is_empty() {
-        let others = markers::other_families(&gray, threads);
+        let others = markers::other_families(&gray, threads, MIN_TAGS);
         if !others.is_empty() {
             bail!("{who}: its tags are {}, not the frame's tag36h11: print the frame of `flashmat capture frame`", others.join(", "));
         }

@@ -26,7 +26,7 @@ pub fn capture_picture(capture: &Capture, photos: &[FramePhoto]) -> Result<Image
         let s = |p: [f64; 2]| (p[0] * scale, p[1] * scale);
         let mut marks: Vec<Mark> = result.markers.iter().map(|m| Mark::Line { points: m.corners.iter().map(|&c| s(c)).collect(), closed: true, width: 2, color: [40, 220, 60] }).collect();
         let half = capture.layout.opening_mm() / 2.0;
-        let outline: Vec<(f64, f64)> = (0..=40)
+        let outline: Vec<(f64, f64)> = (0..40)
             .map(|i| {
                 // The opening's edge, 10 points a side (distortion bends it).
                 let t = (i % 10) as f64 / 10.0;

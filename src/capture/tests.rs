@@ -7,9 +7,9 @@ const FOCAL: f64 = 901.3;
 const W: usize = 1200;
 const H: usize = 900;
 
-/// The overhead photo and three tilted ones whose reflections land inside
-/// the opening (mm, 10 cm frame).
-const EYES: [Vec3; 4] = [[0.0, 0.0, 260.0], [60.0, -47.0, 250.0], [-54.0, 61.0, 255.0], [57.0, 54.0, 243.0]];
+/// The overhead photo and three tilted ones whose reflections (straight
+/// below each phone) land inside the opening (mm, 10 cm frame).
+const EYES: [Vec3; 4] = [[0.0, 0.0, 260.0], [42.0, -33.0, 250.0], [-38.0, 43.0, 255.0], [40.0, 38.0, 243.0]];
 
 fn material() -> crate::svbrdf::Svbrdf {
     crate::data::procedural::test_material(3, 96)
@@ -231,4 +231,31 @@ fn sharpness_falls_with_blur_and_ignores_noise() {
         assert!(s > 0.8 * expect && s < 2.0 * expect, "sigma {sigma}: {s} against {expect}");
     }
     assert!(step(6.0, 0.004) < BLURRED_BELOW && step(1.5, 0.004) > BLURRED_BELOW);
+}
+
+#[test]
+fn tags_of_another_family_are_named() {
+    // Six tag25h9 tags (9 x 9 cells with their white ring), 12 pixels a cell, on white paper.
+    let (w, h, cell) = (720usize, 360usize, 12usize);
+    let mut gray = vec![235u8; w * h];
+    // SAFETY: the family and each tag image are created, read within their size and destroyed here.
+    unsafe {
+        let family = apriltag_sys::tag25h9_create();
+        for id in 0..6 {
+            let image = apriltag_sys::apriltag_to_image(family, id);
+            let (side, stride) = ((*image).width as usize, (*image).stride as usize);
+            let (left, top) = (30 + (id as usize % 3) * 230, 30 + (id as usize / 3) * 170);
+            for y in 0..side * cell {
+                for x in 0..side * cell {
+                    gray[(top + y) * w + left + x] = if *(*image).buf.add((y / cell) * stride + x / cell) > 127 { 235 } else { 20 };
+                }
+            }
+            apriltag_sys::image_u8_destroy(image);
+        }
+        apriltag_sys::tag25h9_destroy(family);
+    }
+    let rgb = Rgb8 { width: w, height: h, data: gray.iter().flat_map(|&v| [v; 3]).collect() };
+    let photo = FramePhoto { path: "other.png".into(), rgb, exif_focal: None, orientation: 1 };
+    let e = format!("{:#}", find_frame(&photo, 2).err().expect("an error"));
+    assert!(e.starts_with("other.png: its tags are tag25h9, not the frame's tag36h11"), "{e}");
 }

@@ -350,14 +350,14 @@ fn bench_frame(args: &FrameBenchArgs) -> Result<()> {
     // A 26 mm-equivalent lens: f = 26 / 43.27 * the diagonal.
     let focal = 26.0 / flashmat::infer::camera::FULL_FRAME_DIAGONAL_MM * (width as f64).hypot(height as f64);
     let layout = FrameLayout::new(10)?;
-    // Around the frame at 25-30 cm, the reflections inside the opening.
+    // Around the frame at 26-28 cm, each flash's reflection (about straight below the phone) inside the opening.
     let eyes: Vec<[f64; 3]> = (0..args.photos)
         .map(|i| {
             if i == 0 {
                 return [0.0, 0.0, 280.0];
             }
             let a = 2.0 * std::f64::consts::PI * i as f64 / (args.photos - 1) as f64;
-            [70.0 * a.cos(), 70.0 * a.sin(), 260.0]
+            [40.0 * a.cos(), 40.0 * a.sin(), 260.0]
         })
         .collect();
     let views = synthetic::phone_views(&eyes, &[0.0, 15.0, -25.0, 40.0], width, height, focal, -0.03, 0.0);
