@@ -68,3 +68,70 @@ fn bad_captures_give_one_clear_line_and_no_output() {
     assert_error(&run(&["--steps", "5"]), &["light_pos.txt"]);
     assert!(!d.join("out").exists(), "no output for a failed run");
 }
+
+/// Three synthetic phone photos (960x720 JPEGs, no EXIF) of the printed
+/// 10 cm frame around held-out material 3, the flash 8 mm beside the lens.
+fn frame_photos(d: &std::path::Path) -> Vec<std::path::PathBuf> {
+    use flashmat::capture::{frame::FrameLayout, synthetic};
+    let layout = FrameLayout::new(10).unwrap();
+    let eyes = [[0.0, 0.0, 250.0], [40.0, -32.0, 240.0], [-36.0, 40.0, 245.0]];
+    let views = synthetic::phone_views(&eyes, &[0.0, 15.0, -20.0], 960, 720, 721.0, -0.03, 0.0);
+    let material = flashmat::data::procedural::test_material(3, 64);
+    views
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let light = flashmat::geometry::add(v.pose.centre(), v.pose.to_world_dir([8.0, 0.0, 0.0]));
+            let truth = synthetic::opening_truth(&material, &layout, light, v.pose.centre(), 250.0).unwrap();
+            let linear = synthetic::render_photo(&layout, &truth, light, 250.0, v, synthetic::SUPERSAMPLE).unwrap();
+            let rgb = synthetic::as_phone_photo(&linear, &synthetic::PhoneEffects { seed: i as u64, jpeg_quality: None, ..Default::default() }).unwrap();
+            let image = flashmat::image::Image::from_fn(3, 720, 960, |c, y, x| rgb.data[3 * (y * 960 + x) + c] as f32 / 255.0);
+            let path = d.join(format!("IMG_{i}.jpg"));
+            flashmat::io::write_jpeg(&path, &image, 92).unwrap();
+            path
+        })
+        .collect()
+}
+
+#[test]
+fn photos_of_the_printed_frame_become_a_capture_folder_and_a_material() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // The frame to print: a vector PDF, or a PNG; other extensions are refused.
+    let err = assert_ok(&flashmat(&["capture", "frame", "-o", s(&d.join("frame.pdf"))]));
+    assert!(err.contains("24 tag36h11 tags, ids 240-263"), "{err}");
+    assert!(std::fs::read(d.join("frame.pdf")).unwrap().starts_with(b"%PDF-"));
+    assert_error(&flashmat(&["capture", "frame", "-o", s(&d.join("frame.svg"))]), &["frame.svg: the frame is written as .pdf or .png"]);
+    assert_error(&flashmat(&["capture", "frame", "--opening", "20", "-o", s(&d.join("f.pdf"))]), &["--opening must be a whole number of centimetres from 5 to 14"]);
+
+    let photos = frame_photos(d);
+    let p: Vec<&str> = photos.iter().map(|p| s(p)).collect();
+    let folder = d.join("capture");
+    let err = assert_ok(&flashmat(&["capture", p[0], p[1], p[2], "--flash-offset", "8,0", "-o", s(&folder)]));
+    assert!(err.contains("3 photos, the 10 cm opening") && err.contains("00 IMG_0.jpg: lens at (0, 0, "), "{err}");
+    let c = flashmat::data::captures::Captures::open(&folder).unwrap();
+    assert_eq!((c.photos.len(), c.sample_width), (3, 100.0));
+    // The lens 250 mm over the centre (no EXIF: the focal length from the photos' perspective); flashmat units are mm / 50.
+    assert!((c.cameras[0][2] * 50.0 - 250.0).abs() < 2.0 && c.cameras[0][0].abs() < 0.04, "{:?}", c.cameras[0]);
+    // The flash 8 mm along the overhead camera's x: world +x (flashmat units: mm / 50).
+    assert!((c.lights[0][0] - c.cameras[0][0] - 0.16).abs() < 0.01, "{:?} {:?}", c.lights[0], c.cameras[0]);
+    assert!(folder.join("capture.jpg").is_file());
+
+    // Bad inputs: one line naming the photo, exit 1, no folder.
+    let out = d.join("bad");
+    assert_error(&flashmat(&["capture", p[0], "-o", s(&out)]), &["a capture needs at least 2 photos of the frame, got 1"]);
+    let missing = d.join("IMG_9.jpg");
+    assert_error(&flashmat(&["capture", p[0], s(&missing), "-o", s(&out)]), &["IMG_9.jpg"]);
+    let bad_offset = flashmat(&["capture", p[0], p[1], "--flash-offset", "8", "-o", s(&out)]);
+    assert!(!bad_offset.status.success() && stderr(&bad_offset).contains("'8' is not X,Y"), "{}", stderr(&bad_offset));
+    assert_error(&flashmat(&["capture", p[0], p[1], "-o", s(&folder)]), &["exists and is not empty"]);
+    assert!(!out.exists());
+    no_temp_files(d);
+
+    // --estimate: on to one material, the capture folder beside it.
+    let nmat = d.join("m.nmat");
+    let err = assert_ok(&flashmat(&["capture", p[0], p[1], p[2], "--estimate", "--size", "32", "--steps", "20", "-o", s(&nmat)]));
+    assert!(err.contains("from 3 of 3 photos at 32x32"), "{err}");
+    assert!(d.join("m-capture/02.png").is_file());
+    assert_eq!(NeuralMaterial::load(&nmat, Device::Cpu).unwrap().size(), (32, 32));
+}

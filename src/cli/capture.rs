@@ -40,6 +40,9 @@ pub struct CaptureCommandArgs {
     /// With --estimate: side of the fitted maps, pixels (a multiple of 8).
     #[arg(long, requires = "estimate", default_value_t = 256)]
     pub size: usize,
+    /// With --estimate: Adam steps of the fit to the photos.
+    #[arg(long, requires = "estimate", default_value_t = flashmat::fit::photos::PhotoFitConfig::default().steps)]
+    pub steps: usize,
     /// With --estimate: cpu, cuda or cuda:N.
     #[arg(long, requires = "estimate", default_value = "cpu")]
     pub device: String,
@@ -126,10 +129,10 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
     for (n, p) in capture.photos.iter().enumerate() {
         let source = p.source.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
         eprintln!(
-            "  {n:02} {source}: lens at ({:.0}, {:.0}, {:.0}) mm, tilt {:.0} deg, {} tags, {:.2} px reprojection",
-            p.camera[0],
-            p.camera[1],
-            p.camera[2],
+            "  {n:02} {source}: lens at ({}, {}, {}) mm, tilt {:.0} deg, {} tags, {:.2} px reprojection",
+            mm(p.camera[0]),
+            mm(p.camera[1]),
+            mm(p.camera[2]),
             tilt_deg(p.camera),
             p.markers.len(),
             p.rms
@@ -145,11 +148,15 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         let mut opts = Defaults::try_parse_from(["flashmat"])?.options;
         opts.size = a.size;
         opts.device = a.device.clone();
-        let fit = flashmat::fit::photos::PhotoFitConfig::default();
-        let args = CaptureArgs { capture: Some(folder.clone()), photos: None, steps: fit.steps, photo_gains: false, pbr: None };
+        let args = CaptureArgs { capture: Some(folder.clone()), photos: None, steps: a.steps, photo_gains: false, pbr: None };
         super::estimate_capture::estimate_capture(&folder, &material, &args, &opts)?;
     }
     Ok(())
+}
+
+/// Whole millimetres, without a "-0".
+fn mm(v: f64) -> String {
+    format!("{}", v.round() + 0.0)
 }
 
 fn write_frame(f: &FrameArgs) -> Result<()> {
