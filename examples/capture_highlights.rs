@@ -212,7 +212,7 @@ fn frame_capture(m: &flashmat::svbrdf::Svbrdf, cameras: &[[f64; 3]], dir: &std::
         let linear = synthetic::render_photo(&layout, &truth, light, r0, v, synthetic::SUPERSAMPLE)?;
         let fx = synthetic::PhoneEffects { seed: (100 * seed + j) as u64, ..Default::default() };
         let rgb = synthetic::as_phone_photo(&linear, &fx)?;
-        photos.push(FramePhoto { path: format!("IMG_{j}.jpg").into(), rgb, exif_focal: Some(901.3), orientation: 1 });
+        photos.push(FramePhoto { path: format!("IMG_{j}.jpg").into(), rgb, exif_focal: Some(901.3), orientation: 1, exposure: None });
     }
     // Rectified at twice the material's side, so the fit's 2x2 shrink lines up with its texels.
     let cfg = CaptureConfig { flash_offset_mm: offset, max_side: 2 * size, ..Default::default() };

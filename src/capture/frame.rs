@@ -213,47 +213,72 @@ pub fn caption(layout: &FrameLayout) -> [String; 3] {
     ]
 }
 
+/// The printed page in page millimetres (origin at its lower-left corner,
+/// y up): what the PDF and the raster both draw.
+pub struct Page {
+    pub size_mm: [f64; 2],
+    /// Black rectangles `[x, y, width, height]`.
+    pub black: Vec<[f64; 4]>,
+    /// The opening's cut line (a thin grey square), `[x, y, side, side]`.
+    pub cut: [f64; 4],
+    /// Thin black lines of the scale bar and its centimetre ticks.
+    pub lines: Vec<([f64; 2], [f64; 2])>,
+    /// The caption's lines and their baselines' heights.
+    pub caption: Vec<(String, f64)>,
+}
+
+/// The page of a frame: the frame centred across, 15 mm from the top; under
+/// it the scale bar ([`SCALE_BAR_MM`] with a tick each centimetre, longer
+/// every 5) and the caption.
+pub fn page(layout: &FrameLayout, paper: Paper) -> Result<Page> {
+    let [cx, cy] = frame_centre_on_page(layout, paper)?;
+    let black = black_rects(layout)?.into_iter().map(|[x, y, w, h]| [cx + x, cy + y, w, h]).collect();
+    let half = layout.opening_mm() / 2.0;
+    let bar_y = cy - layout.outer_half_mm() - 12.0;
+    let bar_x = cx - SCALE_BAR_MM / 2.0;
+    let mut lines = vec![([bar_x, bar_y], [bar_x + SCALE_BAR_MM, bar_y])];
+    for k in 0..=(SCALE_BAR_MM / 10.0) as usize {
+        let x = bar_x + k as f64 * 10.0;
+        lines.push(([x, bar_y], [x, bar_y + if k % 5 == 0 { 4.0 } else { 2.0 }]));
+    }
+    let caption = caption(layout).into_iter().enumerate().map(|(i, line)| (line, bar_y - 10.0 - 6.0 * i as f64)).collect();
+    Ok(Page { size_mm: paper.size_mm(), black, cut: [cx - half, cy - half, 2.0 * half, 2.0 * half], lines, caption })
+}
+
 /// 1 mm in PDF points.
 const PT_PER_MM: f64 = 72.0 / 25.4;
+/// The caption's left margin, mm.
+const CAPTION_LEFT_MM: f64 = 15.0;
 
 /// The frame as a one-page PDF: tags as filled rectangles, the opening's
-/// cut line, the scale bar with centimetre ticks, and the caption (Helvetica).
+/// cut line, the scale bar, and the caption (Helvetica).
 pub fn frame_pdf(layout: &FrameLayout, paper: Paper) -> Result<Vec<u8>> {
     use pdf_writer::{Content, Name, Pdf, Rect, Ref, Str};
-    let [pw, ph] = paper.size_mm();
-    let [cx, cy] = frame_centre_on_page(layout, paper)?;
+    let page = page(layout, paper)?;
     let p = |v: f64| (v * PT_PER_MM) as f32;
     let mut content = Content::new();
     content.set_fill_gray(0.0);
-    for [x, y, w, h] in black_rects(layout)? {
-        content.rect(p(cx + x), p(cy + y), p(w), p(h));
+    for [x, y, w, h] in &page.black {
+        content.rect(p(*x), p(*y), p(*w), p(*h));
     }
     content.fill_nonzero();
-    // The opening's cut line, thin grey.
-    let half = layout.opening_mm() / 2.0;
-    content.set_stroke_gray(0.6).set_line_width(0.5);
-    content.rect(p(cx - half), p(cy - half), p(2.0 * half), p(2.0 * half)).stroke();
-    // The scale bar: SCALE_BAR_MM long, a tick each centimetre.
-    let bar_y = cy - layout.outer_half_mm() - 12.0;
-    let bar_x = cx - SCALE_BAR_MM / 2.0;
+    let [x, y, w, h] = page.cut;
+    content.set_stroke_gray(0.6).set_line_width(0.5).rect(p(x), p(y), p(w), p(h)).stroke();
     content.set_stroke_gray(0.0).set_line_width(0.8);
-    content.move_to(p(bar_x), p(bar_y)).line_to(p(bar_x + SCALE_BAR_MM), p(bar_y));
-    for k in 0..=(SCALE_BAR_MM / 10.0) as usize {
-        let x = bar_x + k as f64 * 10.0;
-        let tick = if k % 5 == 0 { 4.0 } else { 2.0 };
-        content.move_to(p(x), p(bar_y)).line_to(p(x), p(bar_y + tick));
+    for (a, b) in &page.lines {
+        content.move_to(p(a[0]), p(a[1])).line_to(p(b[0]), p(b[1]));
     }
     content.stroke();
     let font = Name(b"F1");
-    for (i, line) in caption(layout).iter().enumerate() {
-        content.begin_text().set_font(font, 9.0).next_line(p(15.0), p(bar_y - 10.0 - 6.0 * i as f64)).show(Str(line.as_bytes())).end_text();
+    for (line, y) in &page.caption {
+        content.begin_text().set_font(font, 9.0).next_line(p(CAPTION_LEFT_MM), p(*y)).show(Str(line.as_bytes())).end_text();
     }
-    let (catalog, tree, page, font_id, content_id) = (Ref::new(1), Ref::new(2), Ref::new(3), Ref::new(4), Ref::new(5));
+    let (catalog, tree, page_id, font_id, content_id) = (Ref::new(1), Ref::new(2), Ref::new(3), Ref::new(4), Ref::new(5));
     let mut pdf = Pdf::new();
     pdf.catalog(catalog).pages(tree);
-    pdf.pages(tree).kids([page]).count(1);
-    let mut page_writer = pdf.page(page);
-    page_writer.parent(tree).media_box(Rect::new(0.0, 0.0, p(pw), p(ph))).contents(content_id);
+    pdf.pages(tree).kids([page_id]).count(1);
+    let mut page_writer = pdf.page(page_id);
+    page_writer.parent(tree).media_box(Rect::new(0.0, 0.0, p(page.size_mm[0]), p(page.size_mm[1]))).contents(content_id);
     page_writer.resources().fonts().pair(font, font_id);
     drop(page_writer);
     pdf.type1_font(font_id).base_font(Name(b"Helvetica"));
@@ -262,51 +287,40 @@ pub fn frame_pdf(layout: &FrameLayout, paper: Paper) -> Result<Vec<u8>> {
 }
 
 /// The frame as a grey image at `dpi` (a PNG to print at that resolution,
-/// or to look at): white paper, black tags, the grey cut line, the scale
-/// bar; the caption is drawn by the caller. Returns `[1, H, W]` in [0, 1]
-/// and the caption's baseline rows.
-pub fn frame_raster(layout: &FrameLayout, paper: Paper, dpi: f64) -> Result<(crate::image::Image, Vec<usize>)> {
+/// or to look at), `[1, H, W]` in [0, 1]: white paper, black tags, the grey
+/// cut line, the scale bar. The caption is for the caller to draw
+/// (`viz::annotate`): its lines with their left and baseline pixels.
+pub fn frame_raster(layout: &FrameLayout, paper: Paper, dpi: f64) -> Result<(crate::image::Image, Vec<(String, [f64; 2])>)> {
     ensure!(dpi.is_finite() && (50.0..=1200.0).contains(&dpi), "--dpi must be from 50 to 1200, got {dpi}");
-    let [pw, ph] = paper.size_mm();
-    let [cx, cy] = frame_centre_on_page(layout, paper)?;
+    let page = page(layout, paper)?;
+    let [pw, ph] = page.size_mm;
     let px_per_mm = dpi / 25.4;
     let (w, h) = ((pw * px_per_mm).round() as usize, (ph * px_per_mm).round() as usize);
     let mut image = crate::image::Image::filled(1, h, w, 1.0);
-    // Page mm -> pixel (column, row); rows run down.
-    let fill = |image: &mut crate::image::Image, x0: f64, y0: f64, x1: f64, y1: f64, value: f32| {
-        let c0 = ((x0 * px_per_mm).round().max(0.0) as usize).min(w);
-        let c1 = ((x1 * px_per_mm).round().max(0.0) as usize).min(w);
-        let r0 = (((ph - y1) * px_per_mm).round().max(0.0) as usize).min(h);
-        let r1 = (((ph - y0) * px_per_mm).round().max(0.0) as usize).min(h);
-        for r in r0..r1 {
-            for c in c0..c1 {
+    // Fills page mm [x0, x1] x [y0, y1] (rows run down the page).
+    let mut fill = |x0: f64, y0: f64, x1: f64, y1: f64, value: f32| {
+        let col = |x: f64| ((x * px_per_mm).round().max(0.0) as usize).min(w);
+        let row = |y: f64| (((ph - y) * px_per_mm).round().max(0.0) as usize).min(h);
+        for r in row(y1)..row(y0) {
+            for c in col(x0)..col(x1) {
                 image.set(0, r, c, value);
             }
         }
     };
-    for [x, y, rw, rh] in black_rects(layout)? {
-        fill(&mut image, cx + x, cy + y, cx + x + rw, cy + y + rh, 0.0);
+    for [x, y, rw, rh] in &page.black {
+        fill(*x, *y, x + rw, y + rh, 0.0);
     }
-    let half = layout.opening_mm() / 2.0;
-    let line = 0.2;
-    for (x0, y0, x1, y1) in [
-        (cx - half, cy - half, cx + half, cy - half + line),
-        (cx - half, cy + half - line, cx + half, cy + half),
-        (cx - half, cy - half, cx - half + line, cy + half),
-        (cx + half - line, cy - half, cx + half, cy + half),
-    ] {
-        fill(&mut image, x0, y0, x1, y1, 0.6);
+    let [x, y, side, _] = page.cut;
+    let t = 0.2;
+    for [x0, y0, x1, y1] in [[x, y, x + side, y + t], [x, y + side - t, x + side, y + side], [x, y, x + t, y + side], [x + side - t, y, x + side, y + side]] {
+        fill(x0, y0, x1, y1, 0.6);
     }
-    let bar_y = cy - layout.outer_half_mm() - 12.0;
-    let bar_x = cx - SCALE_BAR_MM / 2.0;
-    fill(&mut image, bar_x, bar_y - 0.15, bar_x + SCALE_BAR_MM, bar_y + 0.15, 0.0);
-    for k in 0..=(SCALE_BAR_MM / 10.0) as usize {
-        let x = bar_x + k as f64 * 10.0;
-        let tick = if k % 5 == 0 { 4.0 } else { 2.0 };
-        fill(&mut image, x - 0.15, bar_y, x + 0.15, bar_y + tick, 0.0);
+    for (a, b) in &page.lines {
+        let t = 0.15;
+        fill(a[0].min(b[0]) - t, a[1].min(b[1]) - t, a[0].max(b[0]) + t, a[1].max(b[1]) + t, 0.0);
     }
-    let baselines = (0..3).map(|i| ((ph - (bar_y - 10.0 - 6.0 * i as f64)) * px_per_mm).round() as usize).collect();
-    Ok((image, baselines))
+    let caption = page.caption.into_iter().map(|(line, y)| (line, [CAPTION_LEFT_MM * px_per_mm, (ph - y) * px_per_mm])).collect();
+    Ok((image, caption))
 }
 
 #[cfg(test)]

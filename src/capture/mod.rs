@@ -70,6 +70,8 @@ pub struct FramePhoto {
     /// The focal length in pixels from the EXIF, if it says.
     pub exif_focal: Option<f64>,
     pub orientation: u16,
+    /// Exposure time, f-number and ISO as the EXIF says, if it does.
+    pub exposure: Option<String>,
 }
 
 /// Reads a photo of the frame (JPEG, PNG, HEIC with the `heif` feature).
@@ -81,7 +83,18 @@ pub fn load_frame_photo(path: &Path) -> Result<FramePhoto> {
     let (w, h) = (rgb.width, rgb.height);
     let data = (0..h).flat_map(|y| (0..w).flat_map(move |x| (0..3).map(move |c| (y, x, c)))).map(|(y, x, c)| crate::spaces::quantize_u8(rgb.get(c, y, x))).collect();
     let exif_focal = info.fov.map(|(fov, _)| w.min(h) as f64 / 2.0 / (fov.to_radians() / 2.0).tan());
-    Ok(FramePhoto { path: path.to_path_buf(), rgb: Rgb8 { width: w, height: h, data }, exif_focal, orientation: info.orientation })
+    Ok(FramePhoto { path: path.to_path_buf(), rgb: Rgb8 { width: w, height: h, data }, exif_focal, orientation: info.orientation, exposure: info.exposure })
+}
+
+/// A warning when the photos' EXIF exposures differ (auto exposure): the
+/// fit takes one exposure unless it fits a gain per photo.
+pub fn exposure_warning(photos: &[FramePhoto]) -> Option<String> {
+    let first = photos.first()?.exposure.as_ref()?;
+    if photos.iter().all(|p| p.exposure.as_ref() == Some(first)) {
+        return None;
+    }
+    let list = photos.iter().map(|p| format!("{} {}", name(&p.path), p.exposure.as_deref().unwrap_or("(no EXIF)"))).collect::<Vec<_>>().join(", ");
+    Some(format!("the photos' exposures differ ({list}): lock the exposure, or fit a gain per photo (estimate --capture --photo-gains)"))
 }
 
 /// The flash's offset in the camera frame of a photo shown with EXIF

@@ -29,7 +29,7 @@ fn shoot(views: &[PhoneView], offset: [f64; 2], fx: PhoneEffects, dir: &Path) ->
         let truth = opening_truth(&m, &layout, light, camera, r0).unwrap();
         let linear = render_photo(&layout, &truth, light, r0, v, super::synthetic::SUPERSAMPLE).unwrap();
         let rgb = as_phone_photo(&linear, &PhoneEffects { seed: i as u64, ..fx }).unwrap();
-        photos.push(FramePhoto { path: dir.join(format!("IMG_{i}.jpg")), rgb, exif_focal: Some(FOCAL), orientation: 1 });
+        photos.push(FramePhoto { path: dir.join(format!("IMG_{i}.jpg")), rgb, exif_focal: Some(FOCAL), orientation: 1, exposure: None });
         truths.push(truth);
     }
     (photos, truths)
@@ -127,7 +127,7 @@ fn bad_photos_are_named_and_leave_no_folder() {
     assert!(err(&photos[..1]).contains("at least 2 photos"));
 
     // Most of the frame covered: too few tags.
-    let mut covered = FramePhoto { path: dir.path().join("covered.jpg"), rgb: Rgb8 { width: W, height: H, data: photos[1].rgb.data.clone() }, exif_focal: Some(FOCAL), orientation: 1 };
+    let mut covered = FramePhoto { path: dir.path().join("covered.jpg"), rgb: Rgb8 { width: W, height: H, data: photos[1].rgb.data.clone() }, exif_focal: Some(FOCAL), orientation: 1, exposure: None };
     for y in 0..H {
         for x in (W / 3)..W {
             covered.rgb.data[3 * (y * W + x)..3 * (y * W + x) + 3].fill(128);
@@ -163,7 +163,7 @@ fn bad_photos_are_named_and_leave_no_folder() {
 
 impl FramePhoto {
     fn clone_photo(&self) -> FramePhoto {
-        FramePhoto { path: self.path.clone(), rgb: Rgb8 { width: self.rgb.width, height: self.rgb.height, data: self.rgb.data.clone() }, exif_focal: self.exif_focal, orientation: self.orientation }
+        FramePhoto { path: self.path.clone(), rgb: Rgb8 { width: self.rgb.width, height: self.rgb.height, data: self.rgb.data.clone() }, exif_focal: self.exif_focal, orientation: self.orientation, exposure: self.exposure.clone() }
     }
 }
 
@@ -197,15 +197,17 @@ fn flash_offsets_turn_with_the_photo() {
 #[test]
 fn the_frame_picture_has_its_tags_and_caption_room() {
     let layout = FrameLayout::new(10).unwrap();
-    let (image, baselines) = frame::frame_raster(&layout, frame::Paper::A4, 100.0).unwrap();
+    let (image, caption) = frame::frame_raster(&layout, frame::Paper::A4, 100.0).unwrap();
     // A4 at 100 dpi: 827 x 1169 pixels.
     assert_eq!((image.width, image.height), (827, 1169));
     let ink = image.data.iter().filter(|&&v| v < 0.5).count() as f64 / image.data.len() as f64;
     assert!(ink > 0.02 && ink < 0.2, "{ink}");
-    assert!(baselines.iter().all(|&b| b < image.height));
+    // The caption under the scale bar, inside the page.
+    assert_eq!(caption.len(), 3);
+    assert!(caption.iter().all(|(_, [x, y])| *x > 0.0 && *y < image.height as f64 && *y > image.height as f64 / 2.0));
     // The detector finds every tag of the printed page.
     let rgb = Rgb8 { width: image.width, height: image.height, data: image.data.iter().flat_map(|&v| [crate::spaces::quantize_u8(v); 3]).collect() };
-    let photo = FramePhoto { path: "frame.png".into(), rgb, exif_focal: None, orientation: 1 };
+    let photo = FramePhoto { path: "frame.png".into(), rgb, exif_focal: None, orientation: 1, exposure: None };
     let (found_layout, found) = find_frame(&photo, 2).unwrap();
     assert_eq!(found_layout, layout);
     assert_eq!(found.len(), layout.tags.len());
@@ -255,7 +257,17 @@ fn tags_of_another_family_are_named() {
         apriltag_sys::tag25h9_destroy(family);
     }
     let rgb = Rgb8 { width: w, height: h, data: gray.iter().flat_map(|&v| [v; 3]).collect() };
-    let photo = FramePhoto { path: "other.png".into(), rgb, exif_focal: None, orientation: 1 };
+    let photo = FramePhoto { path: "other.png".into(), rgb, exif_focal: None, orientation: 1, exposure: None };
     let e = format!("{:#}", find_frame(&photo, 2).err().expect("an error"));
     assert!(e.starts_with("other.png: its tags are tag25h9, not the frame's tag36h11"), "{e}");
+}
+
+#[test]
+fn differing_exposures_are_named() {
+    let photo = |name: &str, exposure: Option<&str>| FramePhoto { path: name.into(), rgb: Rgb8 { width: 1, height: 1, data: vec![0; 3] }, exif_focal: None, orientation: 1, exposure: exposure.map(Into::into) };
+    let same = [photo("a.jpg", Some("1/60 s, f/1.8, ISO 100")), photo("b.jpg", Some("1/60 s, f/1.8, ISO 100"))];
+    assert_eq!(exposure_warning(&same), None);
+    assert_eq!(exposure_warning(&[photo("a.jpg", None), photo("b.jpg", None)]), None);
+    let w = exposure_warning(&[photo("a.jpg", Some("1/60 s, f/1.8, ISO 100")), photo("b.jpg", Some("1/120 s, f/1.8, ISO 100"))]).unwrap();
+    assert!(w.starts_with("the photos' exposures differ (a.jpg 1/60 s, f/1.8, ISO 100, b.jpg 1/120 s"), "{w}");
 }

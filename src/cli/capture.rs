@@ -106,6 +106,7 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         photos.push(load_frame_photo(p)?);
         bar.set_position(i as u64 + 1);
     }
+    let exposures_differ = flashmat::capture::exposure_warning(&photos);
     let messages = ["finding the frame's tags", "fitting the camera", "rectifying the opening"];
     let capture = flashmat::capture::capture(&photos, &cfg, |stage, done, total| {
         bar.set_message(messages[stage]);
@@ -139,6 +140,9 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         );
     }
     eprintln!("look at {}", folder.join("capture.jpg").display());
+    if let Some(w) = &exposures_differ {
+        eprintln!("warning: {w}{}", if a.estimate { "; --estimate fits them" } else { "" });
+    }
     if let Some(material) = material {
         #[derive(Parser)]
         struct Defaults {
@@ -148,7 +152,7 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         let mut opts = Defaults::try_parse_from(["flashmat"])?.options;
         opts.size = a.size;
         opts.device = a.device.clone();
-        let args = CaptureArgs { capture: Some(folder.clone()), photos: None, steps: a.steps, photo_gains: false, pbr: None };
+        let args = CaptureArgs { capture: Some(folder.clone()), photos: None, steps: a.steps, photo_gains: exposures_differ.is_some(), pbr: None };
         super::estimate_capture::estimate_capture(&folder, &material, &args, &opts)?;
     }
     Ok(())
@@ -166,13 +170,11 @@ fn write_frame(f: &FrameArgs) -> Result<()> {
     match ext.as_str() {
         "pdf" => flashmat::io::atomic_write_bytes(&f.output, &frame::frame_pdf(&layout, f.paper)?)?,
         "png" => {
-            let (image, baselines) = frame::frame_raster(&layout, f.paper, f.dpi)?;
+            let (image, caption) = frame::frame_raster(&layout, f.paper, f.dpi)?;
+            // 9 pt text: 9/72 inch high; `Mark::Text` places its top-left corner.
             let size = f.dpi / 72.0 * 9.0;
-            let marks: Vec<flashmat::viz::Mark> = frame::caption(&layout)
-                .into_iter()
-                .zip(baselines)
-                .map(|(text, row)| flashmat::viz::Mark::Text { at: (15.0 * f.dpi / 25.4, row as f64 - size), text, size: size * 1.3, color: [0, 0, 0] })
-                .collect();
+            let marks: Vec<flashmat::viz::Mark> =
+                caption.into_iter().map(|(text, [x, baseline])| flashmat::viz::Mark::Text { at: (x, baseline - size), text, size: size * 1.3, color: [0, 0, 0] }).collect();
             let page = flashmat::viz::annotate(&image, &marks)?;
             flashmat::io::write_png(&f.output, &page, flashmat::io::BitDepth::Eight)?;
         }
