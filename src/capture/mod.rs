@@ -60,6 +60,13 @@ pub const FOCAL_AGREEMENT: f64 = 0.15;
 /// Below this sharpness ([`markers::sharpness`]: a Gaussian blur of about
 /// 4 pixels) a photo without tags is called blurred.
 pub const BLURRED_BELOW: f64 = 0.1;
+/// Without an EXIF focal length, at least one photo's optical axis must
+/// slant this far from the frame's normal (degrees) for the homographies
+/// to fix it.
+pub const MIN_TILT_WITHOUT_EXIF_DEG: f64 = 8.0;
+/// Focal lengths a phone's photo can have, in units of its longer side
+/// (fields of view across it from about 20 to 120 degrees).
+pub const FOCAL_RANGE: std::ops::RangeInclusive<f64> = 0.3..=3.0;
 /// Smallest rectified side, pixels.
 const MIN_SIDE: usize = 64;
 
@@ -277,7 +284,26 @@ fn calibrate_photos(photos: &[FramePhoto], obs: &[Correspondences]) -> Result<Ca
         .zip(photos)
         .map(|((h, &(w, hh)), p)| camera::pose_from_homography(h, &Intrinsics::centred(focal, w, hh)).ok_or_else(|| anyhow!("{}: no camera pose fits its tags", name(&p.path))))
         .collect::<Result<_>>()?;
+    if exif.is_none() {
+        // The photos' perspective fixes the focal length only if one of them
+        // looks at the frame at a slant; photos facing it straight on (even
+        // from off to the side) give any value their noise makes.
+        let slant = |p: &Pose| (-p.to_world_dir([0.0, 0.0, 1.0])[2]).clamp(-1.0, 1.0).acos().to_degrees();
+        let most = poses.iter().map(slant).fold(0.0, f64::max);
+        ensure!(
+            most >= MIN_TILT_WITHOUT_EXIF_DEG,
+            "no focal length: the photos have no EXIF focal length, and none looks at the frame at a slant of {MIN_TILT_WITHOUT_EXIF_DEG} degrees or more (the most: {most:.0}); add a photo taken at a tilt"
+        );
+    }
     let cal = camera::calibrate(obs, &sizes, focal, &poses)?;
+    let fitted = cal.intrinsics[0].focal / w0.max(h0) as f64;
+    ensure!(
+        FOCAL_RANGE.contains(&fitted),
+        "the tags say a focal length of {:.2}x the photo's longer side, outside a phone's {}-{}: are the photos cropped, or of another frame?",
+        fitted,
+        FOCAL_RANGE.start(),
+        FOCAL_RANGE.end()
+    );
     for (i, p) in photos.iter().enumerate() {
         let limit = MAX_RMS_PER_1000_PX * sizes[i].0.max(sizes[i].1) as f64 / 1000.0;
         let limit = limit.max(1.0);

@@ -271,3 +271,25 @@ fn differing_exposures_are_named() {
     let w = exposure_warning(&[photo("a.jpg", Some("1/60 s, f/1.8, ISO 100")), photo("b.jpg", Some("1/120 s, f/1.8, ISO 100"))]).unwrap();
     assert!(w.starts_with("the photos' exposures differ (a.jpg 1/60 s, f/1.8, ISO 100, b.jpg 1/120 s"), "{w}");
 }
+
+#[test]
+fn straight_on_photos_without_exif_have_no_focal_length() {
+    // Two photos facing the frame straight on (one off to the side), with no
+    // EXIF: their perspective cannot fix the focal length, and the capture
+    // says so instead of guessing.
+    let dir = tempfile::tempdir().unwrap();
+    let mut v = phone_views(&[[0.0, 0.0, 260.0], [2.0, -1.0, 255.0]], &[0.0, 3.0], W, H, FOCAL, 0.0, 0.0);
+    v[1].pose = camera::Pose::look_at([30.0, -20.0, 255.0], [30.0, -20.0, 0.0], [0.0, 1.0, 0.0]);
+    let fx = PhoneEffects { jpeg_quality: None, ..Default::default() };
+    let (mut photos, _) = shoot(&v, [0.0, 0.0], fx, dir.path());
+    for p in &mut photos {
+        p.exif_focal = None;
+    }
+    let e = format!("{:#}", capture(&photos, &CaptureConfig::default(), |_, _, _| {}).err().expect("an error"));
+    assert!(e.starts_with("no focal length: the photos have no EXIF focal length, and none looks at the frame at a slant"), "{e}");
+    // With the EXIF's focal length the same photos are a capture.
+    for p in &mut photos {
+        p.exif_focal = Some(FOCAL);
+    }
+    assert!(capture(&photos, &CaptureConfig::default(), |_, _, _| {}).is_ok());
+}
