@@ -203,17 +203,12 @@ fn frame_capture(m: &flashmat::svbrdf::Svbrdf, cameras: &[[f64; 3]], dir: &std::
     let eyes: Vec<[f64; 3]> = cameras.iter().map(|c| c.map(|v| v * unit)).collect();
     let views = synthetic::phone_views(&eyes, &[0.0, 12.0, -20.0, 35.0, 8.0], 1200, 900, 901.3, -0.03, 0.0);
     let offset = [FLASH_OFFSET * unit, 0.0];
-    let light_of = |v: &synthetic::PhoneView| flashmat::geometry::add(v.pose.centre(), v.pose.to_world_dir([offset[0], offset[1], 0.0]));
-    let r0 = flashmat::geometry::length(light_of(&views[0]));
-    let mut photos = Vec::new();
-    for (j, v) in views.iter().enumerate() {
-        let light = light_of(v);
-        let truth = synthetic::opening_truth(m, &layout, light, v.pose.centre(), r0)?;
-        let linear = synthetic::render_photo(&layout, &truth, light, r0, v, synthetic::SUPERSAMPLE)?;
-        let fx = synthetic::PhoneEffects { seed: (100 * seed + j) as u64, ..Default::default() };
-        let rgb = synthetic::as_phone_photo(&linear, &fx)?;
-        photos.push(FramePhoto { path: format!("IMG_{j}.jpg").into(), rgb, exif_focal: Some(901.3), orientation: 1, exposure: None });
-    }
+    let fx = synthetic::PhoneEffects { seed: 100 * seed as u64, ..Default::default() };
+    let photos: Vec<FramePhoto> = synthetic::shoot(m, &layout, &views, offset, synthetic::SUPERSAMPLE, &fx)?
+        .into_iter()
+        .enumerate()
+        .map(|(j, s)| FramePhoto { path: format!("IMG_{j}.jpg").into(), rgb: s.rgb, exif_focal: Some(901.3), orientation: 1, exposure: None })
+        .collect();
     // Rectified at twice the material's side, so the fit's 2x2 shrink lines up with its texels.
     let cfg = CaptureConfig { flash_offset_mm: offset, max_side: 2 * size, ..Default::default() };
     let capture = flashmat::capture::capture(&photos, &cfg, |_, _, _| {})?;

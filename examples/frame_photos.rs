@@ -11,7 +11,7 @@
 
 use anyhow::{Context, Result};
 use flashmat::capture::frame::FrameLayout;
-use flashmat::capture::synthetic::{as_phone_photo, opening_truth, phone_views, render_photo, PhoneEffects, SUPERSAMPLE};
+use flashmat::capture::synthetic::{phone_views, shoot, PhoneEffects, SUPERSAMPLE};
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
@@ -28,16 +28,10 @@ fn main() -> Result<()> {
     let views = phone_views(&eyes, &[0.0, 12.0, -20.0, 35.0, 8.0], width, height, focal, -0.03, 0.0);
     let m = flashmat::data::procedural::test_material(material, 256);
     std::fs::create_dir_all(&out)?;
-    let flash = |v: &flashmat::capture::synthetic::PhoneView| flashmat::geometry::add(v.pose.centre(), v.pose.to_world_dir([8.0, 0.0, 0.0]));
-    let r0 = flashmat::geometry::length(flash(&views[0]));
-    for (i, v) in views.iter().enumerate() {
-        let light = flash(v);
-        let truth = opening_truth(&m, &layout, light, v.pose.centre(), r0)?;
-        let linear = render_photo(&layout, &truth, light, r0, v, SUPERSAMPLE)?;
-        let rgb = as_phone_photo(&linear, &PhoneEffects { seed: i as u64, jpeg_quality: None, ..Default::default() })?;
-        let image = flashmat::image::Image::from_fn(3, height, width, |c, y, x| rgb.data[3 * (y * width + x) + c] as f32 / 255.0);
+    let fx = PhoneEffects { jpeg_quality: None, ..Default::default() };
+    for (i, (shot, v)) in shoot(&m, &layout, &views, [8.0, 0.0], SUPERSAMPLE, &fx)?.into_iter().zip(&views).enumerate() {
         let path = out.join(format!("IMG_{i:02}.jpg"));
-        flashmat::io::write_jpeg(&path, &image, 90)?;
+        flashmat::io::write_jpeg(&path, &shot.rgb.to_image(), 90)?;
         let c = v.pose.centre();
         eprintln!("{}: lens at ({:.0}, {:.0}, {:.0}) mm", path.display(), c[0], c[1], c[2]);
     }

@@ -77,17 +77,14 @@ fn frame_photos(d: &std::path::Path) -> Vec<std::path::PathBuf> {
     let eyes = [[0.0, 0.0, 250.0], [40.0, -32.0, 240.0], [-36.0, 40.0, 245.0]];
     let views = synthetic::phone_views(&eyes, &[0.0, 15.0, -20.0], 960, 720, 721.0, -0.03, 0.0);
     let material = flashmat::data::procedural::test_material(3, 64);
-    views
-        .iter()
+    let fx = synthetic::PhoneEffects { jpeg_quality: None, ..Default::default() };
+    synthetic::shoot(&material, &layout, &views, [8.0, 0.0], synthetic::SUPERSAMPLE, &fx)
+        .unwrap()
+        .into_iter()
         .enumerate()
-        .map(|(i, v)| {
-            let light = flashmat::geometry::add(v.pose.centre(), v.pose.to_world_dir([8.0, 0.0, 0.0]));
-            let truth = synthetic::opening_truth(&material, &layout, light, v.pose.centre(), 250.0).unwrap();
-            let linear = synthetic::render_photo(&layout, &truth, light, 250.0, v, synthetic::SUPERSAMPLE).unwrap();
-            let rgb = synthetic::as_phone_photo(&linear, &synthetic::PhoneEffects { seed: i as u64, jpeg_quality: None, ..Default::default() }).unwrap();
-            let image = flashmat::image::Image::from_fn(3, 720, 960, |c, y, x| rgb.data[3 * (y * 960 + x) + c] as f32 / 255.0);
+        .map(|(i, shot)| {
             let path = d.join(format!("IMG_{i}.jpg"));
-            flashmat::io::write_jpeg(&path, &image, 92).unwrap();
+            flashmat::io::write_jpeg(&path, &shot.rgb.to_image(), 92).unwrap();
             path
         })
         .collect()

@@ -21,7 +21,7 @@ pub fn capture_picture(capture: &Capture, photos: &[FramePhoto]) -> Result<Image
         let photo = photos.iter().find(|p| p.path == result.source).context("a capture's photo is missing from its inputs")?;
         let (w, h) = (photo.rgb.width, photo.rgb.height);
         let scale = THUMB as f64 / w.max(h) as f64;
-        let full = Image::from_fn(3, h, w, |c, y, x| photo.rgb.data[3 * (y * w + x) + c] as f32 / 255.0);
+        let full = photo.rgb.to_image();
         let thumb = full.resize_area(((h as f64 * scale).round() as usize).max(1), ((w as f64 * scale).round() as usize).max(1));
         let s = |p: [f64; 2]| (p[0] * scale, p[1] * scale);
         let mut marks: Vec<Mark> = result.markers.iter().map(|m| Mark::Line { points: m.corners.iter().map(|&c| s(c)).collect(), closed: true, width: 2, color: [40, 220, 60] }).collect();

@@ -13,6 +13,11 @@ pub struct Rgb8 {
 }
 
 impl Rgb8 {
+    /// The codes as a display image `[3, H, W]` in [0, 1].
+    pub fn to_image(&self) -> crate::image::Image {
+        crate::image::Image::from_fn(3, self.height, self.width, |c, y, x| self.data[3 * (y * self.width + x) + c] as f32 / 255.0)
+    }
+
     /// Grey values (Rec. 709 weights on the codes), for the tag detector.
     pub fn gray(&self) -> Vec<u8> {
         self.data.chunks_exact(3).map(|p| (0.2126 * p[0] as f32 + 0.7152 * p[1] as f32 + 0.0722 * p[2] as f32).round() as u8).collect()

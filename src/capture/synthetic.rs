@@ -124,6 +124,37 @@ pub fn render_photo(layout: &FrameLayout, opening: &Image, light: Vec3, r0: f64,
     Ok(Image::from_fn(3, h, w, |c, y, x| rows[3 * (y * w + x) + c]))
 }
 
+/// One synthetic phone photo and the truth of its opening (linear `[3, S, S]`).
+pub struct SyntheticPhoto {
+    pub rgb: Rgb8,
+    pub truth: Image,
+}
+
+/// The flash of a phone at `view`, `offset_mm` beside its lens in the camera frame.
+pub fn flash_position(view: &PhoneView, offset_mm: [f64; 2]) -> Vec3 {
+    crate::geometry::add(view.pose.centre(), view.pose.to_world_dir([offset_mm[0], offset_mm[1], 0.0]))
+}
+
+/// Phone photos of the frame with `material` in its opening, one per view,
+/// the flash `offset_mm` beside each lens, its level 1 at the first
+/// photo's flash distance; `samples` rays a pixel side, `fx` seeded
+/// `fx.seed + i` for photo i.
+pub fn shoot(material: &Svbrdf, layout: &FrameLayout, views: &[PhoneView], offset_mm: [f64; 2], samples: usize, fx: &PhoneEffects) -> Result<Vec<SyntheticPhoto>> {
+    let Some(first) = views.first() else { return Ok(vec![]) };
+    let r0 = length(flash_position(first, offset_mm));
+    views
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let light = flash_position(v, offset_mm);
+            let truth = opening_truth(material, layout, light, v.pose.centre(), r0)?;
+            let linear = render_photo(layout, &truth, light, r0, v, samples)?;
+            let rgb = as_phone_photo(&linear, &PhoneEffects { seed: fx.seed + i as u64, ..*fx })?;
+            Ok(SyntheticPhoto { rgb, truth })
+        })
+        .collect()
+}
+
 /// A linear photo as a phone saves it: blurred, noised, sRGB-encoded to
 /// 8 bits, JPEG-compressed.
 pub fn as_phone_photo(linear: &Image, fx: &PhoneEffects) -> Result<Rgb8> {

@@ -19,20 +19,12 @@ fn material() -> crate::svbrdf::Svbrdf {
 /// beside each lens (camera frame), with the truth of each opening.
 fn shoot(views: &[PhoneView], offset: [f64; 2], fx: PhoneEffects, dir: &Path) -> (Vec<FramePhoto>, Vec<crate::image::Image>) {
     let layout = FrameLayout::new(10).unwrap();
-    let m = material();
-    let r0 = EYES[0][2];
-    let mut photos = vec![];
-    let mut truths = vec![];
-    for (i, v) in views.iter().enumerate() {
-        let camera = v.pose.centre();
-        let light = add(camera, v.pose.to_world_dir([offset[0], offset[1], 0.0]));
-        let truth = opening_truth(&m, &layout, light, camera, r0).unwrap();
-        let linear = render_photo(&layout, &truth, light, r0, v, super::synthetic::SUPERSAMPLE).unwrap();
-        let rgb = as_phone_photo(&linear, &PhoneEffects { seed: i as u64, ..fx }).unwrap();
-        photos.push(FramePhoto { path: dir.join(format!("IMG_{i}.jpg")), rgb, exif_focal: Some(FOCAL), orientation: 1, exposure: None });
-        truths.push(truth);
-    }
-    (photos, truths)
+    let shots = super::synthetic::shoot(&material(), &layout, views, offset, super::synthetic::SUPERSAMPLE, &fx).unwrap();
+    shots
+        .into_iter()
+        .enumerate()
+        .map(|(i, s)| (FramePhoto { path: dir.join(format!("IMG_{i}.jpg")), rgb: s.rgb, exif_focal: Some(FOCAL), orientation: 1, exposure: None }, s.truth))
+        .unzip()
 }
 
 fn views(k1: f64) -> Vec<PhoneView> {

@@ -374,14 +374,11 @@ fn frame_bench_in(root: &std::path::Path, views: &[flashmat::capture::synthetic:
     let material = procedural::test_material(3, 256);
     let bar = indicatif::ProgressBar::new(views.len() as u64).with_message("rendering photos (not timed)");
     let mut paths = vec![];
-    for (i, v) in views.iter().enumerate() {
-        let c = v.pose.centre();
-        let truth = synthetic::opening_truth(&material, layout, c, c, 280.0)?;
-        let linear = synthetic::render_photo(layout, &truth, c, 280.0, v, 1)?;
-        let rgb = synthetic::as_phone_photo(&linear, &synthetic::PhoneEffects { seed: i as u64, jpeg_quality: None, ..Default::default() })?;
-        let image = flashmat::image::Image::from_fn(3, height, width, |ch, y, x| rgb.data[3 * (y * width + x) + ch] as f32 / 255.0);
+    // One ray a pixel: 12 MP photos need no supersampling to be sharp.
+    let fx = synthetic::PhoneEffects { jpeg_quality: None, ..Default::default() };
+    for (i, shot) in synthetic::shoot(&material, layout, views, [0.0, 0.0], 1, &fx)?.into_iter().enumerate() {
         let path = root.join(format!("IMG_{i:02}.jpg"));
-        flashmat::io::write_jpeg(&path, &image, 90)?;
+        flashmat::io::write_jpeg(&path, &shot.rgb.to_image(), 90)?;
         paths.push(path);
         bar.inc(1);
     }
