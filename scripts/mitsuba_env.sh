@@ -1,4 +1,4 @@
-# Source this file: sets up (once) what the Mitsuba 3 plugin (python/flashmat_mitsuba)
+# Source this file: sets up (once) what the Mitsuba 3 plugin (python/flashmat/mitsuba)
 # needs on top of flashmat's Python environment (scripts/env.sh):
 #   - mitsuba 3 (brings drjit) and pytest in $FLASHMAT_VENV
 #   - LLVM >= 16 for Dr.Jit's LLVM backend (the distribution's LLVM 15 crashes it):

@@ -23,6 +23,8 @@ bash scripts/install-chromium.sh >/dev/null || true
 features=()
 if bash scripts/install-libheif.sh >/dev/null; then
   features=(--features heif)
+  # The Python package's extension is built with it too (scripts/test_python.sh).
+  export FLASHMAT_CARGO_FEATURES=heif
 elif [ "${FLASHMAT_REQUIRE_HEIF:-0}" = 1 ]; then
   echo "test: libheif-dev is required here (FLASHMAT_REQUIRE_HEIF=1) and could not be installed" >&2
   exit 1
@@ -35,7 +37,9 @@ if cargo nextest --version >/dev/null 2>&1; then
 else
   cargo test --all-targets ${features[@]+"${features[@]}"} -- --test-threads=1 2>&1 || rust_rc=$?
 fi
-# The Mitsuba 3 plugin (Python, pytest): installs mitsuba and libllvm19 once.
+# The Python package (the extension and the Mitsuba 3 plugin; pytest): a
+# fresh environment, pip install of this checkout; mitsuba, maturin and
+# libllvm19 are installed once.
 python_rc=0
 bash scripts/test_python.sh 2>&1 || python_rc=$?
 # The GPU campaign's steps on the CPU (tiny preset, under a minute).

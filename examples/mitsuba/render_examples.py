@@ -203,7 +203,7 @@ def main(argv=None):
     if args.variant not in mi.variants():
         raise ExampleError(f"Mitsuba variant {args.variant!r} not available (have: {', '.join(mi.variants())})")
     mi.set_variant(args.variant)
-    import flashmat_mitsuba
+    import flashmat.mitsuba as flashmat_mitsuba
 
     flashmat_mitsuba.register()
     maps = flashmat_mitsuba.load_svbrdf(svbrdf)

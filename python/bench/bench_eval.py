@@ -44,7 +44,7 @@ def main():
     import mitsuba as mi
 
     mi.set_variant(args.variant)
-    import flashmat_mitsuba
+    import flashmat.mitsuba as flashmat_mitsuba
 
     flashmat_mitsuba.register()
     if args.preset:

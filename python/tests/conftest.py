@@ -70,7 +70,7 @@ def set_variant(name):
     if name not in mi.variants():
         pytest.skip(f"Mitsuba variant {name} not available")
     mi.set_variant(name)
-    import flashmat_mitsuba
+    import flashmat.mitsuba as flashmat_mitsuba
 
     flashmat_mitsuba.register()
     return mi

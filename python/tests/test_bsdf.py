@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from conftest import TINY_NMAT, TINY_ROWS, set_variant
-from flashmat_mitsuba.bsdf import correction_matrix
-from flashmat_mitsuba.nmat import read_nmat, reference_log_radiance
+from flashmat.mitsuba.bsdf import correction_matrix
+from flashmat.mitsuba.nmat import read_nmat, reference_log_radiance
 
 needs_fixture = pytest.mark.skipif(not (TINY_NMAT.exists() and TINY_ROWS.exists()), reason="fixture missing")
 RTOL = 1e-4

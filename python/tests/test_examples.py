@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from conftest import REPO, TINY_NMAT, find_flashmat, set_variant, write_material
-from flashmat_mitsuba.bsdf import correction_matrix
-from flashmat_mitsuba.ggx import ggx_radiance, load_svbrdf
-from flashmat_mitsuba.nmat import read_nmat, reference_log_radiance
+from flashmat.mitsuba.bsdf import correction_matrix
+from flashmat.mitsuba.ggx import ggx_radiance, load_svbrdf
+from flashmat.mitsuba.nmat import read_nmat, reference_log_radiance
 
 EXAMPLES = REPO / "examples" / "mitsuba"
 sys.path.insert(0, str(EXAMPLES))

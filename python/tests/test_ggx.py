@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import find_flashmat, set_variant, write_material
-from flashmat_mitsuba.ggx import ggx_radiance, load_svbrdf
+from flashmat.mitsuba.ggx import ggx_radiance, load_svbrdf
 
 
 def unit(v):

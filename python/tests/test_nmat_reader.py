@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import TINY_NMAT, synthetic_tensors, write_nmat
-from flashmat_mitsuba.nmat import NmatError, read_nmat
+from flashmat.mitsuba.nmat import NmatError, read_nmat
 
 
 def test_reads_synthetic(synthetic_nmat):
@@ -90,7 +90,7 @@ def test_plugin_raises_for_damaged_file(synthetic_nmat, tmp_path):
 
 def test_header_checksum(tmp_path):
     """flashmat.meta_crc32 covers shapes and metadata, which flashmat.crc32 does not."""
-    from flashmat_mitsuba.nmat import header_crc
+    from flashmat.mitsuba.nmat import header_crc
 
     t, meta = synthetic_tensors(h=4, w=6)
     p = tmp_path / "sealed.nmat"

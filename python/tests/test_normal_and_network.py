@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from conftest import TINY_NMAT, set_variant
-from flashmat_mitsuba.bsdf import correction_matrix
-from flashmat_mitsuba.ggx import ggx_radiance
-from flashmat_mitsuba.nmat import read_nmat, reference_log_radiance
+from flashmat.mitsuba.bsdf import correction_matrix
+from flashmat.mitsuba.ggx import ggx_radiance
+from flashmat.mitsuba.nmat import read_nmat, reference_log_radiance
 
 
 def unit(v):
@@ -103,7 +103,7 @@ def test_unrolled_and_coopvec_networks_agree():
     mi = set_variant("llvm_ad_rgb")
     import drjit as dr
 
-    from flashmat_mitsuba.network import coopvec_available
+    from flashmat.mitsuba.network import coopvec_available
 
     if not coopvec_available():
         pytest.skip("this Dr.Jit has no drjit.nn")

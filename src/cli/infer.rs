@@ -105,29 +105,7 @@ impl RefineWeights {
     }
 }
 
-/// `--exposure-mode`: which of [`infer::ExposureConfig`]'s steps run.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ExposureMode {
-    Calibrated,
-    CalibratedGrey,
-    Normalized,
-    CalibratedClipping,
-    CalibratedCapped,
-    Off,
-}
-
-impl ExposureMode {
-    pub fn config(self) -> infer::ExposureConfig {
-        match self {
-            ExposureMode::Calibrated => infer::ExposureConfig::default(),
-            ExposureMode::CalibratedGrey => infer::ExposureConfig { white_balance: false, ..Default::default() },
-            ExposureMode::Normalized => infer::ExposureConfig { calibrate: false, ..Default::default() },
-            ExposureMode::CalibratedClipping => infer::ExposureConfig { clip_share: None, ..Default::default() },
-            ExposureMode::CalibratedCapped => infer::ExposureConfig { lift_candidates: 1, ..Default::default() },
-            ExposureMode::Off => infer::ExposureConfig::off(),
-        }
-    }
-}
+pub use flashmat::infer::exposure::ExposureMode;
 
 impl EstimateOptions {
     fn exposure_config(&self) -> infer::ExposureConfig {

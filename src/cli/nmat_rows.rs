@@ -1,6 +1,6 @@
 //! `flashmat nmat-rows`: reference rows of a neural material for other
 //! implementations of the .nmat renderer (the Mitsuba 3 plugin in
-//! python/flashmat_mitsuba checks itself against them). Each row is one
+//! python/flashmat/mitsuba checks itself against them). Each row is one
 //! pixel's parameters, a light direction wi and a view direction wo (unit,
 //! upper hemisphere, material frame) and flashmat's own M_render output
 //! ln(1 + R), computed by `NeuralRenderer::forward_rows`.

@@ -81,6 +81,31 @@ pub const DEFAULT_LIFT_CANDIDATES: usize = 3;
 /// normalised gain alone is kept).
 pub const MAX_CALIBRATION: f64 = 8.0;
 
+/// `--exposure-mode` (and the Python `exposure_mode`): which of
+/// [`ExposureConfig`]'s steps run.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ExposureMode {
+    Calibrated,
+    CalibratedGrey,
+    Normalized,
+    CalibratedClipping,
+    CalibratedCapped,
+    Off,
+}
+
+impl ExposureMode {
+    pub fn config(self) -> ExposureConfig {
+        match self {
+            ExposureMode::Calibrated => ExposureConfig::default(),
+            ExposureMode::CalibratedGrey => ExposureConfig { white_balance: false, ..Default::default() },
+            ExposureMode::Normalized => ExposureConfig { calibrate: false, ..Default::default() },
+            ExposureMode::CalibratedClipping => ExposureConfig { clip_share: None, ..Default::default() },
+            ExposureMode::CalibratedCapped => ExposureConfig { lift_candidates: 1, ..Default::default() },
+            ExposureMode::Off => ExposureConfig::off(),
+        }
+    }
+}
+
 /// How a photo's exposure is taken out before M_est and put back after.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ExposureConfig {

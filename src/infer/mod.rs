@@ -25,9 +25,9 @@ pub mod show;
 pub mod tiles;
 pub mod tiling;
 
-pub use exposure::ExposureConfig;
+pub use exposure::{ExposureConfig, ExposureMode};
 pub use nmat::{NeuralMaterial, NmatMeta, NMAT_FORMAT, NMAT_VERSION};
-pub use photo::{load_photo, load_photo_with, prepare_image, prepare_image_with, Crop, PhotoOptions, PreparedPhoto};
+pub use photo::{load_photo, load_photo_with, prepare_decoded, prepare_image, prepare_image_with, Crop, PhotoOptions, PreparedPhoto};
 pub use tiles::{plan_estimate, EstPlan};
 
 use crate::data::samples::photo_est_input;

@@ -247,10 +247,78 @@ impl NeuralMaterial {
                 .collect::<Result<Vec<_>>>()?;
             Ok(Tensor::cat(&bands, 3))
         })?;
+        self.radiance_of_log(&log.get(0))
+    }
+
+    /// Radiance under per-pixel directions, with autograd: gradients reach
+    /// the neural map, the renderer's weights and the directions wherever
+    /// they require them (the Python `render_dirs`; the renders above run
+    /// without a graph, in bands). wi, wo: `[K, 3, H, W]` unit vectors
+    /// towards the light and the camera -> `[K, 3, H, W]`, clamped as in
+    /// [`NeuralMaterial::render`].
+    pub fn render_directions(&self, wi: &Tensor, wo: &Tensor) -> Result<Tensor> {
+        self.render_map_directions(&self.neural_map, wi, wo)
+    }
+
+    /// [`NeuralMaterial::render_directions`] for light/view positions, with
+    /// autograd (the Python `render`), at the map's resolution or with its
+    /// shorter side resampled to `size` pixels (bilinear in the codes, the
+    /// longer side following the aspect; an approximation, as the Mitsuba
+    /// plugin's `bilinear` filter). Returns `[K, 3, H', W']`.
+    pub fn render_differentiable(&self, configs: &[LightView], size: Option<usize>) -> Result<Tensor> {
+        ensure!(!configs.is_empty(), "no light/view configuration to render");
+        for c in configs {
+            crate::geometry::above_surface("light", c.light)?;
+            crate::geometry::above_surface("camera", c.view)?;
+        }
+        let (h, w) = self.size();
+        let (oh, ow) = match size {
+            None => (h, w),
+            Some(s) => {
+                ensure!(s >= 1, "the render size must be at least 1 pixel");
+                crate::limits::MATERIAL_SIZE.check("the render size", s as u64)?;
+                let scale = s as f64 / h.min(w) as f64;
+                (((h as f64 * scale).round() as usize).max(1), ((w as f64 * scale).round() as usize).max(1))
+            }
+        };
+        let map = match (oh, ow) == (h, w) {
+            true => self.neural_map.shallow_clone(),
+            false => self.neural_map.unsqueeze(0).upsample_bilinear2d([oh as i64, ow as i64], false, None, None).get(0),
+        };
+        let k = configs.len() as i64;
+        let (lights, views) = crate::geometry::config_tensors(configs, self.device());
+        let (wi, wo) = crate::svbrdf::render::direction_maps_for(&lights.view([1, k, 3]), &views.view([1, k, 3]), oh, ow);
+        self.render_map_directions(&map, &wi.get(0), &wo.get(0))
+    }
+
+    /// map: `[C, H, W]`; wi, wo: `[K, 3, H, W]` -> radiance `[K, 3, H, W]`.
+    fn render_map_directions(&self, map: &Tensor, wi: &Tensor, wo: &Tensor) -> Result<Tensor> {
+        let s = map.size();
+        let (h, w) = (s[1], s[2]);
+        for (name, d) in [("wi", wi), ("wo", wo)] {
+            let ds = d.size();
+            ensure!(ds.len() == 4 && ds[1] == 3 && ds[2] == h && ds[3] == w, "{name} must be [K, 3, {h}, {w}], got {ds:?}");
+            ensure!(d.device() == self.device(), "{name} is on {:?}, the material on {:?}", d.device(), self.device());
+            ensure!(crate::image::all_finite(d), "{name} holds NaN or infinite values");
+        }
+        ensure!(wi.size() == wo.size(), "wi {:?} and wo {:?} must have the same shape", wi.size(), wo.size());
+        let kind = tch::Kind::Float;
+        let log = self.renderer.forward_maps(&map.unsqueeze(0), &wi.to_kind(kind).unsqueeze(0), &wo.to_kind(kind).unsqueeze(0))?;
+        self.radiance_of_log(&log.get(0))
+    }
+
+    /// Radiance of the network's ln(1 + R) `[K, 3, H, W]`: clamped, times
+    /// the gain.
+    fn radiance_of_log(&self, log: &Tensor) -> Result<Tensor> {
         // Finite weights can still overflow to Inf - Inf = NaN, which the
         // clamps below would keep (Inf itself clamps to MAX_LOG_RADIANCE).
         ensure!(log.isnan().any().int64_value(&[]) == 0, "M_render produced NaN values for this material (weights out of range?)");
-        Ok(crate::spaces::from_log(&log.get(0).clamp_max(MAX_LOG_RADIANCE)).clamp_min(0.0) * self.gain_tensor().view([3, 1, 1]))
+        Ok(crate::spaces::from_log(&log.clamp_max(MAX_LOG_RADIANCE)).clamp_min(0.0) * self.gain_tensor().view([3, 1, 1]))
+    }
+
+    /// The same material on `device` (map, photo and renderer copied).
+    pub fn to_device(&self, device: Device) -> Result<Self> {
+        Self::from_parts(self.neural_map.to_device(device), self.input_photo.to_device(device), &self.config, &self.renderer_vs.variables(), self.meta.clone())
     }
 
     /// [`NmatMeta::gain`] as a `[3]` float tensor on the material's device.

@@ -253,9 +253,8 @@ pub fn load_photo(path: &Path, fov_deg: Option<f64>, size: usize) -> Result<Prep
     load_photo_with(path, &PhotoOptions { fov_deg, size, ..Default::default() })
 }
 
-/// [`load_photo`] with every option: the EXIF orientation is applied, the
-/// exposure change scales the linear photo.
-pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto> {
+/// Checks a photo's options before anything is read.
+fn check_options(opts: &PhotoOptions) -> Result<()> {
     check_size(opts.size)?;
     if let Some(f) = opts.fov_deg {
         check_fov(f)?;
@@ -263,6 +262,13 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
     if let Some(ev) = opts.exposure_ev {
         ensure!(ev.is_finite() && ev.abs() <= MAX_EXPOSURE_EV, "--exposure must be a number of stops within +-{MAX_EXPOSURE_EV}, got {ev}");
     }
+    Ok(())
+}
+
+/// [`load_photo`] with every option: the EXIF orientation is applied, the
+/// exposure change scales the linear photo.
+pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto> {
+    check_options(opts)?;
     let (image, format) = read_image_with_format(path)?;
     let ldr = !format.is_float();
     // EXR has no EXIF; HEIF files have it whatever their transfer.
@@ -271,10 +277,25 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
     } else {
         super::camera::CameraInfo { orientation: 1, ..Default::default() }
     };
-    let mut rgb = crate::io::to_rgb(&image).oriented(camera.orientation);
+    let rgb = crate::io::to_rgb(&image).oriented(camera.orientation);
     let alpha = (image.channels % 2 == 0).then(|| image.plane(image.channels - 1));
-    let warnings = screen_photo(alpha, &mut rgb).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-    let warnings = warnings.into_iter().map(|w| format!("{}: {w}", path.display())).collect();
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    prepare_decoded(rgb, alpha, ldr, &camera, opts, &path.display().to_string(), &name)
+}
+
+/// The part of [`load_photo_with`] after decoding, for photos that come as
+/// pixels (the Python `estimate` on arrays): the photo screened
+/// ([`screen_photo`]), sRGB-decoded when `ldr`, the exposure change, the
+/// field of view (from `opts`, else `camera`, else the model's own), the
+/// crop and the resize. rgb: `[3, H, W]` as stored (sRGB codes in [0, 1]
+/// when `ldr`, else linear); alpha: its alpha plane, if any. Errors and
+/// warnings start with `label` (the file's path); `source` is the name the
+/// material records.
+pub fn prepare_decoded(mut rgb: Image, alpha: Option<&[f32]>, ldr: bool, camera: &super::camera::CameraInfo, opts: &PhotoOptions, label: &str, source: &str) -> Result<PreparedPhoto> {
+    check_options(opts)?;
+    ensure!(rgb.channels == 3, "{label}: the photo must have 3 colour channels, got {}", rgb.channels);
+    let warnings = screen_photo(alpha, &mut rgb).map_err(|e| anyhow::anyhow!("{label}: {e}"))?;
+    let warnings = warnings.into_iter().map(|w| format!("{label}: {w}")).collect();
     let mut linear = if ldr { rgb.map(crate::spaces::photo_decode) } else { rgb };
     if let Some(ev) = opts.exposure_ev {
         let gain = 2f32.powf(ev as f32);
@@ -289,7 +310,7 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
         ),
     };
     if opts.fov_deg.is_none() && fov < MODEL_FOV_DEG - 1e-9 {
-        bail!("{}: its {fov_source} gives a {fov:.1} degree field of view, narrower than the model's {MODEL_FOV_DEG}: the photo shows too little of the material (step back, or pass --fov DEGREES)", path.display());
+        bail!("{label}: its {fov_source} gives a {fov:.1} degree field of view, narrower than the model's {MODEL_FOV_DEG}: the photo shows too little of the material (step back, or pass --fov DEGREES)");
     }
     let mut note = format!("photo {}x{}: FOV {fov:.1} deg ({fov_source})", linear.width, linear.height);
     if let Some(e) = &camera.exposure {
@@ -301,9 +322,8 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
     if let Some(ev) = opts.exposure_ev {
         note.push_str(&format!("; --exposure {ev:+} EV"));
     }
-    let (linear, crop) = prepare_image_with(&linear, fov, opts.size, opts.square).map_err(|e| anyhow::anyhow!("{}: {e:#}", path.display()))?;
-    let source = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    Ok(PreparedPhoto { linear, ldr, fov_deg: fov, crop, source, camera_note: note, warnings })
+    let (linear, crop) = prepare_image_with(&linear, fov, opts.size, opts.square).map_err(|e| anyhow::anyhow!("{label}: {e:#}"))?;
+    Ok(PreparedPhoto { linear, ldr, fov_deg: fov, crop, source: source.to_string(), camera_note: note, warnings })
 }
 
 /// Below this fraction of pixels with any light (a colour value above 0)

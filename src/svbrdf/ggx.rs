@@ -1,7 +1,7 @@
 //! The constants of the paper's GGX model (REFERENCE section 2), in one
 //! place for the f64 oracle (`scalar`), the f32 CPU renderer (`cpu`) and the
 //! tensor renderer (`render`). The Mitsuba plugin reads the same values
-//! from `python/flashmat_mitsuba/constants.py`; a test below keeps the two
+//! from `python/flashmat/mitsuba/constants.py`; a test below keeps the two
 //! files equal.
 
 /// Clamp below every dot product of the model (n.h, n.v, n.l, v.h), the
@@ -22,7 +22,7 @@ mod tests {
     /// The Python plugin's constants module holds the same numbers.
     #[test]
     fn python_constants_match() {
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/python/flashmat_mitsuba/constants.py");
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/python/flashmat/mitsuba/constants.py");
         let text = std::fs::read_to_string(path).unwrap();
         let value = |name: &str| -> f64 {
             let line = text.lines().find(|l| l.starts_with(&format!("{name} = "))).unwrap_or_else(|| panic!("{name} missing in {path}"));

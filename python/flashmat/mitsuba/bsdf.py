@@ -87,7 +87,7 @@ def neural_brdf_class():
     """The NeuralBRDF class for the current Mitsuba variant (mi.BSDF differs per variant)."""
     variant = mi.variant()
     if variant is None:
-        raise RuntimeError("flashmat_mitsuba: set a Mitsuba variant (mi.set_variant) first")
+        raise RuntimeError("flashmat.mitsuba: set a Mitsuba variant (mi.set_variant) first")
     if variant in _CLASSES:
         return _CLASSES[variant]
 

@@ -3,8 +3,8 @@ plus `flashmat_ggx`, flashmat's ground-truth GGX SVBRDF (REFERENCE section 2).
 
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")
-    import flashmat_mitsuba
-    flashmat_mitsuba.register()      # registers "neural_brdf" and "flashmat_ggx" for the current variant
+    import flashmat.mitsuba
+    flashmat.mitsuba.register()      # registers "neural_brdf" and "flashmat_ggx" for the current variant
     bsdf = mi.load_dict({"type": "neural_brdf", "filename": "material.nmat", "mode": "texture"})
 
 register() needs a Mitsuba variant; call it again after switching variants.

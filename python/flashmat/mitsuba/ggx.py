@@ -133,7 +133,7 @@ def flashmat_ggx_class():
 
     variant = mi.variant()
     if variant is None:
-        raise RuntimeError("flashmat_mitsuba: set a Mitsuba variant (mi.set_variant) first")
+        raise RuntimeError("flashmat.mitsuba: set a Mitsuba variant (mi.set_variant) first")
     if variant in _CLASSES:
         return _CLASSES[variant]
 
