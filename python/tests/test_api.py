@@ -270,3 +270,15 @@ def test_bad_files_and_arguments_raise(estimated, tmp_path):
         estimated.to("gpu7")
     with pytest.raises(ValueError, match=".nmat"):
         estimated.save(tmp_path / "x.png")
+
+
+def test_the_notebook_example_runs(tmp_path):
+    import sys
+
+    r = subprocess.run([sys.executable, str(REPO / "examples" / "python" / "relight.py"), str(tmp_path), "32"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "relit.png").stat().st_size > 1000 and (tmp_path / "optimised.nmat").is_file()
+    # The ten-line optimisation brings the photo render toward the second photo.
+    line = next(l for l in r.stdout.splitlines() if l.startswith("log error"))
+    start, end = (float(v) for v in line.split(":")[1].split("->"))
+    assert end < 0.5 * start

@@ -435,6 +435,32 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn the_differentiable_render_is_the_render_and_carries_gradients() {
+        let mut m = random_material(5, 16);
+        m.meta.gain = [1.5, 1.0, 0.5];
+        let plain = m.render(&configs()).unwrap();
+        let graph = m.render_differentiable(&configs(), None).unwrap();
+        assert_eq!(graph.size(), [2, 3, 16, 16]);
+        assert!((&plain - &graph).abs().max().double_value(&[]) <= 1e-5 * plain.abs().max().double_value(&[]));
+        // Through render_directions with the same direction maps.
+        let (wi, wo) = m.direction_maps(&configs());
+        let dirs = m.render_directions(&wi.get(0), &wo.get(0)).unwrap();
+        assert!((&plain - &dirs).abs().max().double_value(&[]) <= 1e-5 * plain.abs().max().double_value(&[]));
+        // Gradients reach the map and the directions.
+        let _ = m.neural_map.set_requires_grad(true);
+        let wi = wi.get(0).set_requires_grad(true);
+        m.render_directions(&wi, &wo.get(0)).unwrap().sum(tch::Kind::Float).backward();
+        assert!(m.neural_map.grad().abs().sum(tch::Kind::Float).double_value(&[]) > 0.0);
+        assert!(wi.grad().abs().sum(tch::Kind::Float).double_value(&[]) > 0.0);
+        // Half the size: the codes resampled, the directions of the new pixels.
+        assert_eq!(m.render_differentiable(&configs(), Some(8)).unwrap().size(), [2, 3, 8, 8]);
+        assert!(m.render_differentiable(&configs(), Some(0)).is_err());
+        let bad = Tensor::full([1, 3, 16, 16], f64::NAN, (tch::Kind::Float, Device::Cpu));
+        assert!(format!("{:#}", m.render_directions(&bad, &bad).unwrap_err()).contains("NaN"));
+        assert!(m.render_directions(&wi.narrow(2, 0, 8), &wi.narrow(2, 0, 8)).is_err());
+    }
+
+    #[test]
     fn round_trip_renders_identical_pixels() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("m.nmat");

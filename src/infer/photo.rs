@@ -403,6 +403,28 @@ mod tests {
     }
 
     #[test]
+    fn pixels_prepare_like_their_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.png");
+        let codes = Image::from_fn(3, 48, 64, |c, y, x| ((x * 3 + y * 5 + c * 40) % 256) as f32 / 255.0);
+        crate::io::write_image(&path, &codes).unwrap();
+        let opts = PhotoOptions { size: 32, fov_deg: Some(40.0), ..Default::default() };
+        let from_file = load_photo_with(&path, &opts).unwrap();
+        let none = super::super::camera::CameraInfo { orientation: 1, ..Default::default() };
+        let from_pixels = prepare_decoded(codes.clone(), None, true, &none, &opts, "pixels", "p.png").unwrap();
+        assert_eq!(from_pixels.linear.data, from_file.linear.data);
+        assert_eq!((from_pixels.crop, from_pixels.fov_deg, from_pixels.ldr), (from_file.crop, 40.0, true));
+        // Without EXIF or a field of view: the model's own (the whole height
+        // kept, the width cut to the map's multiple of 8); errors name the label.
+        let own = prepare_decoded(codes.clone(), None, true, &none, &PhotoOptions { size: 32, ..Default::default() }, "pixels", "p.png").unwrap();
+        assert_eq!((own.fov_deg, own.crop.y0, own.crop.height), (MODEL_FOV_DEG, 0, 48));
+        let black = Image::filled(3, 48, 64, 0.0);
+        let e = prepare_decoded(black, None, false, &none, &opts, "pixels", "p.png").unwrap_err().to_string();
+        assert!(e.starts_with("pixels: the photo is black"), "{e}");
+        assert!(prepare_decoded(Image::filled(2, 48, 64, 0.5), None, true, &none, &opts, "pixels", "p.png").is_err());
+    }
+
+    #[test]
     fn too_small_photo_says_what_is_needed() {
         let im = Image::filled(3, 300, 400, 0.5);
         let e = prepare_image(&im, 45.0, 256).unwrap_err().to_string();
