@@ -117,8 +117,11 @@ impl Model {
         square: bool,
         max_memory: &str,
     ) -> PyResult<Material> {
-        let mode = <ExposureMode as clap::ValueEnum>::from_str(exposure_mode, true)
-            .map_err(|_| value_error(format!("exposure_mode must be one of calibrated, calibrated-grey, normalized, calibrated-clipping, calibrated-capped, off; got '{exposure_mode}'")))?;
+        use clap::ValueEnum;
+        let mode = ExposureMode::from_str(exposure_mode, true).map_err(|_| {
+            let names: Vec<String> = ExposureMode::value_variants().iter().filter_map(|v| v.to_possible_value()).map(|v| v.get_name().to_string()).collect();
+            value_error(format!("exposure_mode must be one of {}; got '{exposure_mode}'", names.join(", ")))
+        })?;
         let opts = infer::PhotoOptions { fov_deg: fov, size, exposure_ev: exposure, square };
         let prepared = match photo_path(photo) {
             Some(path) => {
