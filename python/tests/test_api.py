@@ -310,3 +310,30 @@ def test_materials_move_between_devices():
     codes = g.codes.requires_grad_(True)
     g.render(LIGHT).sum().backward()
     assert codes.grad is not None and codes.grad.is_cuda
+
+
+def test_another_torch_version_is_refused_at_import():
+    import sys
+
+    code = "import torch; torch.__version__ = '2.10.0'; import flashmat"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode != 0
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("ImportError: flashmat was built against torch 2.11") and "torch 2.10.0" in last, last
+
+
+@needs_cli
+def test_errors_carry_the_cli_line(model, tmp_path):
+    foreign = tmp_path / "foreign.nmat"
+    foreign.write_bytes(b"not a safetensors file at all")
+    cases = [
+        (["estimate", str(tmp_path / "gone.png"), "-o", str(tmp_path / "x.nmat")], lambda: model.estimate(tmp_path / "gone.png"), FileNotFoundError),
+        (["relight", str(foreign), "--light", "0,0,3", "-o", str(tmp_path / "x.png")], lambda: flashmat.load(foreign), ValueError),
+    ]
+    for args, call, error in cases:
+        r = subprocess.run([find_flashmat(), *args], capture_output=True, text=True)
+        line = r.stderr.strip().splitlines()[-1]
+        assert r.returncode == 1 and line.startswith("error: ")
+        with pytest.raises(error) as info:
+            call()
+        assert str(info.value) == line[len("error: "):]
