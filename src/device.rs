@@ -22,6 +22,14 @@ pub fn parse_device(s: &str) -> Result<Device> {
     }
 }
 
+/// The name [`parse_device`] reads back: `cpu` or `cuda:N`.
+pub fn device_name(device: Device) -> String {
+    match device {
+        Device::Cuda(i) => format!("cuda:{i}"),
+        _ => "cpu".into(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -35,5 +43,8 @@ mod tests {
             assert!(parse_device("cuda").unwrap_err().to_string().contains("no CUDA device"));
             assert!(parse_device("cuda:3").unwrap_err().to_string().contains("only 0 CUDA"));
         }
+        // The name reads back as the device.
+        assert_eq!(parse_device(&device_name(Device::Cpu)).unwrap(), Device::Cpu);
+        assert_eq!(device_name(Device::Cuda(2)), "cuda:2");
     }
 }

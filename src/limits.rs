@@ -89,6 +89,24 @@ pub const LAYER_WIDTH: Limit = Limit { env: "FLASHMAT_MAX_LAYER_WIDTH", default:
 /// libtorch threads (`--threads`).
 pub const MAX_THREADS: i64 = 1024;
 
+/// An error as one line: its chain of contexts, where a libtorch
+/// out-of-memory (whose message carries a C++ backtrace) ends the line
+/// with [`out_of_memory`]'s words and `memory_hint` (what to lower)
+/// instead. The flag says whether it was one. The CLI's `error:` line and
+/// the Python package's exceptions.
+pub fn error_line(e: &anyhow::Error, memory_hint: &str) -> (String, bool) {
+    let mut parts = Vec::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if let Some(oom) = out_of_memory(&text) {
+            parts.push(format!("{oom}: {memory_hint}"));
+            return (parts.join(": "), true);
+        }
+        parts.push(text);
+    }
+    (format!("{e:#}"), false)
+}
+
 /// Recognises an out-of-memory failure in a libtorch error message (a
 /// `Torch(...)` error's text, or the panic of a tch method that unwrapped
 /// one, with its newlines escaped) and returns it as one line: which memory
@@ -141,6 +159,14 @@ mod tests {
         let e = l.check("--size", 11).unwrap_err().to_string();
         assert_eq!(e, "--size is 11 pixels, above the limit of 10 (set FLASHMAT_TEST_LIMIT_UNSET=N to raise it)");
         assert!(l.check_product("the step", &[u64::MAX, 3]).is_err());
+    }
+
+    #[test]
+    fn error_lines_join_the_chain_and_end_at_an_out_of_memory() {
+        let e = anyhow::anyhow!("no such file").context("cannot read p.png");
+        assert_eq!(error_line(&e, "lower --size"), ("cannot read p.png: no such file".to_string(), false));
+        let e = anyhow::anyhow!("DefaultCPUAllocator: not enough memory: you tried to allocate 83886080 bytes.\nframe #0: ...").context("estimating p.png");
+        assert_eq!(error_line(&e, "lower size"), ("estimating p.png: out of memory (tried to allocate 80 MiB): lower size".to_string(), true));
     }
 
     /// libtorch's messages: a CUDA out-of-memory inside the panic of a tch

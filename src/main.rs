@@ -90,16 +90,7 @@ fn out_of_memory_line(message: &str) -> Option<String> {
 /// out-of-memory (whose message carries a C++ backtrace) ends the line
 /// with what to lower instead.
 fn error_line(e: &anyhow::Error) -> String {
-    let mut parts = Vec::new();
-    for cause in e.chain() {
-        let text = cause.to_string();
-        if let Some(line) = out_of_memory_line(&text) {
-            parts.push(line);
-            return parts.join(": ");
-        }
-        parts.push(text);
-    }
-    format!("{e:#}")
+    flashmat::limits::error_line(e, MEMORY_HINT.get().copied().unwrap_or("lower --size")).0
 }
 
 fn main() {

@@ -19,23 +19,15 @@ pub fn value_error(message: impl Into<String>) -> PyErr {
 /// of memory, FileNotFoundError when a file is missing, else ValueError
 /// (the library's errors are about its input: files, shapes, values).
 pub fn to_py_err(e: &anyhow::Error) -> PyErr {
-    let mut parts = Vec::new();
-    let mut missing = false;
-    for cause in e.chain() {
-        let text = cause.to_string();
-        if let Some(oom) = flashmat::limits::out_of_memory(&text) {
-            parts.push(format!("{oom}: {MEMORY_HINT}"));
-            return PyMemoryError::new_err(parts.join(": "));
-        }
-        // The library's missing files: an io::Error in the chain, or its own
-        // words ("does not exist", an io error formatted into the line).
-        missing |= cause.downcast_ref::<std::io::Error>().is_some_and(|io| io.kind() == std::io::ErrorKind::NotFound)
-            || text.contains("does not exist")
-            || text.contains("(os error 2)");
-        parts.push(text);
-    }
-    let line = format!("{e:#}");
-    if missing {
+    let (line, out_of_memory) = flashmat::limits::error_line(e, MEMORY_HINT);
+    // The library's missing files: an io::Error in the chain, or its own
+    // words ("does not exist", an io error formatted into the line).
+    let missing = e.chain().any(|c| c.downcast_ref::<std::io::Error>().is_some_and(|io| io.kind() == std::io::ErrorKind::NotFound))
+        || line.contains("does not exist")
+        || line.contains("(os error 2)");
+    if out_of_memory {
+        PyMemoryError::new_err(line)
+    } else if missing {
         PyFileNotFoundError::new_err(line)
     } else {
         PyValueError::new_err(line)

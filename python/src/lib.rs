@@ -8,6 +8,7 @@ mod errors;
 mod tensors;
 
 use errors::{guarded, value_error};
+use flashmat::device::device_name;
 use flashmat::geometry::LightView;
 use flashmat::infer::{self, ExposureMode, NeuralMaterial};
 use pyo3::prelude::*;
@@ -27,14 +28,6 @@ fn parse_device(device: Option<&Bound<'_, PyAny>>) -> PyResult<Device> {
         None => "cpu".into(),
     };
     guarded(|| flashmat::device::parse_device(&text))
-}
-
-fn device_name(d: Device) -> String {
-    match d {
-        Device::Cuda(i) => format!("cuda:{i}"),
-        Device::Mps => "mps".into(),
-        _ => "cpu".into(),
-    }
 }
 
 /// One position (3 numbers) or several (`[K, 3]`).
@@ -325,10 +318,11 @@ impl Material {
         })?;
         let mr = flashmat::fit::export::MetallicRoughness::from_maps(&fit.maps);
         let d = PyDict::new(py);
-        d.set_item("diffuse", PyTensor(fit.maps.narrow(0, 0, 3)))?;
-        d.set_item("specular", PyTensor(fit.maps.narrow(0, 3, 3)))?;
-        d.set_item("roughness", PyTensor(fit.maps.narrow(0, 6, 1)))?;
-        d.set_item("normal", PyTensor(fit.maps.narrow(0, 7, 3)))?;
+        let (kd, ks, roughness, normal) = flashmat::fit::export::parts(&fit.maps);
+        d.set_item("diffuse", PyTensor(kd))?;
+        d.set_item("specular", PyTensor(ks))?;
+        d.set_item("roughness", PyTensor(roughness))?;
+        d.set_item("normal", PyTensor(normal))?;
         d.set_item("base_color", PyTensor(mr.base_color))?;
         d.set_item("metallic", PyTensor(mr.metallic))?;
         d.set_item("error", PyTensor(fit.error))?;
@@ -413,19 +407,11 @@ fn capture(py: Python<'_>, folder: PathBuf, photos: Option<usize>, size: usize, 
     let defaults = fp::PhotoFitConfig::default();
     let cfg = fp::PhotoFitConfig { steps: steps.unwrap_or(defaults.steps), size, photo_gains, ..defaults };
     let (material, warnings) = guarded(|| {
-        cfg.validate()?;
         let captures = flashmat::data::captures::Captures::open(&folder)?;
         let count = photos.unwrap_or(captures.photos.len());
-        let capture = fp::load_capture(&captures, count, cfg.size)?;
-        let loaded = infer::load_model(model.as_deref(), device)?;
-        let teacher = fp::load_teacher(None, device)?;
-        let fit = errors::without_gil(py, || fp::fit_capture(&loaded, &capture, &cfg, device, |_, _, _| ()))?;
-        let mut warnings = capture.warnings.clone();
-        warnings.extend(fp::outlier_warnings(&fit, &capture.names));
-        let source = folder.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| folder.display().to_string());
-        let overhead = capture.photos.get(capture.overhead as i64);
-        let material = fp::neural_material(&fit.maps, &overhead, &teacher, &source)?;
-        Ok((material, warnings))
+        let mut warnings = Vec::new();
+        let made = errors::without_gil(py, || fp::capture_material(&captures, count, &cfg, model.as_deref(), device, |w| warnings.push(w.to_string()), |_, _, _| ()))?;
+        Ok((made.material, warnings))
     })?;
     for w in &warnings {
         errors::warn(py, w)?;

@@ -95,9 +95,11 @@ pub fn prepare_pixels(pixels: &Tensor, encoding: Option<&str>, opts: &PhotoOptio
         let max = values.max().double_value(&[]);
         ensure!(max <= 1.0, "sRGB pixels lie in [0, 1], this photo reaches {max}: say encoding='linear' for HDR radiance");
     }
-    let image = Image::from_tensor(&values)?;
     let rgb = Image::from_tensor(&values.narrow(0, 0, 3))?;
-    let alpha = (image.channels == 4).then(|| image.plane(3));
+    let alpha = match values.size()[0] {
+        4 => Some(Vec::<f32>::try_from(values.get(3).flatten(0, -1))?),
+        _ => None,
+    };
     let camera = flashmat::infer::camera::CameraInfo { orientation: 1, ..Default::default() };
-    flashmat::infer::prepare_decoded(rgb, alpha, ldr, &camera, opts, "photo", "pixels")
+    flashmat::infer::prepare_decoded(rgb, alpha.as_deref(), ldr, &camera, opts, "photo", "pixels")
 }

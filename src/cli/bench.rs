@@ -2,6 +2,7 @@
 //! baseline measured in the same run.
 
 use flashmat::data::procedural;
+use flashmat::device::device_name;
 use flashmat::data::samples::{make_batch, stack_maps, SampleConfig};
 use flashmat::geometry::{config_tensors, pixel_center, sample_configs, Sampling};
 use flashmat::svbrdf::cpu;
@@ -269,14 +270,6 @@ fn bench_infer(a: &InferBenchArgs) -> Result<()> {
         println!("paper reference: the authors' PyTorch M_est takes about 20 s at 256x256 (paper preset) on a 2-core CPU");
     }
     finish_table(&a.side, &format!("## bench infer: {} on {}", a.preset, device_name(device)), &rows)
-}
-
-/// `cpu` or `cuda:N`, as the authors' script takes it.
-fn device_name(device: Device) -> String {
-    match device {
-        Device::Cuda(i) => format!("cuda:{i}"),
-        _ => "cpu".into(),
-    }
 }
 
 fn device_index(device: Device) -> Option<usize> {

@@ -4,7 +4,7 @@
 use super::infer::EstimateOptions;
 use flashmat::data::captures::Captures;
 use flashmat::fit::export::{check_output_dir, write_fit};
-use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, outlier_warnings, PhotoFitConfig};
+use flashmat::fit::photos::{capture_material, PhotoFitConfig};
 use flashmat::fit::relief::ReliefConfig;
 use anyhow::{bail, ensure, Result};
 use clap::Args;
@@ -50,18 +50,11 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
     let device = flashmat::device::parse_device(&opts.device)?;
     let captures = Captures::open(dir)?;
     let count = a.photos.unwrap_or(captures.photos.len());
-    let capture = load_capture(&captures, count, cfg.size)?;
-    for warning in &capture.warnings {
-        eprintln!("warning: {warning}");
-    }
-    let loaded = flashmat::infer::load_model(opts.model.as_deref(), device)?;
-    let teacher = load_teacher(None, device)?;
-
     let style = |what: &str| ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} ETA {{eta}}"));
     let stages = [style("start: estimate of the overhead photo, GGX fit")?, style(&format!("fitting {count} photos"))?];
     let bar = ProgressBar::new(0);
     let mut stage = usize::MAX;
-    let fit = fit_capture(&loaded, &capture, &cfg, device, |s, done, total| {
+    let made = capture_material(&captures, count, &cfg, opts.model.as_deref(), device, |w| bar.suspend(|| eprintln!("warning: {w}")), |s, done, total| {
         if s != stage {
             stage = s;
             bar.set_style(stages[s].clone());
@@ -70,20 +63,13 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
         bar.set_position(done as u64);
     })?;
     bar.finish_and_clear();
-    for warning in outlier_warnings(&fit, &capture.names) {
-        eprintln!("warning: {warning}");
-    }
-    let overhead = capture.photos.get(capture.overhead as i64);
-
-    let source = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
-    let material = neural_material(&fit.maps, &overhead, &teacher, &source)?;
     let out_dir = super::prepare_output(output)?;
-    material.save(output)?;
+    made.material.save(output)?;
     out_dir.keep();
     if let Some(pbr) = &a.pbr {
-        write_fit(pbr, &fit.as_fit_result(), &ReliefConfig::default(), &dir.display().to_string())?;
+        write_fit(pbr, &made.fit.as_fit_result(), &ReliefConfig::default(), &dir.display().to_string())?;
     }
-    let r = &fit.report;
+    let r = &made.fit.report;
     eprintln!(
         "estimated {} from {} of {} photos at {}x{}: data term {:.4} -> {:.4} (mean |ln(1+R) diff| {:.4} -> {:.4}), {} steps, {:.1} s ({:.1} s fit)",
         output.display(),
@@ -100,7 +86,7 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
         r.seconds
     );
     if cfg.photo_gains {
-        eprintln!("exposure gains: {}", capture.names.iter().zip(&r.photo_gains).map(|(n, g)| format!("{n} {g:.3}")).collect::<Vec<_>>().join(", "));
+        eprintln!("exposure gains: {}", made.names.iter().zip(&r.photo_gains).map(|(n, g)| format!("{n} {g:.3}")).collect::<Vec<_>>().join(", "));
     }
     if let Some(pbr) = &a.pbr {
         eprintln!("wrote PBR maps of the fit to {}", pbr.display());

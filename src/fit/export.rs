@@ -61,7 +61,7 @@ pub const GLTF_BUFFER: &str = "square.bin";
 pub const REPORT_FILE: &str = "fit.json";
 
 /// Splits maps `[10, H, W]` into (kd, ks, roughness, normal) slices.
-fn parts(maps: &Tensor) -> (Tensor, Tensor, Tensor, Tensor) {
+pub fn parts(maps: &Tensor) -> (Tensor, Tensor, Tensor, Tensor) {
     (maps.narrow(0, 0, 3), maps.narrow(0, 3, 3), maps.narrow(0, 6, 1), maps.narrow(0, 7, 3))
 }
 

@@ -662,6 +662,42 @@ pub fn fit_capture(loaded: &LoadedModel, capture: &CapturePhotos, cfg: &PhotoFit
     fit_photos(&photos, &capture.clipped, &capture.configs, &start, cfg, |step| on_progress(1, step + 1, cfg.steps))
 }
 
+/// A capture folder to a neural material, as `estimate --capture` makes
+/// it: its first `count` photos loaded at `cfg.size`, the model `model`
+/// (None: the bundled one), [`fit_capture`], then [`neural_material`] of
+/// the fitted maps by the bundled teacher, named after the folder.
+/// `on_warning` hears the photos' warnings before the fit and the fit's
+/// outlier warnings after; `on_progress` as in [`fit_capture`].
+pub fn capture_material(
+    captures: &Captures,
+    count: usize,
+    cfg: &PhotoFitConfig,
+    model: Option<&Path>,
+    device: Device,
+    mut on_warning: impl FnMut(&str),
+    on_progress: impl FnMut(usize, usize, usize),
+) -> Result<CaptureMaterial> {
+    cfg.validate()?;
+    let capture = load_capture(captures, count, cfg.size)?;
+    capture.warnings.iter().for_each(|w| on_warning(w));
+    let loaded = crate::infer::load_model(model, device)?;
+    let teacher = load_teacher(None, device)?;
+    let fit = fit_capture(&loaded, &capture, cfg, device, on_progress)?;
+    outlier_warnings(&fit, &capture.names).iter().for_each(|w| on_warning(w));
+    let dir = &captures.dir;
+    let source = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
+    let material = neural_material(&fit.maps, &capture.photos.get(capture.overhead as i64), &teacher, &source)?;
+    Ok(CaptureMaterial { material, fit, names: capture.names })
+}
+
+/// What [`capture_material`] made.
+pub struct CaptureMaterial {
+    pub material: NeuralMaterial,
+    pub fit: PhotoFit,
+    /// File names of the photos fitted, in the fit's order.
+    pub names: Vec<String>,
+}
+
 /// The teacher file `explicit`, or the bundled one; a missing file is one line.
 pub fn load_teacher(explicit: Option<&Path>, device: Device) -> Result<TeacherWeights> {
     let path = explicit.map(Path::to_path_buf).unwrap_or_else(default_teacher_path);

@@ -223,12 +223,8 @@ impl NeuralMaterial {
 
     /// [`NeuralMaterial::render`] `rows` rows at a time. Returns `[K, 3, H, W]`.
     pub fn render_in_bands(&self, configs: &[LightView], rows: usize) -> Result<Tensor> {
-        ensure!(!configs.is_empty(), "no light/view configuration to render");
         ensure!(rows > 0, "render bands need at least one row");
-        for c in configs {
-            crate::geometry::above_surface("light", c.light)?;
-            crate::geometry::above_surface("camera", c.view)?;
-        }
+        check_configs(configs)?;
         let (wi, wo) = self.direction_maps(configs); // [1, K, 3, H, W]
         let h = self.size().0;
         // Bands of rows bound the memory of large maps (M_render is per pixel: exact).
@@ -266,11 +262,7 @@ impl NeuralMaterial {
     /// longer side following the aspect; an approximation, as the Mitsuba
     /// plugin's `bilinear` filter). Returns `[K, 3, H', W']`.
     pub fn render_differentiable(&self, configs: &[LightView], size: Option<usize>) -> Result<Tensor> {
-        ensure!(!configs.is_empty(), "no light/view configuration to render");
-        for c in configs {
-            crate::geometry::above_surface("light", c.light)?;
-            crate::geometry::above_surface("camera", c.view)?;
-        }
+        check_configs(configs)?;
         let (h, w) = self.size();
         let (oh, ow) = match size {
             None => (h, w),
@@ -285,9 +277,7 @@ impl NeuralMaterial {
             true => self.neural_map.shallow_clone(),
             false => self.neural_map.unsqueeze(0).upsample_bilinear2d([oh as i64, ow as i64], false, None, None).get(0),
         };
-        let k = configs.len() as i64;
-        let (lights, views) = crate::geometry::config_tensors(configs, self.device());
-        let (wi, wo) = crate::svbrdf::render::direction_maps_for(&lights.view([1, k, 3]), &views.view([1, k, 3]), oh, ow);
+        let (wi, wo) = self.direction_maps_at(configs, oh, ow);
         self.render_map_directions(&map, &wi.get(0), &wo.get(0))
     }
 
@@ -341,6 +331,12 @@ impl NeuralMaterial {
     /// configuration over this material's pixels: wi, wo `[1, K, 3, H, W]`.
     pub fn direction_maps(&self, configs: &[LightView]) -> (Tensor, Tensor) {
         let (h, w) = self.size();
+        self.direction_maps_at(configs, h, w)
+    }
+
+    /// [`NeuralMaterial::direction_maps`] over an `h x w` grid of the same
+    /// extent: `[1, K, 3, h, w]` each.
+    fn direction_maps_at(&self, configs: &[LightView], h: usize, w: usize) -> (Tensor, Tensor) {
         let k = configs.len() as i64;
         let (lights, views) = crate::geometry::config_tensors(configs, self.device());
         crate::svbrdf::render::direction_maps_for(&lights.view([1, k, 3]), &views.view([1, k, 3]), h, w)
@@ -355,6 +351,17 @@ impl NeuralMaterial {
     pub fn input_image(&self) -> Result<Image> {
         Image::from_tensor(&self.input_photo)
     }
+}
+
+/// Renders need at least one configuration, with light and camera above
+/// the surface.
+fn check_configs(configs: &[LightView]) -> Result<()> {
+    ensure!(!configs.is_empty(), "no light/view configuration to render");
+    for c in configs {
+        crate::geometry::above_surface("light", c.light)?;
+        crate::geometry::above_surface("camera", c.view)?;
+    }
+    Ok(())
 }
 
 /// The stored `gain`: a JSON array of three positive numbers (version 4)

@@ -268,6 +268,8 @@ fn check_options(opts: &PhotoOptions) -> Result<()> {
 /// [`load_photo`] with every option: the EXIF orientation is applied, the
 /// exposure change scales the linear photo.
 pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto> {
+    // Before the file is read (prepare_decoded checks again, for pixels):
+    // a bad option is named first.
     check_options(opts)?;
     let (image, format) = read_image_with_format(path)?;
     let ldr = !format.is_float();
