@@ -22,13 +22,18 @@
 //! path (`capture::capture`: tags, camera fit, rectification), then fitted
 //! as above (counts of 2 or more).
 //!
+//! With BRACKET_STOPS > 0 (told positions only), each position is taken
+//! twice, as a phone's exposure bracketing does: at the exposure of the
+//! others and that many stops darker (`exposures.txt`). COUNTS are
+//! positions; the fit gets twice as many photos.
+//!
 //! ```sh
-//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG] [FRAME]
+//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG] [FRAME] [BRACKET_STOPS]
 //! # defaults: 128 0-5 1,2,3,5 and PhotoFitConfig's steps, pull and smoothness weights; "-" keeps a default
 //! ```
 
 use anyhow::Result;
-use flashmat::data::captures::{write_synthetic, Captures, TILTED_PHONES};
+use flashmat::data::captures::{write_synthetic_exposed, Captures, TILTED_PHONES};
 use flashmat::eval::highlights::{self, HighlightConfig, MaterialHighlights};
 use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, PhotoFitConfig};
 use flashmat::geometry::{LightView, MODEL_FOV_DEG};
@@ -69,6 +74,8 @@ fn main() -> Result<()> {
     // Phone photos: sensor noise, then JPEG at quality 90, instead of clean PNGs.
     let phone_jpeg: bool = args.get(12).filter(|a| *a != "-").map_or(Ok(false), |s| s.parse())?;
     let frame: bool = args.get(13).filter(|a| *a != "-").map_or(Ok(false), |s| s.parse())?;
+    let bracket_stops: f64 = args.get(14).filter(|a| *a != "-").map_or(Ok(0.0), |s| s.parse())?;
+    anyhow::ensure!(bracket_stops >= 0.0 && !(frame && bracket_stops > 0.0), "BRACKET_STOPS must be >= 0, and 0 with FRAME");
     let loaded = flashmat::infer::load_model(None, Device::Cpu)?;
     let teacher = load_teacher(None, Device::Cpu)?;
     let lpips = Lpips::new(Device::Cpu)?;
@@ -100,15 +107,20 @@ fn main() -> Result<()> {
         for &k in &counts {
             // Overhead, then the tilted phones of `TILTED_PHONES`.
             let cameras: Vec<[f64; 3]> = std::iter::once(overhead.view).chain(TILTED_PHONES).take(k).collect();
-            let truths: Vec<LightView> = cameras.iter().map(|&c| LightView { light: [c[0] + FLASH_OFFSET, c[1], c[2]], view: c }).collect();
+            let positions: Vec<LightView> = cameras.iter().map(|&c| LightView { light: [c[0] + FLASH_OFFSET, c[1], c[2]], view: c }).collect();
+            // Photo j of a bracketed capture is position j / 2 at exposure 1 (even j) or darker (odd j).
+            let shots = if bracket_stops > 0.0 { 2 } else { 1 };
+            let truths: Vec<LightView> = positions.iter().flat_map(|&c| std::iter::repeat_n(c, shots)).collect();
+            let exposures: Vec<f64> = (0..truths.len()).map(|j| if j % 2 == 1 && shots == 2 { 0.5f64.powf(bracket_stops) } else { 1.0 }).collect();
+            let photos_taken = truths.len();
             let dir = tempfile::tempdir()?;
             if frame {
                 anyhow::ensure!(k >= 2, "a capture of the printed frame needs 2 or more photos");
                 frame_capture(&m, &cameras, dir.path(), i)?;
             } else {
-                write_synthetic(dir.path(), &m, &truths, 2.0)?;
+                write_synthetic_exposed(dir.path(), &m, &truths, &exposures, 2.0)?;
                 if phone_jpeg {
-                    for j in 0..k {
+                    for j in 0..photos_taken {
                         let png = dir.path().join(format!("{j:02}.png"));
                         let photo = flashmat::io::read_image(&png)?;
                         // Noise of 1% of the display value plus 0.4% (about one 8-bit step), as a phone's processed photo.
@@ -126,15 +138,16 @@ fn main() -> Result<()> {
                 }
                 // What the phone's pose estimate would say: a few millimetres off.
                 let mut told = |p: [f64; 3]| p.map(|v| v + POSITION_ERROR * (rng.random::<f64>() * 2.0 - 1.0) * 3f64.sqrt());
+                // A bracket's photos share their position (one burst).
                 let lines = |pick: fn(&LightView) -> [f64; 3], told: &mut dyn FnMut([f64; 3]) -> [f64; 3]| -> String {
-                    truths.iter().map(|c| told(pick(c))).map(|p| format!("{:.6},{:.6},{:.6}\n", p[0], p[1], p[2])).collect()
+                    positions.iter().map(|c| told(pick(c))).map(|p| format!("{:.6},{:.6},{:.6}\n", p[0], p[1], p[2]).repeat(shots)).collect()
                 };
                 let cams = lines(|c| c.view, &mut told);
                 let lights = lines(|c| c.light, &mut told);
                 std::fs::write(dir.path().join("camera_pos.txt"), cams)?;
                 std::fs::write(dir.path().join("light_pos.txt"), lights)?;
             }
-            let capture = load_capture(&Captures::open(dir.path())?, k, size)?;
+            let capture = load_capture(&Captures::open(dir.path())?, k * shots, size)?;
             let photo = capture.photos.get(capture.overhead as i64);
             if k == counts[0] {
                 let single = flashmat::infer::estimate(
@@ -186,7 +199,7 @@ fn main() -> Result<()> {
         let k = if *k == 0 { "1 (model)".to_string() } else { k.to_string() };
         println!("| {k} | {method} | {} | {} | {lobe_8bit:.2} | {} | {:.3} | {:.3} |", cell(&s.ghost), cell(&s.lobe), cell(&s.rest), mean(|r| r.1), mean(|r| r.2));
     }
-    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
+    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, bracket {bracket_stops} stops, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
     Ok(())
 }
 

@@ -8,6 +8,9 @@ source scripts/env.sh
 # and no OpenMP busy-waiting, or oversubscribed spinning threads slow the
 # training tests down tenfold on a 2-core machine.
 export OMP_WAIT_POLICY=PASSIVE
+# The value the CLI would add and re-execute itself for (src/main.rs): set
+# here, each of the tests' hundreds of CLI runs loads libtorch once, not twice.
+export GOMP_SPINCOUNT=10000
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 # Each test runs in its own process under nextest: libtorch's random
 # generator is process-global, and tests that check bit-exact determinism

@@ -23,7 +23,7 @@ pub mod rectify;
 pub mod synthetic;
 
 use crate::geometry::{add, length, Vec3};
-use anyhow::{anyhow, bail, ensure, Result};
+use anyhow::{anyhow, bail, ensure, Context, Result};
 use camera::{Calibration, Correspondences, Intrinsics, Pose};
 use frame::FrameLayout;
 use markers::{Gray, Marker};
@@ -78,7 +78,7 @@ pub struct FramePhoto {
     pub exif_focal: Option<f64>,
     pub orientation: u16,
     /// Exposure time, f-number and ISO as the EXIF says, if it does.
-    pub exposure: Option<String>,
+    pub exposure: Option<crate::infer::camera::Exposure>,
 }
 
 /// Reads a photo of the frame (JPEG, PNG, HEIC with the `heif` feature).
@@ -93,15 +93,31 @@ pub fn load_frame_photo(path: &Path) -> Result<FramePhoto> {
     Ok(FramePhoto { path: path.to_path_buf(), rgb: Rgb8 { width: w, height: h, data }, exif_focal, orientation: info.orientation, exposure: info.exposure })
 }
 
-/// A warning when the photos' EXIF exposures differ (auto exposure): the
-/// fit takes one exposure unless it fits a gain per photo.
+/// Each photo's exposure relative to the first's (EXIF time x ISO /
+/// f-number^2), when they differ and every photo's EXIF states it: the
+/// capture folder's `exposures.txt`, which brings bracketed or
+/// auto-exposed photos to one exposure. None when they are all the same
+/// or some photo does not say (see [`exposure_warning`]).
+pub fn relative_exposures(photos: &[FramePhoto]) -> Option<Vec<f64>> {
+    let scales: Vec<f64> = photos.iter().map(|p| p.exposure.as_ref()?.scale()).collect::<Option<_>>()?;
+    let first = *scales.first()?;
+    let differ = scales.iter().any(|&s| (s / first - 1.0).abs() > EXPOSURE_TOLERANCE);
+    differ.then(|| scales.iter().map(|s| s / first).collect())
+}
+
+/// Exposures closer than this (relative) are one exposure.
+const EXPOSURE_TOLERANCE: f64 = 0.01;
+
+/// A warning when the photos' EXIF exposures differ but some photo's EXIF
+/// does not state its whole exposure, so [`relative_exposures`] cannot
+/// bring them to one: the fit takes one exposure unless it fits a gain per photo.
 pub fn exposure_warning(photos: &[FramePhoto]) -> Option<String> {
     let first = photos.first()?.exposure.as_ref()?;
-    if photos.iter().all(|p| p.exposure.as_ref() == Some(first)) {
+    if photos.iter().all(|p| p.exposure.as_ref() == Some(first)) || relative_exposures(photos).is_some() {
         return None;
     }
-    let list = photos.iter().map(|p| format!("{} {}", name(&p.path), p.exposure.as_deref().unwrap_or("(no EXIF)"))).collect::<Vec<_>>().join(", ");
-    Some(format!("the photos' exposures differ ({list}): lock the exposure, or fit a gain per photo (estimate --capture --photo-gains)"))
+    let list = photos.iter().map(|p| format!("{} {}", name(&p.path), p.exposure.as_ref().map_or("(no EXIF)".into(), |e| e.to_string()))).collect::<Vec<_>>().join(", ");
+    Some(format!("the photos' exposures differ ({list}) and not every photo states its exposure time, f-number and ISO: lock the exposure, or fit a gain per photo (estimate --capture --photo-gains)"))
 }
 
 /// The flash's offset in the camera frame of a photo shown with EXIF
@@ -351,6 +367,12 @@ pub fn write_folder(capture: &Capture, dir: &Path, photos: &[FramePhoto]) -> Res
         std::fs::write(tmp.join("camera_pos.txt"), lines(|p| p.camera))?;
         std::fs::write(tmp.join("light_pos.txt"), lines(|p| p.light))?;
         std::fs::write(tmp.join("image_size.txt"), format!("{}\n", capture.layout.opening_mm()))?;
+        if let Some(exposures) = relative_exposures(photos) {
+            // In the folder's order, which is not the inputs'.
+            let by_source = |p: &PhotoResult| photos.iter().position(|f| f.path == p.source).map(|i| exposures[i]).context("a capture's photo is missing from its inputs");
+            let lines: Vec<String> = capture.photos.iter().map(|p| Ok(format!("{}\n", by_source(p)?))).collect::<Result<_>>()?;
+            std::fs::write(tmp.join(crate::data::captures::EXPOSURES_FILE), lines.concat())?;
+        }
         let picture = pictures::capture_picture(capture, photos)?;
         crate::io::write_jpeg(&tmp.join("capture.jpg"), &picture, 85)?;
         Ok(())

@@ -103,6 +103,20 @@ fn a_phone_capture_comes_back_within_2_mm_half_a_degree_and_a_pixel() {
     let c = cap.photos[1].camera;
     assert!((folder.cameras[1][0] - c[0] / 50.0).abs() < 1e-3 && (folder.cameras[1][2] - c[2] / 50.0).abs() < 1e-3);
     assert!(out.join("capture.jpg").is_file());
+    assert_eq!(folder.exposures, [1.0; 4]);
+    assert!(!out.join(crate::data::captures::EXPOSURES_FILE).exists(), "one exposure: no exposures.txt");
+    // Photo 2 taken a stop darker, as its EXIF says: the folder records it, in the folder's order.
+    let mut bracketed: Vec<FramePhoto> = photos.iter().map(FramePhoto::clone_photo).collect();
+    for (i, p) in bracketed.iter_mut().enumerate() {
+        p.exposure = Some(crate::infer::camera::Exposure { time_s: Some(if i == 2 { 1.0 / 120.0 } else { 1.0 / 60.0 }), f_number: Some(1.8), iso: Some(100) });
+    }
+    let out = dir.path().join("bracketed");
+    write_folder(&cap, &out, &bracketed).unwrap();
+    let folder = crate::data::captures::Captures::open(&out).unwrap();
+    for (result, &e) in cap.photos.iter().zip(&folder.exposures) {
+        let want = if result.source == photos[2].path { 0.5 } else { 1.0 };
+        assert!((e - want).abs() < 1e-9, "{}: exposure {e}, want {want}", result.source.display());
+    }
 }
 
 #[test]
@@ -255,13 +269,25 @@ fn tags_of_another_family_are_named() {
 }
 
 #[test]
-fn differing_exposures_are_named() {
-    let photo = |name: &str, exposure: Option<&str>| FramePhoto { path: name.into(), rgb: Rgb8 { width: 1, height: 1, data: vec![0; 3] }, exif_focal: None, orientation: 1, exposure: exposure.map(Into::into) };
-    let same = [photo("a.jpg", Some("1/60 s, f/1.8, ISO 100")), photo("b.jpg", Some("1/60 s, f/1.8, ISO 100"))];
+fn differing_exposures_are_brought_to_one_or_named() {
+    use crate::infer::camera::Exposure;
+    let photo = |name: &str, exposure: Option<Exposure>| FramePhoto { path: name.into(), rgb: Rgb8 { width: 1, height: 1, data: vec![0; 3] }, exif_focal: None, orientation: 1, exposure };
+    let stated = |t: f64, n: f64, iso: u32| Some(Exposure { time_s: Some(t), f_number: Some(n), iso: Some(iso) });
+    let same = [photo("a.jpg", stated(1.0 / 60.0, 1.8, 100)), photo("b.jpg", stated(1.0 / 60.0, 1.8, 100))];
     assert_eq!(exposure_warning(&same), None);
+    assert_eq!(relative_exposures(&same), None);
     assert_eq!(exposure_warning(&[photo("a.jpg", None), photo("b.jpg", None)]), None);
-    let w = exposure_warning(&[photo("a.jpg", Some("1/60 s, f/1.8, ISO 100")), photo("b.jpg", Some("1/120 s, f/1.8, ISO 100"))]).unwrap();
-    assert!(w.starts_with("the photos' exposures differ (a.jpg 1/60 s, f/1.8, ISO 100, b.jpg 1/120 s"), "{w}");
+    // Bracketed: half the time and twice the ISO is the same exposure; f/2.55 is half of f/1.8's.
+    let bracket = [photo("a.jpg", stated(1.0 / 60.0, 1.8, 100)), photo("b.jpg", stated(1.0 / 120.0, 1.8, 200)), photo("c.jpg", stated(1.0 / 60.0, 1.8 * 2f64.sqrt(), 100))];
+    let rel = relative_exposures(&bracket).unwrap();
+    assert_eq!(rel.len(), 3);
+    assert!((rel[0] - 1.0).abs() < 1e-12 && (rel[1] - 1.0).abs() < 1e-12 && (rel[2] - 0.5).abs() < 1e-12, "{rel:?}");
+    assert_eq!(exposure_warning(&bracket), None);
+    // A photo that does not state its ISO: the exposures cannot be brought to one.
+    let partial = [photo("a.jpg", stated(1.0 / 60.0, 1.8, 100)), photo("b.jpg", Some(Exposure { time_s: Some(1.0 / 120.0), f_number: Some(1.8), iso: None }))];
+    assert_eq!(relative_exposures(&partial), None);
+    let w = exposure_warning(&partial).unwrap();
+    assert!(w.starts_with("the photos' exposures differ (a.jpg 1/60 s, f/1.8, ISO 100, b.jpg 1/120 s, f/1.8) and not every photo states"), "{w}");
 }
 
 #[test]

@@ -107,6 +107,7 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         bar.set_position(i as u64 + 1);
     }
     let exposures_differ = flashmat::capture::exposure_warning(&photos);
+    let exposures = flashmat::capture::relative_exposures(&photos);
     let messages = ["finding the frame's tags", "fitting the camera", "rectifying the opening"];
     let capture = flashmat::capture::capture(&photos, &cfg, |stage, done, total| {
         bar.set_message(messages[stage]);
@@ -138,6 +139,10 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
             p.markers.len(),
             p.rms
         );
+    }
+    if let Some(e) = &exposures {
+        let list = e.iter().map(|v| format!("{v:.3}")).collect::<Vec<_>>().join(", ");
+        eprintln!("the photos' exposures differ ({list} of the first's, from their EXIF): {} records them and the fit brings the photos to one", flashmat::data::captures::EXPOSURES_FILE);
     }
     eprintln!("look at {}", folder.join("capture.jpg").display());
     if let Some(w) = &exposures_differ {

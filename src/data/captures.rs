@@ -1,7 +1,11 @@
 //! Capture folders of one flat material: photos `NN.png` (numbered;
 //! sorted by number), `camera_pos.txt` and `light_pos.txt` (one `x,y,z` per
 //! line, one line per photo, in photo order) and `image_size.txt` (the
-//! sample's width: the unit of the positions). The origin is the sample
+//! sample's width: the unit of the positions), and optionally
+//! `exposures.txt` (one number per line, per photo: the light each photo's
+//! sensor gathered, in any unit, e.g. exposure time x ISO / f-number^2;
+//! bracketed photos of one position record a highlight's peak that the
+//! longer exposure clips). The origin is the sample
 //! centre, x points right and y up in the photos, z out of the sample;
 //! photos are rectified to the sample square.
 //!
@@ -41,7 +45,12 @@ pub struct Captures {
     pub lights: Vec<[f64; 3]>,
     /// The sample's width in the files' unit.
     pub sample_width: f64,
+    /// Each photo's exposure ([`EXPOSURES_FILE`]; all 1 without the file).
+    pub exposures: Vec<f64>,
 }
+
+/// The optional file of the photos' exposures in a capture folder.
+pub const EXPOSURES_FILE: &str = "exposures.txt";
 
 impl Captures {
     /// Reads and checks a capture folder. Errors are one line naming the
@@ -59,7 +68,9 @@ impl Captures {
         let scale = 2.0 / sample_width;
         let cameras = read_positions(&dir.join("camera_pos.txt"), scale, photos.len())?;
         let lights = read_positions(&dir.join("light_pos.txt"), scale, photos.len())?;
-        Ok(Self { dir: dir.to_path_buf(), photos, cameras, lights, sample_width })
+        let exposures_path = dir.join(EXPOSURES_FILE);
+        let exposures = if exposures_path.exists() { read_exposures(&exposures_path, photos.len())? } else { vec![1.0; photos.len()] };
+        Ok(Self { dir: dir.to_path_buf(), photos, cameras, lights, sample_width, exposures })
     }
 
     /// Index of the photo taken closest to straight overhead: the camera
@@ -79,14 +90,15 @@ impl Captures {
         length(self.lights[self.overhead()])
     }
 
-    /// Every photo at `size x size`, linear (decoded with ^2.2) and with
-    /// the 1/r^2 fall-off compensated (see the module docs): `[3, S, S]` each.
+    /// Every photo at `size x size`, linear (decoded with ^2.2), with
+    /// the 1/r^2 fall-off compensated (see the module docs) and brought to
+    /// the overhead photo's exposure: `[3, S, S]` each.
     pub fn load_compensated(&self, size: usize) -> Result<Vec<Tensor>> {
-        let r0 = self.reference_distance();
+        let (r0, e0) = (self.reference_distance(), self.exposures[self.overhead()]);
         self.photos
             .iter()
-            .zip(&self.lights)
-            .map(|(path, &light)| Ok(load_photo(path, size)? / falloff(light, r0, size, size)))
+            .zip(self.lights.iter().zip(&self.exposures))
+            .map(|(path, (&light, &e))| Ok(load_photo(path, size)? / falloff(light, r0, size, size) * (e0 / e)))
             .collect()
     }
 }
@@ -185,6 +197,19 @@ fn read_positions(path: &Path, scale: f64, expected: usize) -> Result<Vec<[f64; 
     Ok(out)
 }
 
+/// Parses one exposure per non-empty line: `expected` finite numbers > 0.
+fn read_exposures(path: &Path, expected: usize) -> Result<Vec<f64>> {
+    let text = read_text(path)?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        let v: f64 = line.trim().parse().map_err(|_| anyhow!("{} line {}: expected one number (the photo's exposure), got '{}'", path.display(), i + 1, line.trim()))?;
+        ensure!(v.is_finite() && v > 0.0, "{} line {}: an exposure must be a finite number > 0, got '{}'", path.display(), i + 1, line.trim());
+        out.push(v);
+    }
+    ensure!(out.len() == expected, "{} has {} exposures but the folder has {expected} photos (one line per photo)", path.display(), out.len());
+    Ok(out)
+}
+
 /// Co-located phone positions after the overhead photo (flashmat units:
 /// the sample spans [-1, 1]) whose flash reflections land half-way to the
 /// edge in the sample's four quarters: the two, then two more
@@ -215,7 +240,15 @@ pub fn synthetic_configs(count: usize) -> Vec<LightView> {
 /// positions in units of `sample_width` and `image_size.txt`.
 /// configs: flashmat units, at least one.
 pub fn write_synthetic(dir: &Path, material: &Svbrdf, configs: &[LightView], sample_width: f64) -> Result<()> {
+    write_synthetic_exposed(dir, material, configs, &vec![1.0; configs.len()], sample_width)
+}
+
+/// [`write_synthetic`] with each photo's linear values scaled by its
+/// exposure (one per config) before the 8-bit encoding, and
+/// [`EXPOSURES_FILE`] written when they are not all 1: bracketed photos.
+pub fn write_synthetic_exposed(dir: &Path, material: &Svbrdf, configs: &[LightView], exposures: &[f64], sample_width: f64) -> Result<()> {
     ensure!(!configs.is_empty(), "a capture needs at least one photo");
+    ensure!(exposures.len() == configs.len() && exposures.iter().all(|e| e.is_finite() && *e > 0.0), "one exposure > 0 per photo");
     ensure!(sample_width.is_finite() && sample_width > 0.0, "the sample's width must be > 0, got {sample_width}");
     for c in configs {
         ensure!(c.light[2] > 0.0 && c.view[2] > 0.0, "capture positions must be above the sample (z > 0)");
@@ -226,7 +259,7 @@ pub fn write_synthetic(dir: &Path, material: &Svbrdf, configs: &[LightView], sam
     let r0 = length(configs[overhead_index(&cameras)].light);
     let renders = crate::svbrdf::cpu::render_tensor(material, configs);
     for (i, c) in configs.iter().enumerate() {
-        let linear = renders.get(i as i64) * falloff(c.light, r0, h, w);
+        let linear = renders.get(i as i64) * falloff(c.light, r0, h, w) * exposures[i];
         // Capture folders are ^2.2-encoded (read with `gamma_decode`), unlike
         // flashmat's other pictures.
         let display = Image::from_tensor(&crate::spaces::linear_to_display(&linear))?;
@@ -238,6 +271,10 @@ pub fn write_synthetic(dir: &Path, material: &Svbrdf, configs: &[LightView], sam
     };
     crate::io::atomic_write_bytes(&dir.join("camera_pos.txt"), lines(|c| c.view).as_bytes())?;
     crate::io::atomic_write_bytes(&dir.join("light_pos.txt"), lines(|c| c.light).as_bytes())?;
+    if exposures.iter().any(|&e| e != 1.0) {
+        let lines: String = exposures.iter().map(|e| format!("{e}\n")).collect();
+        crate::io::atomic_write_bytes(&dir.join(EXPOSURES_FILE), lines.as_bytes())?;
+    }
     crate::io::atomic_write_bytes(&dir.join("image_size.txt"), format!("{sample_width}\n").as_bytes())
 }
 
@@ -341,6 +378,38 @@ mod tests {
         assert!(fmin < 0.75, "{fmin}");
         let lin_err = (&raw - truth.get(3) * &f).abs().max().double_value(&[]);
         assert!(lin_err < 0.02, "{lin_err}");
+    }
+
+    #[test]
+    fn bracketed_photos_are_brought_to_the_overhead_photos_exposure() {
+        // Photo 1 four stops darker (1/16): read back it is photo 0 again
+        // wherever neither clips, within the darker one's 8-bit steps; the
+        // longer exposure's clipped highlight is there, unclipped, in the short one.
+        let t = tempfile::tempdir().unwrap();
+        let material = crate::data::procedural::test_material(5, 32);
+        let overhead = LightView::colocated(MODEL_FOV_DEG);
+        write_synthetic_exposed(t.path(), &material, &[overhead, overhead], &[1.0, 0.0625], 8.0).unwrap();
+        let c = Captures::open(t.path()).unwrap();
+        assert_eq!(c.exposures, [1.0, 0.0625]);
+        let photos = c.load_compensated(32).unwrap();
+        let truth = crate::eval::reference_renders(&material, &[overhead]).get(0);
+        let peak = truth.max().double_value(&[]);
+        assert!(peak > 1.5, "the test material's highlight clips at exposure 1 (peak {peak})");
+        assert_eq!(load_photo(&c.photos[0], 32).unwrap().max().double_value(&[]), 1.0, "photo 0 clips");
+        assert!((photos[1].max().double_value(&[]) / peak - 1.0).abs() < 0.05, "{} vs {peak}", photos[1].max().double_value(&[]));
+        // Where photo 0 is mid-grey, the darker photo's 8-bit steps are 4-9% of the value.
+        let mid = photos[0].gt(0.1).logical_and(&photos[0].lt(0.5));
+        let rel = ((&photos[1] - &photos[0]).abs() / &photos[0]).masked_select(&mid).mean(Kind::Double).double_value(&[]);
+        assert!(rel < 0.04, "mean relative difference {rel}");
+        // Bad files are one line naming them.
+        std::fs::write(t.path().join(EXPOSURES_FILE), "1\n").unwrap();
+        assert!(err(t.path()).contains("exposures.txt has 1 exposures but the folder has 2 photos"));
+        std::fs::write(t.path().join(EXPOSURES_FILE), "1\n-0.5\n").unwrap();
+        assert!(err(t.path()).contains("exposures.txt line 2: an exposure must be a finite number > 0"));
+        std::fs::write(t.path().join(EXPOSURES_FILE), "1\nbright\n").unwrap();
+        assert!(err(t.path()).contains("exposures.txt line 2: expected one number"));
+        std::fs::remove_file(t.path().join(EXPOSURES_FILE)).unwrap();
+        assert_eq!(Captures::open(t.path()).unwrap().exposures, [1.0, 1.0]);
     }
 
     #[test]

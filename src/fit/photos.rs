@@ -543,7 +543,8 @@ pub fn load_capture(captures: &Captures, count: usize, size: usize) -> Result<Ca
 }
 
 /// Loads the photos `indices` of a capture at `size x size`, compensated
-/// for the fall-off relative to the most overhead of them. Errors (one
+/// for the fall-off relative to the most overhead of them and brought to
+/// its exposure ([`Captures::exposures`]). Errors (one
 /// line, naming the photo): photos of different sizes, a black photo, one
 /// clipped everywhere. A photo whose highlight falls off the sample is a
 /// warning in [`CapturePhotos::warnings`].
@@ -555,6 +556,7 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
     let overhead = crate::data::captures::overhead_index(&cameras);
     // Compensated relative to the overhead photo used, as `Captures::load_compensated` does.
     let r0 = crate::geometry::length(configs[overhead].light);
+    let e0 = captures.exposures[indices[overhead]];
     let mut photos = Vec::with_capacity(indices.len());
     let mut raw = Vec::with_capacity(indices.len());
     let mut names = Vec::with_capacity(indices.len());
@@ -589,7 +591,8 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
                 path.display()
             ));
         }
-        photos.push(&photo / falloff(c.light, r0, size, size));
+        // Brought to the overhead photo's exposure; the clipped mask stays the photo's own.
+        photos.push(&photo / falloff(c.light, r0, size, size) * (e0 / captures.exposures[i]));
         raw.push(clipped);
         names.push(path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());
     }

@@ -1,7 +1,8 @@
 //! What a photo's EXIF says about its camera: the field of view across the
 //! shorter side (from the 35 mm-equivalent focal length, or the focal
 //! length and the focal-plane resolution), the orientation tag, and the
-//! exposure (printed so a user can see what the camera did). JPEG, PNG and
+//! exposure (printed so a user can see what the camera did, and how
+//! `flashmat capture` brings photos of differing exposures to one). JPEG, PNG and
 //! TIFF EXIF is found by kamadak-exif; a HEIF (HEIC, AVIF) file's by libheif
 //! (`io::heif_exif`), whose decoder has already applied the file's own
 //! rotation and mirroring, so there the EXIF orientation is not applied
@@ -32,7 +33,41 @@ pub struct CameraInfo {
     /// EXIF orientation 1..=8 (1: as stored).
     pub orientation: u16,
     /// Exposure time, f-number and ISO, as the camera wrote them.
-    pub exposure: Option<String>,
+    pub exposure: Option<Exposure>,
+}
+
+/// A photo's exposure as its EXIF states it (each part if stated).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Exposure {
+    /// Exposure time, seconds.
+    pub time_s: Option<f64>,
+    pub f_number: Option<f64>,
+    pub iso: Option<u32>,
+}
+
+impl Exposure {
+    /// Exposure time x ISO / f-number^2: proportional to the photo's linear
+    /// values for one scene and light. None unless all three are stated.
+    pub fn scale(&self) -> Option<f64> {
+        Some(self.time_s? * self.iso? as f64 / self.f_number?.powi(2))
+    }
+}
+
+impl std::fmt::Display for Exposure {
+    /// "1/60 s, f/1.8, ISO 100", the parts stated.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let mut parts = vec![];
+        if let Some(t) = self.time_s {
+            parts.push(if t < 1.0 { format!("1/{:.0} s", 1.0 / t) } else { format!("{t} s") });
+        }
+        if let Some(n) = self.f_number {
+            parts.push(format!("f/{n}"));
+        }
+        if let Some(iso) = self.iso {
+            parts.push(format!("ISO {iso}"));
+        }
+        f.write_str(&parts.join(", "))
+    }
 }
 
 /// FOV across the shorter side of a `width x height` photo taken at a
@@ -113,17 +148,9 @@ pub fn read_camera(path: &Path, format: FileFormat, width: usize, height: usize)
         (a, b) => a.or(b),
     };
 
-    let mut exposure = vec![];
-    if let Some(t) = num(Tag::ExposureTime) {
-        exposure.push(if t < 1.0 { format!("1/{:.0} s", 1.0 / t) } else { format!("{t} s") });
-    }
-    if let Some(n) = num(Tag::FNumber) {
-        exposure.push(format!("f/{n}"));
-    }
-    if let Some(iso) = get(Tag::PhotographicSensitivity).and_then(|f| f.value.get_uint(0)) {
-        exposure.push(format!("ISO {iso}"));
-    }
-    Ok(CameraInfo { fov, orientation, exposure: (!exposure.is_empty()).then(|| exposure.join(", ")) })
+    let exposure = Exposure { time_s: num(Tag::ExposureTime), f_number: num(Tag::FNumber), iso: get(Tag::PhotographicSensitivity).and_then(|f| f.value.get_uint(0)) };
+    let stated = exposure != Exposure::default();
+    Ok(CameraInfo { fov, orientation, exposure: stated.then_some(exposure) })
 }
 
 #[cfg(test)]
