@@ -12,8 +12,10 @@
 //! - `neural`: the `.nmat` `estimate --capture` writes (the teacher's
 //!   encoder and renderer on the fitted maps).
 //!
-//! LPIPS of the identity (the overhead photo, which the fits saw) and of
-//! the whole renders under the moved lights (which no photo saw).
+//! LPIPS of the identity (the overhead photo, which the fits saw), of
+//! the whole renders under the moved lights (which no photo saw), and of
+//! `flashmat eval`'s Reflect and Hemisphere cases (its configurations for
+//! seed 0, the first [`CASE_CONFIGS`] of each material's).
 //!
 //! With FRAME true, nobody tells the positions: each capture is phone
 //! photos of the printed frame with the material in its opening
@@ -36,7 +38,7 @@ use anyhow::Result;
 use flashmat::data::captures::{write_synthetic_exposed, Captures, TILTED_PHONES};
 use flashmat::eval::highlights::{self, HighlightConfig, MaterialHighlights};
 use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, PhotoFitConfig};
-use flashmat::geometry::{LightView, MODEL_FOV_DEG};
+use flashmat::geometry::{LightView, Sampling, MODEL_FOV_DEG};
 use flashmat::lpips::Lpips;
 use rand::{Rng, SeedableRng};
 use std::collections::BTreeMap;
@@ -49,6 +51,20 @@ const FLASH_OFFSET: f64 = 0.15;
 /// Standard deviation of the position error the fit is told (per axis,
 /// flashmat units: 0.03 is about 2 mm).
 const POSITION_ERROR: f64 = 0.03;
+
+/// Configurations per material of the Reflect and Hemisphere cases (the
+/// paper's 128 take 4x the time).
+const CASE_CONFIGS: usize = 32;
+
+/// One method's scores on one material.
+struct Scored {
+    highlights: MaterialHighlights,
+    identity: f64,
+    moved: f64,
+    lobe_8bit: Option<f64>,
+    reflect: f64,
+    hemisphere: f64,
+}
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
@@ -81,7 +97,7 @@ fn main() -> Result<()> {
     let lpips = Lpips::new(Device::Cpu)?;
     let moved = HighlightConfig::default();
     let overhead = LightView::colocated(MODEL_FOV_DEG);
-    let mut rows: BTreeMap<(usize, &str), Vec<(MaterialHighlights, f64, f64, Option<f64>)>> = BTreeMap::new();
+    let mut rows: BTreeMap<(usize, &str), Vec<Scored>> = BTreeMap::new();
     let t0 = std::time::Instant::now();
     for i in first..=last {
         let m = flashmat::data::procedural::test_material(i, size);
@@ -90,16 +106,37 @@ fn main() -> Result<()> {
         let s_in = highlights::highlight_mask(&highlights::luminance(&truth_identity)?, moved.threshold);
         let gloss = highlights::glossiness(&m);
         let name = format!("test{i:02}");
-        let score = |pred: &Tensor, identity: &Tensor| -> Result<(MaterialHighlights, f64, f64, Option<f64>)> {
+        let cases: Vec<(Vec<LightView>, Tensor)> = [Sampling::Reflect, Sampling::Hemisphere]
+            .into_iter()
+            .map(|c| {
+                let cfg = flashmat::eval::case_configs(c, 0, i, CASE_CONFIGS);
+                let truth = flashmat::eval::reference_renders(&m, &cfg);
+                (cfg, truth)
+            })
+            .collect();
+        // A method's renders under its configurations `[K, 3, H, W]`.
+        let score = |render: &dyn Fn(&[LightView]) -> Result<Tensor>| -> Result<Scored> {
+            let pred = render(&moved.configs())?;
+            let identity = render(&[overhead])?.get(0);
+            let (pred, identity) = (&pred, &identity);
             let row = highlights::material_highlights(&name, gloss, 0, &highlights::light_ratios(&s_in, pred, &truth, &moved, None)?);
             // The lobe as an 8-bit photo under the moved lights would show it (both renders clipped at 1).
             let clipped = highlights::light_ratios(&s_in, &pred.clamp_max(1.0), &truth.clamp_max(1.0), &moved, None)?;
             let lobe_8bit = highlights::material_highlights(&name, gloss, 0, &clipped).lobe;
             let lp = flashmat::eval::score_renders(&lpips, &identity.unsqueeze(0), &truth_identity.unsqueeze(0))?[0].lpips;
-            let moved_lp = flashmat::eval::score_renders(&lpips, pred, &truth)?.iter().map(|s| s.lpips).sum::<f64>() / truth.size()[0] as f64;
+            let mean_lpips = |pred: &Tensor, truth: &Tensor| -> Result<f64> { Ok(flashmat::eval::score_renders(&lpips, pred, truth)?.iter().map(|s| s.lpips).sum::<f64>() / truth.size()[0] as f64) };
+            let moved_lp = mean_lpips(pred, &truth)?;
+            let [reflect, hemisphere] = [0, 1].map(|c| mean_lpips(&render(&cases[c].0)?, &cases[c].1));
+            let (reflect, hemisphere) = (reflect?, hemisphere?);
             let f = |v: Option<f64>| v.map_or("-".into(), |v| format!("{v:.2}"));
-            eprintln!("  {name} (glossiness {gloss:.2}): ghost {} lobe {} (8-bit {}) rest {} LPIPS identity {lp:.3} moved {moved_lp:.3}", f(row.ghost), f(row.lobe), f(lobe_8bit), f(row.rest));
-            Ok((row, lp, moved_lp, lobe_8bit))
+            eprintln!(
+                "  {name} (glossiness {gloss:.2}): ghost {} lobe {} (8-bit {}) rest {} LPIPS identity {lp:.3} moved {moved_lp:.3} reflect {reflect:.3} hemisphere {hemisphere:.3}",
+                f(row.ghost),
+                f(row.lobe),
+                f(lobe_8bit),
+                f(row.rest)
+            );
+            Ok(Scored { highlights: row, identity: lp, moved: moved_lp, lobe_8bit, reflect, hemisphere })
         };
         let mut rng = rand_pcg::Pcg64::seed_from_u64(70 + i as u64);
         // Relit grid columns (label, renders under the moved lights [L, 3, H, W]), truth first.
@@ -155,24 +192,21 @@ fn main() -> Result<()> {
                     &loaded.info,
                     &flashmat::infer::PreparedPhoto::at_model_view(flashmat::image::Image::from_tensor(&photo.clamp(0.0, 1.0))?, true, "overhead"),
                 )?;
-                let pred = single.render(&moved.configs())?;
-                let identity = single.render(&[overhead])?.get(0);
-                rows.entry((0, "single")).or_default().push(score(&pred, &identity)?);
-                relit.push(("bundled model, 1 photo".into(), pred));
+                rows.entry((0, "single")).or_default().push(score(&|c| single.render(c))?);
+                relit.push(("bundled model, 1 photo".into(), single.render(&moved.configs())?));
             }
             let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, coarse_share, photo_gains, ..PhotoFitConfig::default() };
             let fit = fit_capture(&loaded, &capture, &cfg, Device::Cpu, |_, _, _| {})?;
             let maps = fit.maps.unsqueeze(0);
-            let render = |configs: &[LightView]| -> Tensor {
+            let render = |configs: &[LightView]| -> Result<Tensor> {
                 let (l, v) = flashmat::geometry::config_tensors(configs, Device::Cpu);
                 let n = configs.len() as i64;
-                flashmat::svbrdf::render::render(&maps, &l.view([1, n, 3]), &v.view([1, n, 3])).get(0)
+                Ok(flashmat::svbrdf::render::render(&maps, &l.view([1, n, 3]), &v.view([1, n, 3])).get(0))
             };
-            rows.entry((k, "ggx")).or_default().push(score(&render(&moved.configs()), &render(&[overhead]).get(0))?);
+            rows.entry((k, "ggx")).or_default().push(score(&render)?);
             let material = neural_material(&fit.maps, &photo, &teacher, "capture")?;
-            let pred = material.render(&moved.configs())?;
-            rows.entry((k, "neural")).or_default().push(score(&pred, &material.render(&[overhead])?.get(0))?);
-            relit.push((format!("fit, {k} photo(s)"), pred));
+            rows.entry((k, "neural")).or_default().push(score(&|c| material.render(c))?);
+            relit.push((format!("fit, {k} photo(s)"), material.render(&moved.configs())?));
             if let (Some(out), true) = (&pictures, k == *counts.iter().max().unwrap_or(&k)) {
                 let cells: Vec<flashmat::image::Image> = (0..k).map(|j| flashmat::image::Image::display_of(&capture.photos.get(j as i64))).collect::<Result<_>>()?;
                 std::fs::create_dir_all(out)?;
@@ -189,15 +223,24 @@ fn main() -> Result<()> {
             eprintln!("{}: columns {}", out.join(format!("relit-{name}.jpg")).display(), relit.iter().map(|(l, _)| l.as_str()).collect::<Vec<_>>().join(" | "));
         }
     }
-    println!("| photos | method | ghost | lobe | lobe, 8-bit | rest | LPIPS identity | LPIPS moved lights |\n|---|---|---|---|---|---|---|---|");
+    println!("| photos | method | ghost | lobe | lobe, 8-bit | rest | LPIPS identity | LPIPS moved lights | LPIPS Reflect | LPIPS Hemisphere |\n|---|---|---|---|---|---|---|---|---|---|");
     for ((k, method), v) in &rows {
-        let s = highlights::summarize(&v.iter().map(|(r, _, _, _)| r).collect::<Vec<_>>());
-        let mean = |f: fn(&(MaterialHighlights, f64, f64, Option<f64>)) -> f64| v.iter().map(f).sum::<f64>() / v.len() as f64;
-        let lobes_8bit: Vec<f64> = v.iter().filter_map(|r| r.3).collect();
+        let s = highlights::summarize(&v.iter().map(|r| &r.highlights).collect::<Vec<_>>());
+        let mean = |f: fn(&Scored) -> f64| v.iter().map(f).sum::<f64>() / v.len() as f64;
+        let lobes_8bit: Vec<f64> = v.iter().filter_map(|r| r.lobe_8bit).collect();
         let lobe_8bit = flashmat::eval::metrics::geometric_mean(&lobes_8bit);
         let cell = |r: &highlights::RatioStats| format!("{:.2} ({}/{})", r.geo_mean, r.n, v.len());
         let k = if *k == 0 { "1 (model)".to_string() } else { k.to_string() };
-        println!("| {k} | {method} | {} | {} | {lobe_8bit:.2} | {} | {:.3} | {:.3} |", cell(&s.ghost), cell(&s.lobe), cell(&s.rest), mean(|r| r.1), mean(|r| r.2));
+        println!(
+            "| {k} | {method} | {} | {} | {lobe_8bit:.2} | {} | {:.3} | {:.3} | {:.3} | {:.3} |",
+            cell(&s.ghost),
+            cell(&s.lobe),
+            cell(&s.rest),
+            mean(|r| r.identity),
+            mean(|r| r.moved),
+            mean(|r| r.reflect),
+            mean(|r| r.hemisphere)
+        );
     }
     println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, bracket {bracket_stops} stops, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
     Ok(())
