@@ -233,3 +233,27 @@ fn a_photo_taken_at_another_exposure_gets_its_gain() {
     let kd = |f: &PhotoFit| f.maps.narrow(0, 0, 3).mean(Kind::Double).double_value(&[]);
     assert!((kd(&darkened) / kd(&same) - 1.0).abs() < 0.03, "mean kd {} vs {}", kd(&darkened), kd(&same));
 }
+
+#[test]
+fn a_photo_of_a_stated_exposure_is_brought_to_the_overhead_ones() {
+    // Photo 02 re-encoded at half the exposure, and exposures.txt saying so
+    // (in its own unit: the others at 2, photo 02 at 1). Loaded, every photo
+    // is at the overhead photo's exposure again: photo 02 within its 8-bit
+    // steps, the others unchanged.
+    let dir = tempfile::tempdir().unwrap();
+    four_photo_capture(dir.path(), false);
+    let load = || load_capture(&Captures::open(dir.path()).unwrap(), 4, 32).unwrap().photos;
+    let before = load();
+    let path = dir.path().join("02.png");
+    let photo = crate::io::read_image(&path).unwrap();
+    crate::io::write_png(&path, &photo.map(|v| (v.powf(2.2) * 0.5).powf(1.0 / 2.2)), crate::io::BitDepth::Eight).unwrap();
+    let darker = load();
+    let mean = |t: &Tensor| t.mean(Kind::Double).double_value(&[]);
+    assert!((mean(&darker.get(2)) / mean(&before.get(2)) - 0.5).abs() < 0.01, "without exposures.txt the photo is darker");
+    std::fs::write(dir.path().join(crate::data::captures::EXPOSURES_FILE), "2\n2\n1\n2\n").unwrap();
+    let after = load();
+    let rel = ((after.get(2) - before.get(2)).abs() / before.get(2)).mean(Kind::Double).double_value(&[]);
+    assert!(rel < 0.02, "photo 02 brought back: mean relative difference {rel}");
+    assert_eq!(after.narrow(0, 0, 2), before.narrow(0, 0, 2));
+    assert_eq!(after.get(3), before.get(3));
+}
