@@ -621,7 +621,8 @@ settle() {
   [ -f "$model" ] || die "settle: no model file '$model' (usage: OUT=DIR gpu-train.sh settle MODEL [MINUTES])"
   [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "settle: MINUTES must be a number, not '$minutes'"
   source scripts/env.sh
-  local bin="$FLASHMAT_RELEASE_BIN"
+  # The dry run's binary when it runs one (cpu_dry_run), else the release build.
+  local bin="${FLASHMAT_DRY_RUN_BIN:-$FLASHMAT_RELEASE_BIN}"
   [ -x "$bin" ] || cargo build --release --bin flashmat
   mkdir -p "$out"
   "$bin" train --preset "$PRESET" --ldr --out "$out/run" --warm-start "$model" --crop "${FLASHMAT_SETTLE_CROP:-64}" \
@@ -728,10 +729,13 @@ cpu_dry_run() {
   trap 'rm -rf "$DRY_RUN_DIR"' EXIT
   local tmp="$DRY_RUN_DIR"
   source scripts/env.sh
-  [ -x "$FLASHMAT_RELEASE_BIN" ] || cargo build --release --bin flashmat
+  # FLASHMAT_DRY_RUN_BIN: a binary already built (scripts/test.sh passes the
+  # tests' dev build, sparing CI a release build of everything).
+  local bin="${FLASHMAT_DRY_RUN_BIN:-$FLASHMAT_RELEASE_BIN}"
+  [ -x "$bin" ] || cargo build --release --bin flashmat
   export FLASHMAT_GPU_DEVICE=cpu FLASHMAT_GPU_PRESET=tiny FLASHMAT_GPU_CROP=32 FLASHMAT_GPU_BATCH=2 \
     FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_COLOCATED=1 FLASHMAT_GPU_MOVED=1 FLASHMAT_GPU_LOBE=0.1 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
-    FLASHMAT_GPU_WORK="$tmp/machine" FLASHMAT_GPU_BIN="$FLASHMAT_RELEASE_BIN" \
+    FLASHMAT_GPU_WORK="$tmp/machine" FLASHMAT_GPU_BIN="$bin" \
     FLASHMAT_GPU_RESUME="$tmp/resume.safetensors" FLASHMAT_TORCH_LIB="$FLASHMAT_TORCH_LIB" \
     FLASHMAT_GPU_TEACHER_STEPS=20 FLASHMAT_GPU_TEACHER_PIXELS=1024 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/teacher.safetensors"
   local self="$ROOT/scripts/gpu-train.sh"

@@ -46,8 +46,11 @@ fi
 python_rc=0
 bash scripts/test_python.sh 2>&1 || python_rc=$?
 # The GPU campaign's steps on the CPU (tiny preset, under a minute).
+# It runs the tests' dev build of the binary (a release build would take
+# CI minutes).
 campaign_rc=0
-bash scripts/gpu-train.sh --cpu-dry-run 2>&1 || campaign_rc=$?
+FLASHMAT_DRY_RUN_BIN="$(realpath -m "${CARGO_TARGET_DIR:-target}")/debug/flashmat" \
+  bash scripts/gpu-train.sh --cpu-dry-run 2>&1 || campaign_rc=$?
 # A GPU job takes at most 64 MiB: the tracked tree stays within 32 MiB so
 # the binary and a model to resume from fit beside it.
 size_rc=0
