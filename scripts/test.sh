@@ -45,7 +45,7 @@ fi
 # libllvm19 are installed once.
 python_rc=0
 bash scripts/test_python.sh 2>&1 || python_rc=$?
-# The GPU campaign's steps on the CPU (tiny preset, under a minute).
+# The GPU campaign's steps on the CPU (tiny preset, about 4 minutes on 2 cores).
 # It runs the tests' dev build of the binary (a release build would take
 # CI minutes).
 campaign_rc=0
