@@ -29,15 +29,21 @@
 //! others and that many stops darker (`exposures.txt`). COUNTS are
 //! positions; the fit gets twice as many photos.
 //!
+//! With ORACLE=lobe (environment), the fit starts from the truth's ks and
+//! roughness with the estimate's kd and normals; with ORACLE=maps, from
+//! all the truth's maps: how far the fit gets when its start is right.
+//! LOBES=1 prints the median roughness and ks of the truth and the fit on
+//! the photographed and the moved highlights.
+//!
 //! ```sh
-//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG] [FRAME] [BRACKET_STOPS]
+//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG] [FRAME] [BRACKET_STOPS] [LOBE_SHIFT_REGIONS]
 //! # defaults: 128 0-5 1,2,3,5 and PhotoFitConfig's steps, pull and smoothness weights; "-" keeps a default
 //! ```
 
 use anyhow::Result;
 use flashmat::data::captures::{write_synthetic_exposed, Captures, TILTED_PHONES};
 use flashmat::eval::highlights::{self, HighlightConfig, MaterialHighlights};
-use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, PhotoFitConfig};
+use flashmat::fit::photos::{estimated_start, fit_capture, fit_photos, load_capture, load_teacher, neural_material, start_fit_config, PhotoFitConfig};
 use flashmat::geometry::{LightView, Sampling, MODEL_FOV_DEG};
 use flashmat::lpips::Lpips;
 use rand::{Rng, SeedableRng};
@@ -91,6 +97,12 @@ fn main() -> Result<()> {
     let phone_jpeg: bool = args.get(12).filter(|a| *a != "-").map_or(Ok(false), |s| s.parse())?;
     let frame: bool = args.get(13).filter(|a| *a != "-").map_or(Ok(false), |s| s.parse())?;
     let bracket_stops: f64 = args.get(14).filter(|a| *a != "-").map_or(Ok(0.0), |s| s.parse())?;
+    let lobe_shift_regions: usize = args.get(15).filter(|a| *a != "-").map_or(Ok(defaults.lobe_shift_regions), |s| s.parse())?;
+    // Diagnostics from the environment: ORACLE=lobe or maps fits from the truth's lobes (with
+    // the estimated kd and normals) or from all its maps; LOBES=1 prints the lobes' medians.
+    let oracle = std::env::var("ORACLE").ok();
+    anyhow::ensure!(oracle.as_deref().is_none_or(|o| o == "lobe" || o == "maps"), "ORACLE must be lobe or maps");
+    let print_lobes = std::env::var_os("LOBES").is_some();
     anyhow::ensure!(bracket_stops >= 0.0 && !(frame && bracket_stops > 0.0), "BRACKET_STOPS must be >= 0, and 0 with FRAME");
     let loaded = flashmat::infer::load_model(None, Device::Cpu)?;
     let teacher = load_teacher(None, Device::Cpu)?;
@@ -195,14 +207,53 @@ fn main() -> Result<()> {
                 rows.entry((0, "single")).or_default().push(score(&|c| single.render(c))?);
                 relit.push(("bundled model, 1 photo".into(), single.render(&moved.configs())?));
             }
-            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, coarse_share, photo_gains, ..PhotoFitConfig::default() };
-            let fit = fit_capture(&loaded, &capture, &cfg, Device::Cpu, |_, _, _| {})?;
+            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, lobe_shift_regions, coarse_share, photo_gains, ..PhotoFitConfig::default() };
+            let fit = match oracle.as_deref() {
+                None => fit_capture(&loaded, &capture, &cfg, Device::Cpu, |_, _, _| {})?,
+                Some(o) => {
+                    // The fit from a start that holds the truth's lobes (ks, roughness) or all its maps.
+                    let truth_maps = m.stacked().to_tensor();
+                    let start = if o == "lobe" {
+                        let start = estimated_start(&loaded, &photo, &start_fit_config(), |_, _| {})?;
+                        Tensor::cat(&[start.narrow(0, 0, 3), truth_maps.narrow(0, 3, 4), start.narrow(0, 7, 3)], 0)
+                    } else {
+                        truth_maps
+                    };
+                    fit_photos(&capture.photos, &capture.clipped, &capture.configs, &start, &cfg, |_| {})?
+                }
+            };
             let maps = fit.maps.unsqueeze(0);
             let render = |configs: &[LightView]| -> Result<Tensor> {
                 let (l, v) = flashmat::geometry::config_tensors(configs, Device::Cpu);
                 let n = configs.len() as i64;
                 Ok(flashmat::svbrdf::render::render(&maps, &l.view([1, n, 3]), &v.view([1, n, 3])).get(0))
             };
+            if print_lobes {
+                // Medians of the truth's and the fit's roughness and ks (RGB mean) on the overhead
+                // photo's highlight and on the moved lights' highlights outside it.
+                let mut moved_mask = vec![false; s_in.len()];
+                for l in 0..truth.size()[0] {
+                    let mask = highlights::highlight_mask(&highlights::luminance(&truth.get(l))?, moved.threshold);
+                    moved_mask.iter_mut().zip(mask.iter().zip(&s_in)).for_each(|(o, (&lit, &seen))| *o |= lit && !seen);
+                }
+                let flat = |t: Tensor| -> Result<Vec<f32>> { Ok(Vec::try_from(t.reshape([-1]))?) };
+                let rgb_mean = |t: Tensor| t.mean_dim(0, false, tch::Kind::Float);
+                let (tr, tk) = (flat(m.roughness.to_tensor())?, flat(rgb_mean(m.specular.to_tensor()))?);
+                let (fr, fk) = (flat(fit.maps.get(6))?, flat(rgb_mean(fit.maps.narrow(0, 3, 3)))?);
+                let median = |v: &[f32], mask: &[bool]| {
+                    let mut x: Vec<f32> = v.iter().zip(mask).filter(|(_, &inside)| inside).map(|(&a, _)| a).collect();
+                    x.sort_by(|a, b| a.total_cmp(b));
+                    x.get(x.len() / 2).copied().unwrap_or(f32::NAN)
+                };
+                let pair = |t: &[f32], f: &[f32], mask: &[bool]| format!("{:.3}/{:.3}", median(t, mask), median(f, mask));
+                eprintln!(
+                    "  lobes of {name}, {k} photo(s), truth/fit: photographed highlight r {} ks {}; moved highlights r {} ks {}",
+                    pair(&tr, &fr, &s_in),
+                    pair(&tk, &fk, &s_in),
+                    pair(&tr, &fr, &moved_mask),
+                    pair(&tk, &fk, &moved_mask)
+                );
+            }
             rows.entry((k, "ggx")).or_default().push(score(&render)?);
             let material = neural_material(&fit.maps, &photo, &teacher, "capture")?;
             rows.entry((k, "neural")).or_default().push(score(&|c| material.render(c))?);
@@ -242,7 +293,7 @@ fn main() -> Result<()> {
             mean(|r| r.hemisphere)
         );
     }
-    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, bracket {bracket_stops} stops, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
+    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, bracket {bracket_stops} stops, lobe shift regions {lobe_shift_regions}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
     Ok(())
 }
 

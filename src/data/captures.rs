@@ -98,7 +98,7 @@ impl Captures {
         self.photos
             .iter()
             .zip(self.lights.iter().zip(&self.exposures))
-            .map(|(path, (&light, &e))| Ok(load_photo(path, size)? / falloff(light, r0, size, size) * (e0 / e)))
+            .map(|(path, (&light, &e))| Ok(compensated(&load_photo(path, size)?, light, r0, e0 / e)))
             .collect()
     }
 }
@@ -123,6 +123,15 @@ pub fn falloff(light: [f64; 3], r0: f64, h: usize, w: usize) -> Tensor {
     let l = Tensor::from_slice(&light.map(|c| c as f32)).view([3, 1, 1]);
     let r2 = (l - p).square().sum_dim_intlist([0i64].as_slice(), true, Kind::Float);
     r2.reciprocal() * (r0 * r0)
+}
+
+/// A photo as the fit sees it: divided by its flash's fall-off relative to
+/// distance r0 ([`falloff`]) and brought to the reference exposure
+/// (`exposure_ratio`: the reference's exposure over the photo's).
+/// photo: linear `[3, H, W]` (CPU) -> `[3, H, W]`.
+pub fn compensated(photo: &Tensor, light: [f64; 3], r0: f64, exposure_ratio: f64) -> Tensor {
+    let s = photo.size();
+    photo / falloff(light, r0, s[1] as usize, s[2] as usize) * exposure_ratio
 }
 
 /// One capture photo, linear `[3, S, S]`: gamma-decoded (^2.2, as every

@@ -1,5 +1,5 @@
 use super::*;
-use crate::data::captures::{synthetic_configs, write_synthetic};
+use crate::data::captures::{synthetic_configs, write_synthetic, write_synthetic_exposed};
 use crate::geometry::fov_to_distance;
 use crate::svbrdf::Svbrdf;
 
@@ -256,4 +256,39 @@ fn a_photo_of_a_stated_exposure_is_brought_to_the_overhead_ones() {
     assert!(rel < 0.02, "photo 02 brought back: mean relative difference {rel}");
     assert_eq!(after.narrow(0, 0, 2), before.narrow(0, 0, 2));
     assert_eq!(after.get(3), before.get(3));
+}
+
+#[test]
+fn the_lobe_the_highlights_show_carries_to_the_pixels_they_missed() {
+    // Truth: uniform kd, ks 0.05, roughness 0.3, taken dim enough that no
+    // pixel clips; the start has its kd and normals but a broader lobe
+    // (roughness 0.55), as M_est's from one photo tends to. Under the
+    // highlights the photos correct it, and the pixels no highlight
+    // touched should follow them.
+    let opts = (Kind::Float, Device::Cpu);
+    let (side, truth_r) = (48i64, 0.3);
+    let kd = Tensor::from_slice(&[0.3f32, 0.25, 0.2]).view([3, 1, 1]).expand([3, side, side], false);
+    let up = Tensor::from_slice(&[0.0f32, 0.0, 1.0]).view([3, 1, 1]).expand([3, side, side], false);
+    let with_lobe = |ks: f64, r: f64| Tensor::cat(&[kd.shallow_clone(), Tensor::full([3, side, side], ks, opts), Tensor::full([1, side, side], r, opts), up.shallow_clone()], 0);
+    let dir = tempfile::tempdir().unwrap();
+    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&with_lobe(0.05, truth_r)).unwrap()).unwrap();
+    let configs = synthetic_configs(3);
+    // Half the exposure of `write_synthetic`: no pixel clips.
+    write_synthetic_exposed(dir.path(), &material, &configs, &[0.5; 3], 10.0).unwrap();
+    let loaded = load_capture(&Captures::open(dir.path()).unwrap(), 3, side as usize).unwrap();
+    assert_eq!(loaded.clipped.sum(Kind::Int64).int64_value(&[]), 0, "no pixel clips");
+    let start = with_lobe(0.05, 0.55);
+    let fitted = |regions: Option<usize>| {
+        let defaults = PhotoFitConfig::default();
+        let cfg = PhotoFitConfig { size: side as usize, lobe_shift_regions: regions.unwrap_or(defaults.lobe_shift_regions), ..defaults };
+        let maps = fit_photos(&loaded.photos, &loaded.clipped, &loaded.configs, &start, &cfg, |_| ()).unwrap().maps;
+        let r = maps.get(6);
+        let q = |p: f64| r.flatten(0, -1).quantile_scalar(p, None, false, "linear").double_value(&[]);
+        eprintln!("regions {regions:?}: roughness quantiles 5% {:.3} 50% {:.3} 95% {:.3}", q(0.05), q(0.5), q(0.95));
+        q(0.5)
+    };
+    let (r0, r1) = (fitted(Some(0)), fitted(None));
+    eprintln!("median roughness: start's lobe pulled {r0:.3}, shifted (the default) {r1:.3}; truth {truth_r}");
+    assert!((r0 - 0.55).abs() < 0.05, "without the shift most pixels keep the start's roughness, got a median of {r0}");
+    assert!((r1 - truth_r).abs() < 0.5 * (r0 - truth_r).abs(), "the shift's median roughness {r1} is no nearer {truth_r} than the plain pull's {r0}");
 }
