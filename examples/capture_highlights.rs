@@ -30,8 +30,9 @@
 //! positions; the fit gets twice as many photos.
 //!
 //! With ORACLE=lobe (environment), the fit starts from the truth's ks and
-//! roughness with the estimate's kd and normals; with ORACLE=maps, from
-//! all the truth's maps: how far the fit gets when its start is right.
+//! roughness with the estimate's kd and normals; with ORACLE=normals, from
+//! the truth's normals and the estimate's other maps; with ORACLE=maps,
+//! from all the truth's maps: how far the fit gets when its start is right.
 //! LOBES=1 prints the median roughness and ks of the truth and the fit on
 //! the photographed and the moved highlights.
 //!
@@ -98,10 +99,10 @@ fn main() -> Result<()> {
     let frame: bool = args.get(13).filter(|a| *a != "-").map_or(Ok(false), |s| s.parse())?;
     let bracket_stops: f64 = args.get(14).filter(|a| *a != "-").map_or(Ok(0.0), |s| s.parse())?;
     let lobe_shift_regions: usize = args.get(15).filter(|a| *a != "-").map_or(Ok(defaults.lobe_shift_regions), |s| s.parse())?;
-    // Diagnostics from the environment: ORACLE=lobe or maps fits from the truth's lobes (with
-    // the estimated kd and normals) or from all its maps; LOBES=1 prints the lobes' medians.
+    // Diagnostics from the environment: ORACLE=lobe, normals or maps fits from the truth's
+    // lobes or normals (the rest estimated) or from all its maps; LOBES=1 prints the lobes' medians.
     let oracle = std::env::var("ORACLE").ok();
-    anyhow::ensure!(oracle.as_deref().is_none_or(|o| o == "lobe" || o == "maps"), "ORACLE must be lobe or maps");
+    anyhow::ensure!(oracle.as_deref().is_none_or(|o| ["lobe", "normals", "maps"].contains(&o)), "ORACLE must be lobe, normals or maps");
     let print_lobes = std::env::var_os("LOBES").is_some();
     anyhow::ensure!(bracket_stops >= 0.0 && !(frame && bracket_stops > 0.0), "BRACKET_STOPS must be >= 0, and 0 with FRAME");
     let loaded = flashmat::infer::load_model(None, Device::Cpu)?;
@@ -213,11 +214,14 @@ fn main() -> Result<()> {
                 Some(o) => {
                     // The fit from a start that holds the truth's lobes (ks, roughness) or all its maps.
                     let truth_maps = m.stacked().to_tensor();
-                    let start = if o == "lobe" {
-                        let start = estimated_start(&loaded, &photo, &start_fit_config(), |_, _| {})?;
-                        Tensor::cat(&[start.narrow(0, 0, 3), truth_maps.narrow(0, 3, 4), start.narrow(0, 7, 3)], 0)
-                    } else {
-                        truth_maps
+                    let estimate = || estimated_start(&loaded, &photo, &start_fit_config(), |_, _| {});
+                    let start = match o {
+                        "lobe" => {
+                            let start = estimate()?;
+                            Tensor::cat(&[start.narrow(0, 0, 3), truth_maps.narrow(0, 3, 4), start.narrow(0, 7, 3)], 0)
+                        }
+                        "normals" => Tensor::cat(&[estimate()?.narrow(0, 0, 7), truth_maps.narrow(0, 7, 3)], 0),
+                        _ => truth_maps,
                     };
                     fit_photos(&capture.photos, &capture.clipped, &capture.configs, &start, &cfg, |_| {})?
                 }
