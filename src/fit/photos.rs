@@ -315,12 +315,13 @@ impl Level {
             None => (init.shallow_clone(), start.shallow_clone()),
         };
         let start_raw = encode(&start);
+        let shift_memberships = shift.map(|s| s.memberships_at(self.target.size()[2]));
         let data = |maps: &Tensor| {
             let mut loss = self.differences(maps, photo).0.mean(Kind::Float);
             if cfg.pull_weight > 0.0 {
-                let target = match shift {
-                    Some(shift) => shift.shifted(&start_raw, self.target.size()[2]),
-                    None => start.shallow_clone(),
+                let target = match (shift, &shift_memberships) {
+                    (Some(shift), Some(m)) => shift.shifted(&start_raw, m),
+                    _ => start.shallow_clone(),
                 };
                 loss = loss + ((maps - &target).square() * &factors).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).mean(Kind::Float) * cfg.pull_weight;
             }
@@ -362,14 +363,19 @@ impl LobeShift {
         LobeShift { memberships, values }
     }
 
-    /// The maps of raw start `[1, 9, h, w]` with each pixel's lobe shifted
-    /// by its regions' (memberships averaged down to side `h`): `[1, 10, h, w]`.
-    fn shifted(&self, start_raw: &Tensor, h: i64) -> Tensor {
+    /// The memberships averaged down to side `h` (a level of the fit): `[1, C, h, w]`.
+    fn memberships_at(&self, h: i64) -> Tensor {
         let mut m = self.memberships.shallow_clone();
         while m.size()[2] > h {
             m = average_2x2(&m);
         }
-        let shift = Tensor::einsum("bchw,ck->bkhw", &[&m, &self.values], None::<i64>);
+        m
+    }
+
+    /// The maps of raw start `[1, 9, h, w]` with each pixel's lobe shifted
+    /// by its regions' under memberships `[1, C, h, w]`: `[1, 10, h, w]`.
+    fn shifted(&self, start_raw: &Tensor, memberships: &Tensor) -> Tensor {
+        let shift = Tensor::einsum("bchw,ck->bkhw", &[memberships, &self.values], None::<i64>);
         let (first, count) = super::LOBE_CHANNELS;
         decode(&Tensor::cat(&[start_raw.narrow(1, 0, first), start_raw.narrow(1, first, count) + shift, start_raw.narrow(1, first + count, super::RAW_CHANNELS - first - count)], 1))
     }
