@@ -621,9 +621,8 @@ settle() {
   [ -f "$model" ] || die "settle: no model file '$model' (usage: OUT=DIR gpu-train.sh settle MODEL [MINUTES])"
   [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "settle: MINUTES must be a number, not '$minutes'"
   source scripts/env.sh
-  # The dry run's binary when it runs one (cpu_dry_run), else the release build.
-  local bin="${FLASHMAT_DRY_RUN_BIN:-$FLASHMAT_RELEASE_BIN}"
-  [ -x "$bin" ] || cargo build --release --bin flashmat
+  local bin
+  bin="$(flashmat_bin)" || exit 1
   mkdir -p "$out"
   "$bin" train --preset "$PRESET" --ldr --out "$out/run" --warm-start "$model" --crop "${FLASHMAT_SETTLE_CROP:-64}" \
     --outputs 4 --colocated-outputs 1 --batch 2 --lr 5e-5 --warmup-steps 50 --straight-through-output --checkerboard-free \
@@ -724,15 +723,26 @@ bench() {
 }
 
 # The whole campaign on the CPU with the tiny preset, in a temporary folder.
+# The binary the dry run and settle run: FLASHMAT_DRY_RUN_BIN, one already
+# built (scripts/test.sh passes the tests' dev build, sparing CI a release
+# build of everything), else the release build, built when missing.
+flashmat_bin() {
+  if [ -n "${FLASHMAT_DRY_RUN_BIN:-}" ]; then
+    [ -x "$FLASHMAT_DRY_RUN_BIN" ] || die "FLASHMAT_DRY_RUN_BIN '$FLASHMAT_DRY_RUN_BIN' is not an executable file"
+    echo "$FLASHMAT_DRY_RUN_BIN"
+    return
+  fi
+  [ -x "$FLASHMAT_RELEASE_BIN" ] || cargo build --release --bin flashmat >&2 || die "the release build of flashmat failed"
+  echo "$FLASHMAT_RELEASE_BIN"
+}
+
 cpu_dry_run() {
   DRY_RUN_DIR=$(mktemp -d)
   trap 'rm -rf "$DRY_RUN_DIR"' EXIT
   local tmp="$DRY_RUN_DIR"
   source scripts/env.sh
-  # FLASHMAT_DRY_RUN_BIN: a binary already built (scripts/test.sh passes the
-  # tests' dev build, sparing CI a release build of everything).
-  local bin="${FLASHMAT_DRY_RUN_BIN:-$FLASHMAT_RELEASE_BIN}"
-  [ -x "$bin" ] || cargo build --release --bin flashmat
+  local bin
+  bin="$(flashmat_bin)" || exit 1
   export FLASHMAT_GPU_DEVICE=cpu FLASHMAT_GPU_PRESET=tiny FLASHMAT_GPU_CROP=32 FLASHMAT_GPU_BATCH=2 \
     FLASHMAT_GPU_OUTPUTS=2 FLASHMAT_GPU_COLOCATED=1 FLASHMAT_GPU_MOVED=1 FLASHMAT_GPU_LOBE=0.1 FLASHMAT_GPU_BANK=6 FLASHMAT_GPU_WARMUP=2 FLASHMAT_GPU_CONFIGS=2 \
     FLASHMAT_GPU_WORK="$tmp/machine" FLASHMAT_GPU_BIN="$bin" \

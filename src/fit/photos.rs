@@ -315,13 +315,14 @@ impl Level {
             None => (init.shallow_clone(), start.shallow_clone()),
         };
         let start_raw = encode(&start);
-        let shift_memberships = shift.map(|s| s.memberships_at(self.target.size()[2]));
+        // The shift with its memberships at this level's side.
+        let shift_here = shift.map(|s| (s, s.memberships_at(self.target.size()[2])));
         let data = |maps: &Tensor| {
             let mut loss = self.differences(maps, photo).0.mean(Kind::Float);
             if cfg.pull_weight > 0.0 {
-                let target = match (shift, &shift_memberships) {
-                    (Some(shift), Some(m)) => shift.shifted(&start_raw, m),
-                    _ => start.shallow_clone(),
+                let target = match &shift_here {
+                    Some((shift, m)) => shift.shifted(&start_raw, m),
+                    None => start.shallow_clone(),
                 };
                 loss = loss + ((maps - &target).square() * &factors).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).mean(Kind::Float) * cfg.pull_weight;
             }
