@@ -33,11 +33,17 @@
 //! roughness with the estimate's kd and normals; with ORACLE=normals, from
 //! the truth's normals and the estimate's other maps; with ORACLE=maps,
 //! from all the truth's maps: how far the fit gets when its start is right.
+//! PHONES=0,2 (environment) takes the tilted photos from those entries
+//! of `TILTED_PHONES`, in that order (default 0,1,2,3: the issue's
+//! positions first).
+//!
 //! LOBES=1 prints the median roughness and ks of the truth and the fit on
-//! the photographed and the moved highlights.
+//! the photographed and the moved highlights, the fit's mean normal error,
+//! and the ghost per moved light on the photographed highlight's clipped
+//! and unclipped pixels apart.
 //!
 //! ```sh
-//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG] [FRAME] [BRACKET_STOPS] [LOBE_SHIFT_REGIONS]
+//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG] [FRAME] [BRACKET_STOPS] [LOBE_SHIFT_REGIONS] [CLIPPED_TAIL_WEIGHT]
 //! # defaults: 128 0-5 1,2,3,5 and PhotoFitConfig's steps, pull and smoothness weights; "-" keeps a default
 //! ```
 
@@ -99,11 +105,17 @@ fn main() -> Result<()> {
     let frame: bool = args.get(13).filter(|a| *a != "-").map_or(Ok(false), |s| s.parse())?;
     let bracket_stops: f64 = args.get(14).filter(|a| *a != "-").map_or(Ok(0.0), |s| s.parse())?;
     let lobe_shift_regions: usize = args.get(15).filter(|a| *a != "-").map_or(Ok(defaults.lobe_shift_regions), |s| s.parse())?;
+    let clipped_tail_weight: f64 = args.get(16).filter(|a| *a != "-").map_or(Ok(defaults.clipped_tail_weight), |s| s.parse())?;
     // Diagnostics from the environment: ORACLE=lobe, normals or maps fits from the truth's
     // lobes or normals (the rest estimated) or from all its maps; LOBES=1 prints the lobes' medians.
     let oracle = std::env::var("ORACLE").ok();
     anyhow::ensure!(oracle.as_deref().is_none_or(|o| ["lobe", "normals", "maps"].contains(&o)), "ORACLE must be lobe, normals or maps");
     let print_lobes = std::env::var_os("LOBES").is_some();
+    // PHONES=0,2: which of TILTED_PHONES the tilted photos take, in order (default all, in theirs).
+    let phones: Vec<usize> = match std::env::var("PHONES") {
+        Ok(list) => list.split(',').map(|j| j.trim().parse::<usize>().ok().filter(|&j| j < TILTED_PHONES.len())).collect::<Option<_>>().ok_or_else(|| anyhow::anyhow!("PHONES must list indices below {}, got {list:?}", TILTED_PHONES.len()))?,
+        Err(_) => (0..TILTED_PHONES.len()).collect(),
+    };
     anyhow::ensure!(bracket_stops >= 0.0 && !(frame && bracket_stops > 0.0), "BRACKET_STOPS must be >= 0, and 0 with FRAME");
     let loaded = flashmat::infer::load_model(None, Device::Cpu)?;
     let teacher = load_teacher(None, Device::Cpu)?;
@@ -155,8 +167,9 @@ fn main() -> Result<()> {
         // Relit grid columns (label, renders under the moved lights [L, 3, H, W]), truth first.
         let mut relit: Vec<(String, Tensor)> = vec![("truth".into(), truth.shallow_clone())];
         for &k in &counts {
-            // Overhead, then the tilted phones of `TILTED_PHONES`.
-            let cameras: Vec<[f64; 3]> = std::iter::once(overhead.view).chain(TILTED_PHONES).take(k).collect();
+            // Overhead, then the tilted phones of `TILTED_PHONES` (in PHONES' order when given).
+            let tilted: Vec<[f64; 3]> = phones.iter().map(|&j| TILTED_PHONES[j]).collect();
+            let cameras: Vec<[f64; 3]> = std::iter::once(overhead.view).chain(tilted).take(k).collect();
             let positions: Vec<LightView> = cameras.iter().map(|&c| LightView { light: [c[0] + FLASH_OFFSET, c[1], c[2]], view: c }).collect();
             // Photo j of a bracketed capture is position j / 2 at exposure 1 (even j) or darker (odd j).
             let shots = if bracket_stops > 0.0 { 2 } else { 1 };
@@ -208,7 +221,7 @@ fn main() -> Result<()> {
                 rows.entry((0, "single")).or_default().push(score(&|c| single.render(c))?);
                 relit.push(("bundled model, 1 photo".into(), single.render(&moved.configs())?));
             }
-            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, lobe_shift_regions, coarse_share, photo_gains, ..PhotoFitConfig::default() };
+            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, lobe_shift_regions, clipped_tail_weight, coarse_share, photo_gains, ..PhotoFitConfig::default() };
             let fit = match oracle.as_deref() {
                 None => fit_capture(&loaded, &capture, &cfg, Device::Cpu, |_, _, _| {})?,
                 Some(o) => {
@@ -250,8 +263,19 @@ fn main() -> Result<()> {
                     x.get(x.len() / 2).copied().unwrap_or(f32::NAN)
                 };
                 let pair = |t: &[f32], f: &[f32], mask: &[bool]| format!("{:.3}/{:.3}", median(t, mask), median(f, mask));
+                // Mean angle between the fit's normals and the truth's, in degrees.
+                let cos = (fit.maps.narrow(0, 7, 3) * m.normal.to_tensor()).sum_dim_intlist([0i64].as_slice(), false, tch::Kind::Float).clamp(-1.0, 1.0);
+                let normal_error = cos.acos().mean(tch::Kind::Double).double_value(&[]).to_degrees();
+                let clipped_overhead: Vec<bool> = Vec::<bool>::try_from(capture.clipped.get(capture.overhead as i64).reshape([-1]))?;
+                let pred = render(&moved.configs())?;
+                for (label, keep) in [("clipped", true), ("unclipped", false)] {
+                    let mask: Vec<bool> = s_in.iter().zip(&clipped_overhead).map(|(&a, &c)| a && c == keep).collect();
+                    let ratios = highlights::light_ratios(&mask, &pred, &truth, &moved, None)?;
+                    let g: Vec<String> = ratios.iter().map(|r| r.ghost.map_or("-".into(), |v| format!("{v:.2}"))).collect();
+                    eprintln!("  ghost of {name} on the {label} photographed highlight ({} px): {}", mask.iter().filter(|&&b| b).count(), g.join(" "));
+                }
                 eprintln!(
-                    "  lobes of {name}, {k} photo(s), truth/fit: photographed highlight r {} ks {}; moved highlights r {} ks {}",
+                    "  lobes of {name}, {k} photo(s), truth/fit: photographed highlight r {} ks {}; moved highlights r {} ks {}; normals {normal_error:.2} degrees off",
                     pair(&tr, &fr, &s_in),
                     pair(&tk, &fk, &s_in),
                     pair(&tr, &fr, &moved_mask),
@@ -297,7 +321,7 @@ fn main() -> Result<()> {
             mean(|r| r.hemisphere)
         );
     }
-    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, bracket {bracket_stops} stops, lobe shift regions {lobe_shift_regions}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
+    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, bracket {bracket_stops} stops, lobe shift regions {lobe_shift_regions}, clipped tail weight {clipped_tail_weight}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
     Ok(())
 }
 

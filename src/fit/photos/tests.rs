@@ -292,3 +292,35 @@ fn the_lobe_the_highlights_show_carries_to_the_pixels_they_missed() {
     assert!((r0 - 0.55).abs() < 0.05, "without the shift most pixels keep the start's roughness, got a median of {r0}");
     assert!((r1 - truth_r).abs() < 0.5 * (r0 - truth_r).abs(), "the shift's median roughness {r1} is no nearer {truth_r} than the plain pull's {r0}");
 }
+
+#[test]
+fn a_clipped_highlight_is_fitted_with_the_sharpest_lobe_it_allows() {
+    // Truth: a glossy uniform material (ks 0.3, roughness 0.25) whose
+    // flash highlight clips; the start has a broad dim lobe (ks 0.05,
+    // roughness 0.5), as M_est's tends to. The clipped pixels only ask for
+    // a highlight at the ceiling, which the pull meets with a broad lobe
+    // and the tail prior with a sharper one, nearer the truth, while the
+    // photos are matched as well.
+    let opts = (Kind::Float, Device::Cpu);
+    let (side, truth_r) = (48i64, 0.25);
+    let kd = Tensor::from_slice(&[0.3f32, 0.25, 0.2]).view([3, 1, 1]).expand([3, side, side], false);
+    let up = Tensor::from_slice(&[0.0f32, 0.0, 1.0]).view([3, 1, 1]).expand([3, side, side], false);
+    let with_lobe = |ks: f64, r: f64| Tensor::cat(&[kd.shallow_clone(), Tensor::full([3, side, side], ks, opts), Tensor::full([1, side, side], r, opts), up.shallow_clone()], 0);
+    let dir = tempfile::tempdir().unwrap();
+    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&with_lobe(0.3, truth_r)).unwrap()).unwrap();
+    write_synthetic(dir.path(), &material, &synthetic_configs(3), 10.0).unwrap();
+    let loaded = load_capture(&Captures::open(dir.path()).unwrap(), 3, side as usize).unwrap();
+    let clipped = loaded.clipped.any_dim(0, false).to_kind(Kind::Float); // [1, H, W]
+    let clipped_pixels = clipped.sum(Kind::Double).double_value(&[]);
+    assert!(clipped_pixels >= 10.0, "the photos clip on {clipped_pixels} pixels");
+    let fitted = |weight: f64| {
+        let cfg = PhotoFitConfig { size: side as usize, clipped_tail_weight: weight, ..PhotoFitConfig::default() };
+        let fit = fit_photos(&loaded.photos, &loaded.clipped, &loaded.configs, &with_lobe(0.05, 0.5), &cfg, |_| ()).unwrap();
+        let r = (fit.maps.get(6) * clipped.get(0)).sum(Kind::Double).double_value(&[]) / clipped_pixels;
+        eprintln!("tail weight {weight}: mean roughness on the clipped pixels {r:.3} (truth {truth_r}); data term {:.6}", fit.report.data_after);
+        (r, fit.report.data_after)
+    };
+    let ((r0, data0), (r1, data1)) = (fitted(0.0), fitted(PhotoFitConfig::default().clipped_tail_weight));
+    assert!((r1 - truth_r).abs() < 0.5 * (r0 - truth_r).abs(), "the prior's roughness on the clipped pixels {r1} is not half as far from {truth_r} as the pull's {r0}");
+    assert!(data1 < 2.0 * data0 + 1e-5, "the prior costs the photos' fit: data term {data0} -> {data1}");
+}
