@@ -258,6 +258,25 @@ fn a_photo_of_a_stated_exposure_is_brought_to_the_overhead_ones() {
     assert_eq!(after.get(3), before.get(3));
 }
 
+/// Side of [`uniform_maps`].
+const UNIFORM_SIDE: i64 = 48;
+
+/// A flat material of kd (0.3, 0.25, 0.2), grey ks and roughness r: `[10, S, S]`.
+fn uniform_maps(ks: f64, r: f64) -> Tensor {
+    let (opts, side) = ((Kind::Float, Device::Cpu), UNIFORM_SIDE);
+    let kd = Tensor::from_slice(&[0.3f32, 0.25, 0.2]).view([3, 1, 1]).expand([3, side, side], false);
+    let up = Tensor::from_slice(&[0.0f32, 0.0, 1.0]).view([3, 1, 1]).expand([3, side, side], false);
+    Tensor::cat(&[kd, Tensor::full([3, side, side], ks, opts), Tensor::full([1, side, side], r, opts), up], 0)
+}
+
+/// A 3-photo synthetic capture of `maps` at `exposure` (1: `write_synthetic`'s), read back.
+fn uniform_capture(maps: &Tensor, exposure: f64) -> CapturePhotos {
+    let dir = tempfile::tempdir().unwrap();
+    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(maps).unwrap()).unwrap();
+    write_synthetic_exposed(dir.path(), &material, &synthetic_configs(3), &[exposure; 3], 10.0).unwrap();
+    load_capture(&Captures::open(dir.path()).unwrap(), 3, UNIFORM_SIDE as usize).unwrap()
+}
+
 #[test]
 fn the_lobe_the_highlights_show_carries_to_the_pixels_they_missed() {
     // Truth: uniform kd, ks 0.05, roughness 0.3, taken dim enough that no
@@ -265,22 +284,14 @@ fn the_lobe_the_highlights_show_carries_to_the_pixels_they_missed() {
     // (roughness 0.55), as M_est's from one photo tends to. Under the
     // highlights the photos correct it, and the pixels no highlight
     // touched should follow them.
-    let opts = (Kind::Float, Device::Cpu);
-    let (side, truth_r) = (48i64, 0.3);
-    let kd = Tensor::from_slice(&[0.3f32, 0.25, 0.2]).view([3, 1, 1]).expand([3, side, side], false);
-    let up = Tensor::from_slice(&[0.0f32, 0.0, 1.0]).view([3, 1, 1]).expand([3, side, side], false);
-    let with_lobe = |ks: f64, r: f64| Tensor::cat(&[kd.shallow_clone(), Tensor::full([3, side, side], ks, opts), Tensor::full([1, side, side], r, opts), up.shallow_clone()], 0);
-    let dir = tempfile::tempdir().unwrap();
-    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&with_lobe(0.05, truth_r)).unwrap()).unwrap();
-    let configs = synthetic_configs(3);
+    let truth_r = 0.3;
     // Half the exposure of `write_synthetic`: no pixel clips.
-    write_synthetic_exposed(dir.path(), &material, &configs, &[0.5; 3], 10.0).unwrap();
-    let loaded = load_capture(&Captures::open(dir.path()).unwrap(), 3, side as usize).unwrap();
+    let loaded = uniform_capture(&uniform_maps(0.05, truth_r), 0.5);
     assert_eq!(loaded.clipped.sum(Kind::Int64).int64_value(&[]), 0, "no pixel clips");
-    let start = with_lobe(0.05, 0.55);
+    let start = uniform_maps(0.05, 0.55);
     let fitted = |regions: Option<usize>| {
         let defaults = PhotoFitConfig::default();
-        let cfg = PhotoFitConfig { size: side as usize, lobe_shift_regions: regions.unwrap_or(defaults.lobe_shift_regions), ..defaults };
+        let cfg = PhotoFitConfig { size: UNIFORM_SIDE as usize, lobe_shift_regions: regions.unwrap_or(defaults.lobe_shift_regions), ..defaults };
         let maps = fit_photos(&loaded.photos, &loaded.clipped, &loaded.configs, &start, &cfg, |_| ()).unwrap().maps;
         let r = maps.get(6);
         let q = |p: f64| r.flatten(0, -1).quantile_scalar(p, None, false, "linear").double_value(&[]);
@@ -301,21 +312,14 @@ fn a_clipped_highlight_is_fitted_with_the_sharpest_lobe_it_allows() {
     // a highlight at the ceiling, which the pull meets with a broad lobe
     // and the tail prior with a sharper one, nearer the truth, while the
     // photos are matched as well.
-    let opts = (Kind::Float, Device::Cpu);
-    let (side, truth_r) = (48i64, 0.25);
-    let kd = Tensor::from_slice(&[0.3f32, 0.25, 0.2]).view([3, 1, 1]).expand([3, side, side], false);
-    let up = Tensor::from_slice(&[0.0f32, 0.0, 1.0]).view([3, 1, 1]).expand([3, side, side], false);
-    let with_lobe = |ks: f64, r: f64| Tensor::cat(&[kd.shallow_clone(), Tensor::full([3, side, side], ks, opts), Tensor::full([1, side, side], r, opts), up.shallow_clone()], 0);
-    let dir = tempfile::tempdir().unwrap();
-    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&with_lobe(0.3, truth_r)).unwrap()).unwrap();
-    write_synthetic(dir.path(), &material, &synthetic_configs(3), 10.0).unwrap();
-    let loaded = load_capture(&Captures::open(dir.path()).unwrap(), 3, side as usize).unwrap();
+    let truth_r = 0.25;
+    let loaded = uniform_capture(&uniform_maps(0.3, truth_r), 1.0);
     let clipped = loaded.clipped.any_dim(0, false).to_kind(Kind::Float); // [1, H, W]
     let clipped_pixels = clipped.sum(Kind::Double).double_value(&[]);
     assert!(clipped_pixels >= 10.0, "the photos clip on {clipped_pixels} pixels");
     let fitted = |weight: f64| {
-        let cfg = PhotoFitConfig { size: side as usize, clipped_tail_weight: weight, ..PhotoFitConfig::default() };
-        let fit = fit_photos(&loaded.photos, &loaded.clipped, &loaded.configs, &with_lobe(0.05, 0.5), &cfg, |_| ()).unwrap();
+        let cfg = PhotoFitConfig { size: UNIFORM_SIDE as usize, clipped_tail_weight: weight, ..PhotoFitConfig::default() };
+        let fit = fit_photos(&loaded.photos, &loaded.clipped, &loaded.configs, &uniform_maps(0.05, 0.5), &cfg, |_| ()).unwrap();
         let r = (fit.maps.get(6) * clipped.get(0)).sum(Kind::Double).double_value(&[]) / clipped_pixels;
         eprintln!("tail weight {weight}: mean roughness on the clipped pixels {r:.3} (truth {truth_r}); data term {:.6}", fit.report.data_after);
         (r, fit.report.data_after)
