@@ -722,7 +722,6 @@ bench() {
   cat "$out/bench.md"
 }
 
-# The whole campaign on the CPU with the tiny preset, in a temporary folder.
 # The binary the dry run and settle run: FLASHMAT_DRY_RUN_BIN, one already
 # built (scripts/test.sh passes the tests' dev build, sparing CI a release
 # build of everything), else the release build, built when missing.
@@ -736,6 +735,7 @@ flashmat_bin() {
   echo "$FLASHMAT_RELEASE_BIN"
 }
 
+# The whole campaign on the CPU with the tiny preset, in a temporary folder.
 cpu_dry_run() {
   DRY_RUN_DIR=$(mktemp -d)
   trap 'rm -rf "$DRY_RUN_DIR"' EXIT
