@@ -274,6 +274,21 @@ fn main() -> Result<()> {
                     let g: Vec<String> = ratios.iter().map(|r| r.ghost.map_or("-".into(), |v| format!("{v:.2}"))).collect();
                     eprintln!("  ghost of {name} on the {label} photographed highlight ({} px): {}", mask.iter().filter(|&&b| b).count(), g.join(" "));
                 }
+                // The ghost with one group of the fit's channels replaced by the truth's: which maps carry it.
+                let truth_maps = m.stacked().to_tensor();
+                let swaps: Vec<String> = [("kd", 0, 3), ("lobe", 3, 4), ("normals", 7, 3)]
+                    .iter()
+                    .map(|&(label, first, count)| -> Result<String> {
+                        let mixed = fit.maps.copy();
+                        mixed.narrow(0, first, count).copy_(&truth_maps.narrow(0, first, count));
+                        let (l, v) = flashmat::geometry::config_tensors(&moved.configs(), Device::Cpu);
+                        let n = moved.configs().len() as i64;
+                        let pred = flashmat::svbrdf::render::render(&mixed.unsqueeze(0), &l.view([1, n, 3]), &v.view([1, n, 3])).get(0);
+                        let row = highlights::material_highlights(&name, gloss, 0, &highlights::light_ratios(&s_in, &pred, &truth, &moved, None)?);
+                        Ok(format!("{label} {}", row.ghost.map_or("-".into(), |g| format!("{g:.2}"))))
+                    })
+                    .collect::<Result<_>>()?;
+                eprintln!("  ghost of {name} with the truth's maps swapped in: {}", swaps.join(", "));
                 eprintln!(
                     "  lobes of {name}, {k} photo(s), truth/fit: photographed highlight r {} ks {}; moved highlights r {} ks {}; normals {normal_error:.2} degrees off",
                     pair(&tr, &fr, &s_in),

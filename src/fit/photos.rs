@@ -4,8 +4,8 @@
 //! then a neural material of the fitted maps.
 //!
 //! ```text
-//! overhead photo ─► M_est ─► fit_material ─► start maps ─┐
-//! photos [K,3,H,W] (fall-off compensated) ───────────────┴─► fit_core ─► maps [10,H,W]
+//! overhead photo ─► M_est ─► fit_material ─► start maps ─► lobe by albedo region ─┐
+//! photos [K,3,H,W] (fall-off compensated) ────────────────────────────────────────┴─► fit_core ─► maps [10,H,W]
 //!   loss = mean charbonnier(ln(1+R_ggx(l_k, v_k)) - ln(1+photo_k))   (clipped pixels: only R below the photo)
 //!        + smooth (edges of the mean photo) + pull toward the start maps
 //!        + the specular tail ks alpha^2 where a photo clipped
@@ -19,7 +19,8 @@
 //! roughness and specular level are barely constrained, so there the
 //! single-photo estimate holds (the pull weighs them 10x kd's), moved by
 //! a shift per albedo region that follows the pixels the highlights moved
-//! ([`LobeShift`]).
+//! ([`LobeShift`]). The estimate's lobe enters as its regions' means
+//! ([`regional_lobe`]): its texture follows the one photo's highlight.
 //!
 //! Half the steps run at half the resolution first (coarse to fine); an
 //! exposure gain per photo and lobes shared by albedo regions are options
@@ -174,6 +175,15 @@ pub struct PhotoFitConfig {
     /// 0.154; reports/capture.md, "Sixth slice").
     #[serde(default)]
     pub clipped_tail_weight: f64,
+    /// Replace the start's specular lobe (raw ks and roughness) by its
+    /// albedo regions' means (the [`LobeShift`]'s regions, or one region
+    /// without a shift) before the fit ([`regional_lobe`]). M_est's lobe
+    /// from one photo is brightest where that photo's highlight was, and
+    /// the pull would keep that texture. Default on: on 49 held-out
+    /// materials at 3 photos, ghost 1.19 -> 1.14 and LPIPS Reflect 0.155
+    /// -> 0.149 (reports/capture.md, "Seventh slice").
+    #[serde(default)]
+    pub regional_start_lobe: bool,
     /// Fit an exposure gain per photo besides the maps (the overhead
     /// photo's held at 1): photos taken with auto exposure. The diffuse
     /// shading every photo shares fixes each one's gain.
@@ -185,7 +195,7 @@ pub struct PhotoFitConfig {
 
 impl Default for PhotoFitConfig {
     fn default() -> Self {
-        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01, lobe_shift_regions: 3, clipped_tail_weight: 1.0, photo_gains: false, coarse_share: 0.5 }
+        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01, lobe_shift_regions: 3, clipped_tail_weight: 1.0, regional_start_lobe: true, photo_gains: false, coarse_share: 0.5 }
     }
 }
 
@@ -294,6 +304,26 @@ fn clipped_tail(maps: &Tensor, clipped_any: &Tensor) -> Tensor {
     (ks * alpha2 * clipped_any).mean(Kind::Float)
 }
 
+/// Maps `[1, 10, H, W]` whose specular lobe (raw ks and roughness, as the
+/// fit parametrises them) is each pixel's mix, by its memberships
+/// `[1, C, H, W]`, of the regions' mean lobes; kd and the normals as they were.
+///
+/// The single-photo estimate draws its lobe where its photo showed the
+/// highlight (its ghost), so its lobe's texture follows that photo's
+/// highlight rather than the material. Its regions' means keep its level
+/// and drop that texture; the photos' highlights then draw the lobe's
+/// texture where they see it (reports/capture.md, "Seventh slice").
+fn regional_lobe(maps: &Tensor, memberships: &Tensor) -> Tensor {
+    tch::no_grad(|| {
+        let raw = encode(maps);
+        let (first, count) = super::LOBE_CHANNELS;
+        let weights = memberships.sum_dim_intlist([0i64, 2, 3].as_slice(), false, Kind::Float).clamp_min(1e-6); // [C]
+        let means = Tensor::einsum("bchw,bkhw->ck", &[memberships, &raw.narrow(1, first, count)], None::<i64>) / weights.unsqueeze(1); // [C, 4]
+        let lobe = Tensor::einsum("bchw,ck->bkhw", &[memberships, &means], None::<i64>);
+        decode(&Tensor::cat(&[raw.narrow(1, 0, first), lobe, raw.narrow(1, first + count, super::RAW_CHANNELS - first - count)], 1))
+    })
+}
+
 /// The photos at one resolution of the fit.
 struct Level {
     /// ln(1 + photo) `[K, 3, H, W]`.
@@ -391,9 +421,9 @@ struct LobeShift {
 }
 
 impl LobeShift {
-    fn new(start: &Tensor, regions: usize) -> Self {
-        let memberships = albedo_regions(&start.get(0).narrow(0, 0, 3), regions);
-        let values = Tensor::zeros([regions as i64, 4], (Kind::Float, start.device())).set_requires_grad(true);
+    /// memberships: `[1, C, H, W]` ([`albedo_regions`] of the start's kd).
+    fn new(memberships: Tensor) -> Self {
+        let values = Tensor::zeros([memberships.size()[1], 4], (Kind::Float, memberships.device())).set_requires_grad(true);
         LobeShift { memberships, values }
     }
 
@@ -520,14 +550,20 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
         })
     };
     let (data_before, error_start) = measure(&start);
+    // Regions of the start's albedo: the shift's, and the start lobe's means.
+    let use_shift = cfg.lobe_shift_regions > 0 && cfg.pull_weight > 0.0; // without a pull there is nothing to shift
+    let memberships = (use_shift || cfg.regional_start_lobe).then(|| albedo_regions(&start.get(0).narrow(0, 0, 3), cfg.lobe_shift_regions.max(1)));
+    let start = match (&memberships, cfg.regional_start_lobe) {
+        (Some(m), true) => regional_lobe(&start, m),
+        _ => start,
+    };
     if cfg.photo_gains {
         let guess = tch::no_grad(|| start_log_gains(photos, &full, &start, &photo, overhead) / PHOTO_STEP);
         let mut gains = photo.log_gains.shallow_clone();
         tch::no_grad(|| gains.copy_(&guess));
     }
     let coarse_steps = if h >= MIN_COARSE_SIDE && w >= MIN_COARSE_SIDE && h % 2 == 0 && w % 2 == 0 { (cfg.steps as f64 * cfg.coarse_share).round() as usize } else { 0 };
-    // Without a pull there is nothing to shift.
-    let shift = (cfg.lobe_shift_regions > 0 && cfg.pull_weight > 0.0).then(|| LobeShift::new(&start, cfg.lobe_shift_regions));
+    let shift = memberships.filter(|_| use_shift).map(LobeShift::new);
     let init = if coarse_steps > 0 {
         let half_start = tch::no_grad(|| halved_maps(&start));
         let coarse = Level::halved(photos, clipped).fit(&half_start, &half_start, &photo, shift.as_ref(), coarse_steps, cfg, &mut on_step)?;

@@ -328,3 +328,35 @@ fn a_clipped_highlight_is_fitted_with_the_sharpest_lobe_it_allows() {
     assert!((r1 - truth_r).abs() < 0.5 * (r0 - truth_r).abs(), "the prior's roughness on the clipped pixels {r1} is not half as far from {truth_r} as the pull's {r0}");
     assert!(data1 < 2.0 * data0 + 1e-5, "the prior costs the photos' fit: data term {data0} -> {data1}");
 }
+
+#[test]
+fn the_start_lobe_drawn_under_the_photographed_highlight_is_not_kept() {
+    // Truth: uniform kd, ks 0.05, roughness 0.3, no pixel clipped. The
+    // start is right but for a disc under the overhead photo's highlight,
+    // where it has a brighter, broader lobe (ks 0.15, roughness 0.55): what
+    // M_est draws where its one photo showed the highlight. Each pixel
+    // there sees its lobe from one half-angle, so the pull keeps much of
+    // the disc; the regions' mean lobe does not start there.
+    let truth_r = 0.3;
+    let loaded = uniform_capture(&uniform_maps(0.05, truth_r), 0.5);
+    assert_eq!(loaded.clipped.sum(Kind::Int64).int64_value(&[]), 0, "no pixel clips");
+    let side = UNIFORM_SIDE;
+    let centre = (side as f64 - 1.0) / 2.0;
+    let ramp = Tensor::arange(side, (Kind::Float, Device::Cpu)) - centre;
+    let disc = (ramp.view([1, side]).square() + ramp.view([side, 1]).square()).le((side as f64 / 5.0).powi(2)).to_kind(Kind::Float); // [H, W]
+    let disc_pixels = disc.sum(Kind::Double).double_value(&[]);
+    let start = uniform_maps(0.05, truth_r);
+    let painted = uniform_maps(0.15, 0.55);
+    let start = &start + (painted - &start) * disc.unsqueeze(0);
+    let fitted = |regional: bool| {
+        let cfg = PhotoFitConfig { size: side as usize, regional_start_lobe: regional, ..PhotoFitConfig::default() };
+        let maps = fit_photos(&loaded.photos, &loaded.clipped, &loaded.configs, &start, &cfg, |_| ()).unwrap().maps;
+        let mean = |t: Tensor| (t * &disc).sum(Kind::Double).double_value(&[]) / disc_pixels;
+        let (r, ks) = (mean(maps.get(6)), mean(maps.narrow(0, 3, 3).mean_dim(0, false, Kind::Float)));
+        eprintln!("regional start lobe {regional}: in the disc, mean roughness {r:.3} (truth {truth_r}), ks {ks:.3} (truth 0.05)");
+        r
+    };
+    let (kept, regional) = (fitted(false), fitted(true));
+    assert!(kept - truth_r > 0.08, "the pull was expected to keep part of the painted disc (roughness 0.55), got {kept}");
+    assert!((regional - truth_r).abs() < 0.5 * (kept - truth_r), "the regional start's roughness {regional} is not half as far from {truth_r} as the kept start's {kept}");
+}
