@@ -179,9 +179,9 @@ pub struct PhotoFitConfig {
     /// albedo regions' means (the [`LobeShift`]'s regions, or one region
     /// without a shift) before the fit ([`regional_lobe`]). M_est's lobe
     /// from one photo is brightest where that photo's highlight was, and
-    /// the pull would keep that texture. Default on: on 49 held-out
-    /// materials at 3 photos, ghost 1.19 -> 1.14 and LPIPS Reflect 0.155
-    /// -> 0.149 (reports/capture.md, "Seventh slice").
+    /// the pull would keep that texture. Default on: on the 50 held-out
+    /// materials at 3 photos, ghost 1.19 -> 1.14 and LPIPS Reflect 0.154
+    /// -> 0.148 (reports/capture.md, "Seventh slice").
     #[serde(default)]
     pub regional_start_lobe: bool,
     /// Fit an exposure gain per photo besides the maps (the overhead
