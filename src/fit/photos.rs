@@ -364,7 +364,8 @@ impl Level {
     /// `steps` of the fit from `init` with the pull toward `start` (both
     /// `[1, 10, H, W]`); the photos' gains fitted in place with `cfg.photo_gains`.
     /// With `shift`, the pull's lobe is the start's moved by its regions' fitted shifts.
-    fn fit(&self, init: &Tensor, start: &Tensor, photo: &PhotoParams, shift: Option<&LobeShift>, steps: usize, cfg: &PhotoFitConfig, on_step: impl FnMut(usize)) -> Result<Tensor> {
+    fn fit(&self, init: &Tensor, start: &Tensor, context: LevelContext, steps: usize, on_step: impl FnMut(usize)) -> Result<Tensor> {
+        let LevelContext { photo, shift, cfg } = context;
         let factors = Tensor::from_slice(&PULL_FACTORS).to_kind(Kind::Float).to_device(start.device()).view([1, 10, 1, 1]);
         let memberships = (cfg.lobe_regions > 0).then(|| albedo_regions(&start.get(0).narrow(0, 0, 3), cfg.lobe_regions));
         let (init, start) = match &memberships {
@@ -403,6 +404,15 @@ impl Level {
         }
         fit_core(&init, &settings, &edges, shared.as_ref(), &extra, data, on_step)
     }
+}
+
+/// What the fits of every level share: the photos' positions and gains,
+/// the lobe shift, the settings.
+#[derive(Clone, Copy)]
+struct LevelContext<'a> {
+    photo: &'a PhotoParams,
+    shift: Option<&'a LobeShift>,
+    cfg: &'a PhotoFitConfig,
 }
 
 /// A shift of the pull's lobe per albedo region, fitted with the maps. The
@@ -564,9 +574,10 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
     }
     let coarse_steps = if h >= MIN_COARSE_SIDE && w >= MIN_COARSE_SIDE && h % 2 == 0 && w % 2 == 0 { (cfg.steps as f64 * cfg.coarse_share).round() as usize } else { 0 };
     let shift = memberships.filter(|_| use_shift).map(LobeShift::new);
+    let context = LevelContext { photo: &photo, shift: shift.as_ref(), cfg };
     let init = if coarse_steps > 0 {
         let half_start = tch::no_grad(|| halved_maps(&start));
-        let coarse = Level::halved(photos, clipped).fit(&half_start, &half_start, &photo, shift.as_ref(), coarse_steps, cfg, &mut on_step)?;
+        let coarse = Level::halved(photos, clipped).fit(&half_start, &half_start, context, coarse_steps, &mut on_step)?;
         tch::no_grad(|| {
             let change = (coarse - &half_start).upsample_bilinear2d([h, w], false, None, None);
             decode(&encode(&renormalised(&(&start + change))))
@@ -574,7 +585,7 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
     } else {
         start.shallow_clone()
     };
-    let maps = full.fit(&init, &start, &photo, shift.as_ref(), cfg.steps - coarse_steps, cfg, |step| on_step(coarse_steps + step))?;
+    let maps = full.fit(&init, &start, context, cfg.steps - coarse_steps, |step| on_step(coarse_steps + step))?;
     let (data_after, photo_error) = measure(&maps); // [K, H, W]
     let photo_errors = Vec::<f64>::try_from(photo_error.mean_dim([1i64, 2].as_slice(), false, Kind::Double))?;
     let error = photo_error.mean_dim(0, false, Kind::Float);
