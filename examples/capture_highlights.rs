@@ -241,12 +241,13 @@ fn main() -> Result<()> {
                     fit_photos(&capture.photos, &capture.clipped, &capture.configs, &start, &cfg, |_| {})?
                 }
             };
-            let maps = fit.maps.unsqueeze(0);
-            let render = |configs: &[LightView]| -> Result<Tensor> {
+            // GGX maps `[10, H, W]` rendered under configurations: `[K, 3, H, W]`.
+            let render_maps = |maps: &Tensor, configs: &[LightView]| -> Tensor {
                 let (l, v) = flashmat::geometry::config_tensors(configs, Device::Cpu);
                 let n = configs.len() as i64;
-                Ok(flashmat::svbrdf::render::render(&maps, &l.view([1, n, 3]), &v.view([1, n, 3])).get(0))
+                flashmat::svbrdf::render::render(&maps.unsqueeze(0), &l.view([1, n, 3]), &v.view([1, n, 3])).get(0)
             };
+            let render = |configs: &[LightView]| -> Result<Tensor> { Ok(render_maps(&fit.maps, configs)) };
             if print_lobes {
                 // Medians of the truth's and the fit's roughness and ks (RGB mean) on the overhead
                 // photo's highlight and on the moved lights' highlights outside it.
@@ -283,9 +284,7 @@ fn main() -> Result<()> {
                     .map(|&(label, first, count)| -> Result<String> {
                         let mixed = fit.maps.copy();
                         mixed.narrow(0, first, count).copy_(&truth_maps.narrow(0, first, count));
-                        let (l, v) = flashmat::geometry::config_tensors(&moved.configs(), Device::Cpu);
-                        let n = moved.configs().len() as i64;
-                        let pred = flashmat::svbrdf::render::render(&mixed.unsqueeze(0), &l.view([1, n, 3]), &v.view([1, n, 3])).get(0);
+                        let pred = render_maps(&mixed, &moved.configs());
                         let row = highlights::material_highlights(&name, gloss, 0, &highlights::light_ratios(&s_in, &pred, &truth, &moved, None)?);
                         Ok(format!("{label} {}", row.ghost.map_or("-".into(), |g| format!("{g:.2}"))))
                     })

@@ -354,6 +354,25 @@ pub struct SharedLobes {
 /// Raw channels of the lobe ([`SharedLobes`]): ks (3) and roughness.
 const LOBE_CHANNELS: (i64, i64) = (3, 4);
 
+/// Each region's mean of per-pixel values, weighted by the pixels'
+/// memberships: memberships `[1, C, H, W]`, values `[1, K, H, W]` -> `[C, K]`.
+fn region_means(memberships: &Tensor, values: &Tensor) -> Tensor {
+    let weights = memberships.sum_dim_intlist([0i64, 2, 3].as_slice(), false, Kind::Float).clamp_min(1e-6); // [C]
+    Tensor::einsum("bchw,bkhw->ck", &[memberships, values], None::<i64>) / weights.unsqueeze(1)
+}
+
+/// Each pixel's mix of per-region values by its memberships:
+/// memberships `[1, C, H, W]`, per_region `[C, K]` -> `[1, K, H, W]`.
+fn region_mix(memberships: &Tensor, per_region: &Tensor) -> Tensor {
+    Tensor::einsum("bchw,ck->bkhw", &[memberships, per_region], None::<i64>)
+}
+
+/// Raw parameters `[N, 9, H, W]` with their lobe channels ([`LOBE_CHANNELS`]) replaced by `lobe` `[N, 4, H, W]`.
+fn with_raw_lobe(raw: &Tensor, lobe: &Tensor) -> Tensor {
+    let (first, count) = LOBE_CHANNELS;
+    Tensor::cat(&[raw.narrow(1, 0, first), lobe.shallow_clone(), raw.narrow(1, first + count, RAW_CHANNELS - first - count)], 1)
+}
+
 /// The one fitting core of `flashmat fit` and of the fit to photos
 /// ([`photos`]): Adam on the unconstrained parameters ([`encode`] /
 /// [`decode`]) of GGX maps, minimising `data(maps)` plus the edge-aware
@@ -384,28 +403,19 @@ pub fn fit_core(
     // The shared lobes [C, 4] and the mixing of them into [1, 4, H, W].
     let lobes = shared.map(|s| {
         let m = s.memberships.to_device(init.device()).to_kind(Kind::Float);
-        let weights = m.sum_dim_intlist([0i64, 2, 3].as_slice(), false, Kind::Float).clamp_min(1e-6); // [C]
-        let means = Tensor::einsum("bchw,bkhw->ck", &[&m, &start.narrow(1, first, count)], None::<i64>) / weights.unsqueeze(1);
-        let means = means.detach().set_requires_grad(true);
+        let means = region_means(&m, &start.narrow(1, first, count)).detach().set_requires_grad(true);
         params.insert("lobes".to_string(), means.shallow_clone());
         (m, means, s.weight)
     });
-    let mix = |m: &Tensor, lobes: &Tensor| Tensor::einsum("bchw,ck->bkhw", &[m, lobes], None::<i64>);
     let raw = match &lobes {
         // Channels 3..7 hold the departure from the mixed lobe.
-        Some((m, means, _)) => tch::no_grad(|| {
-            let departure = start.narrow(1, first, count) - mix(m, means);
-            Tensor::cat(&[start.narrow(1, 0, first), departure, start.narrow(1, first + count, RAW_CHANNELS - first - count)], 1)
-        }),
+        Some((m, means, _)) => tch::no_grad(|| with_raw_lobe(&start, &(start.narrow(1, first, count) - region_mix(m, means)))),
         None => start.shallow_clone(),
     }
     .set_requires_grad(true);
     params.insert("raw".to_string(), raw.shallow_clone());
     let full = |raw: &Tensor| match &lobes {
-        Some((m, means, _)) => {
-            let lobe = raw.narrow(1, first, count) + mix(m, means);
-            Tensor::cat(&[raw.narrow(1, 0, first), lobe, raw.narrow(1, first + count, RAW_CHANNELS - first - count)], 1)
-        }
+        Some((m, means, _)) => with_raw_lobe(raw, &(raw.narrow(1, first, count) + region_mix(m, means))),
         None => raw.shallow_clone(),
     };
     let mut adam = Adam::new(params);

@@ -27,7 +27,7 @@
 //! (measured in reports/capture.md, off by default). Poses are taken as
 //! told: refining them by this fit moved them further off.
 
-use super::{decode, edge_weights, encode, fit_core, fit_material, sample_directions, CoreSettings, FitConfig, FitReport, FitResult, SharedLobes, CHARBONNIER_EPS, MAX_FIT_STEPS};
+use super::{decode, edge_weights, encode, fit_core, fit_material, region_means, region_mix, sample_directions, with_raw_lobe, CoreSettings, FitConfig, FitReport, FitResult, SharedLobes, CHARBONNIER_EPS, MAX_FIT_STEPS};
 use crate::data::captures::{compensated, load_photo_sized, Captures};
 use crate::geometry::{LightView, MODEL_FOV_DEG};
 use crate::infer::nmat::{NeuralMaterial, NmatMeta};
@@ -317,10 +317,8 @@ fn regional_lobe(maps: &Tensor, memberships: &Tensor) -> Tensor {
     tch::no_grad(|| {
         let raw = encode(maps);
         let (first, count) = super::LOBE_CHANNELS;
-        let weights = memberships.sum_dim_intlist([0i64, 2, 3].as_slice(), false, Kind::Float).clamp_min(1e-6); // [C]
-        let means = Tensor::einsum("bchw,bkhw->ck", &[memberships, &raw.narrow(1, first, count)], None::<i64>) / weights.unsqueeze(1); // [C, 4]
-        let lobe = Tensor::einsum("bchw,ck->bkhw", &[memberships, &means], None::<i64>);
-        decode(&Tensor::cat(&[raw.narrow(1, 0, first), lobe, raw.narrow(1, first + count, super::RAW_CHANNELS - first - count)], 1))
+        let means = region_means(memberships, &raw.narrow(1, first, count)); // [C, 4]
+        decode(&with_raw_lobe(&raw, &region_mix(memberships, &means)))
     })
 }
 
@@ -449,9 +447,8 @@ impl LobeShift {
     /// The maps of raw start `[1, 9, h, w]` with each pixel's lobe shifted
     /// by its regions' under memberships `[1, C, h, w]`: `[1, 10, h, w]`.
     fn shifted(&self, start_raw: &Tensor, memberships: &Tensor) -> Tensor {
-        let shift = Tensor::einsum("bchw,ck->bkhw", &[memberships, &self.values], None::<i64>);
         let (first, count) = super::LOBE_CHANNELS;
-        decode(&Tensor::cat(&[start_raw.narrow(1, 0, first), start_raw.narrow(1, first, count) + shift, start_raw.narrow(1, first + count, super::RAW_CHANNELS - first - count)], 1))
+        decode(&with_raw_lobe(start_raw, &(start_raw.narrow(1, first, count) + region_mix(memberships, &self.values))))
     }
 }
 
