@@ -37,6 +37,11 @@
 //! of `TILTED_PHONES`, in that order (default 0,1,2,3: the issue's
 //! positions first).
 //!
+//! TEACHER=FILE makes the neural material with that teacher, CODE_STEPS=N
+//! fits its codes N steps (0: the teacher's codes as they are), SET=metals
+//! scores the coloured-metal set (`data::procedural::metal_material`,
+//! MATERIALS its indices) instead of the 50.
+//!
 //! LOBES=1 prints the median roughness and ks of the truth and the fit on
 //! the photographed and the moved highlights, the fit's mean normal error,
 //! the ghost per moved light on the photographed highlight's clipped
@@ -51,7 +56,7 @@
 use anyhow::Result;
 use flashmat::data::captures::{write_synthetic_exposed, Captures, TILTED_PHONES};
 use flashmat::eval::highlights::{self, HighlightConfig, MaterialHighlights};
-use flashmat::fit::photos::{estimated_start, fit_capture, fit_photos, load_capture, load_teacher, neural_material, start_fit_config, PhotoFitConfig};
+use flashmat::fit::photos::{estimated_start, fit_capture, fit_photos, load_capture, load_teacher, fitted_neural_material, start_fit_config, PhotoFitConfig};
 use flashmat::geometry::{LightView, Sampling, MODEL_FOV_DEG};
 use flashmat::lpips::Lpips;
 use rand::{Rng, SeedableRng};
@@ -120,19 +125,24 @@ fn main() -> Result<()> {
     };
     anyhow::ensure!(bracket_stops >= 0.0 && !(frame && bracket_stops > 0.0), "BRACKET_STOPS must be >= 0, and 0 with FRAME");
     let loaded = flashmat::infer::load_model(None, Device::Cpu)?;
-    let teacher = load_teacher(None, Device::Cpu)?;
+    // TEACHER=FILE: the teacher of the neural material (default the bundled one);
+    // CODE_STEPS=N: its code fit's steps (0: the teacher's codes as they are).
+    let teacher = load_teacher(std::env::var_os("TEACHER").map(std::path::PathBuf::from).as_deref(), Device::Cpu)?;
+    let code_steps: Option<usize> = std::env::var("CODE_STEPS").ok().map(|s| s.parse()).transpose()?;
+    // SET=metals: the coloured-metal set (data::procedural::metal_material) in place of the 50.
+    let metals = std::env::var("SET").is_ok_and(|s| s == "metals");
     let lpips = Lpips::new(Device::Cpu)?;
     let moved = HighlightConfig::default();
     let overhead = LightView::colocated(MODEL_FOV_DEG);
     let mut rows: BTreeMap<(usize, &str), Vec<Scored>> = BTreeMap::new();
     let t0 = std::time::Instant::now();
     for i in first..=last {
-        let m = flashmat::data::procedural::test_material(i, size);
+        let m = if metals { flashmat::data::procedural::metal_material(i, size) } else { flashmat::data::procedural::test_material(i, size) };
         let truth = flashmat::eval::reference_renders(&m, &moved.configs()); // [L, 3, H, W]
         let truth_identity = flashmat::eval::colocated_render(&m);
         let s_in = highlights::highlight_mask(&highlights::luminance(&truth_identity)?, moved.threshold);
         let gloss = highlights::glossiness(&m);
-        let name = format!("test{i:02}");
+        let name = if metals { flashmat::data::procedural::METAL_MATERIALS[i].to_string() } else { format!("test{i:02}") };
         let cases: Vec<(Vec<LightView>, Tensor)> = [Sampling::Reflect, Sampling::Hemisphere]
             .into_iter()
             .map(|c| {
@@ -223,7 +233,10 @@ fn main() -> Result<()> {
                 rows.entry((0, "single")).or_default().push(score(&|c| single.render(c))?);
                 relit.push(("bundled model, 1 photo".into(), single.render(&moved.configs())?));
             }
-            let cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, lobe_shift_regions, clipped_tail_weight, regional_start_lobe, coarse_share, photo_gains, ..PhotoFitConfig::default() };
+            let mut cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, lobe_shift_regions, clipped_tail_weight, regional_start_lobe, coarse_share, photo_gains, ..PhotoFitConfig::default() };
+            if let Some(n) = code_steps {
+                cfg.code_fit.steps = n;
+            }
             let fit = match oracle.as_deref() {
                 None => fit_capture(&loaded, &capture, &cfg, Device::Cpu, |_, _, _| {})?,
                 Some(o) => {
@@ -299,7 +312,7 @@ fn main() -> Result<()> {
                 );
             }
             rows.entry((k, "ggx")).or_default().push(score(&render)?);
-            let material = neural_material(&fit.maps, &photo, &teacher, "capture")?;
+            let (material, _) = fitted_neural_material(&fit.maps, &photo, &teacher, &capture.configs, &cfg.code_fit, "capture")?;
             rows.entry((k, "neural")).or_default().push(score(&|c| material.render(c))?);
             relit.push((format!("fit, {k} photo(s)"), material.render(&moved.configs())?));
             if let (Some(out), true) = (&pictures, k == *counts.iter().max().unwrap_or(&k)) {

@@ -7,7 +7,7 @@
 //!
 //! ```sh
 //! cargo run --release --example probe_colour -- [MODEL_FILE]
-//! TEACHER=models/teacher-compact.safetensors cargo run --release --example probe_colour -- MODEL_FILE
+//! TEACHER=models/teacher-any-ggx.safetensors cargo run --release --example probe_colour -- MODEL_FILE
 //! ```
 
 use anyhow::Result;

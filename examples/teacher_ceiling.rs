@@ -1,5 +1,5 @@
 //! The architecture's ceiling on moved highlights (issue 48): the per-pixel
-//! teacher (`models/teacher-compact.safetensors`: a GGX-to-code MLP trained
+//! teacher (`models/teacher-any-ggx.safetensors`: a GGX-to-code MLP trained
 //! with ND_enc + M_render on dense per-pixel GGX supervision, 16 direction
 //! frequencies; or any teacher file, e.g. one trained with `--lobe-share`
 //! or the `compact-h` preset) renders the six glossiest held-out materials from their true
@@ -22,7 +22,7 @@ use tch::{Device, Kind};
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
-    let teacher_file = args.get(1).map_or("models/teacher-compact.safetensors", |s| s.as_str());
+    let teacher_file = args.get(1).map_or("models/teacher-any-ggx.safetensors", |s| s.as_str());
     let size: usize = args.get(2).map_or(Ok(128), |s| s.parse())?;
     // The teacher's own model layout (compact, or compact-h with the half-angle feature).
     let archive = flashmat::archive::Archive::load(std::path::Path::new(teacher_file), flashmat::train::teacher::FORMAT, flashmat::train::teacher::VERSION)?;

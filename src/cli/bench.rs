@@ -293,7 +293,7 @@ fn peak_device_memory_gib(device: Device) -> Option<f64> {
 /// priors, Adam) against one identity render (ND_enc + M_render forward,
 /// no autograd) of the same material, measured in the same run.
 fn bench_capture(args: &CaptureBenchArgs) -> Result<()> {
-    use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, neural_material, PhotoFitConfig};
+    use flashmat::fit::photos::{fit_capture, load_capture, load_teacher, fitted_neural_material, PhotoFitConfig};
     use flashmat::geometry::LightView;
     let device = flashmat::device::parse_device(&args.device)?;
     let cfg = PhotoFitConfig { size: args.size, ..Default::default() };
@@ -319,7 +319,7 @@ fn bench_capture(args: &CaptureBenchArgs) -> Result<()> {
     let single_s = t0.elapsed().as_secs_f64();
     let t1 = std::time::Instant::now();
     let fit = fit_capture(&loaded, &capture, &cfg, device, |_, _, _| {})?;
-    let _ = neural_material(&fit.maps, &photo, &teacher, "bench")?;
+    let _ = fitted_neural_material(&fit.maps, &photo, &teacher, &capture.configs, &cfg.code_fit, "bench")?;
     let capture_s = t1.elapsed().as_secs_f64();
     println!(
         "estimate --capture, {} photos at {}x{} on {:?}: {capture_s:.1} s ({:.1} s the fit, {} steps), {:.1}x the single-photo estimate and identity render of the overhead photo ({single_s:.1} s)",

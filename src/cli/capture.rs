@@ -3,7 +3,7 @@
 //! `flashmat::capture`), and with `--estimate` on to one material.
 
 use super::estimate_capture::CaptureArgs;
-use super::infer::EstimateOptions;
+use super::estimate_options::EstimateOptions;
 use anyhow::{bail, ensure, Result};
 use clap::{Args, Parser, Subcommand};
 use flashmat::capture::frame::{self, FrameLayout, Paper};

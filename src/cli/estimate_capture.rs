@@ -1,7 +1,7 @@
 //! `flashmat estimate --capture DIR`: one neural material from all photos
 //! of a capture folder (work done in `flashmat::fit::photos`).
 
-use super::infer::EstimateOptions;
+use super::estimate_options::EstimateOptions;
 use flashmat::data::captures::Captures;
 use flashmat::fit::export::{check_output_dir, write_fit};
 use flashmat::fit::photos::{capture_material, PhotoFitConfig};
@@ -91,5 +91,40 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
     if let Some(pbr) = &a.pbr {
         eprintln!("wrote PBR maps of the fit to {}", pbr.display());
     }
+    let (g, c) = (&made.gap, &made.code_fit);
+    let lpips = g.lpips.map(|l| format!(", LPIPS {l:.3}")).unwrap_or_default();
+    eprintln!(
+        "the neural material against its GGX maps, {} held-out views: log L1 {:.4}, colour {:.3} (largest channel |ln ratio|), chromaticity {:.4}{lpips}; codes {} ({:.1} s, loss {:.4} -> {:.4})",
+        2 * flashmat::fit::photos::GAP_CONFIGS,
+        g.log_l1,
+        g.channel_log_ratio,
+        g.chromaticity,
+        if c.kept { "fitted to the maps" } else { "as the teacher draws them" },
+        c.seconds,
+        c.loss_before,
+        c.loss_after
+    );
+    if let Some(why) = gap_warning(g) {
+        let pbr = if a.pbr.is_some() { "the PBR maps you wrote" } else { "the PBR maps (--pbr DIR)" };
+        eprintln!("warning: the neural material is far from its fitted maps ({why}); relight {pbr} where they matter, or refit at a smaller --size");
+    }
     Ok(())
+}
+
+/// Why a neural material's [`NeuralGap`] is large enough to warn about,
+/// if it is: a channel 1.15x off, a chromaticity off by 0.03, or LPIPS
+/// above 0.1 between the two renders (the 50 held-out materials' code fits
+/// stay under each; reports/capture.md).
+pub fn gap_warning(g: &flashmat::fit::codes::NeuralGap) -> Option<String> {
+    let mut why = vec![];
+    if g.channel_log_ratio > 0.14 {
+        why.push(format!("a colour channel {:.2}x off", g.channel_log_ratio.exp()));
+    }
+    if g.chromaticity > 0.03 {
+        why.push(format!("chromaticity off by {:.3}", g.chromaticity));
+    }
+    if let Some(l) = g.lpips.filter(|l| *l > 0.1) {
+        why.push(format!("LPIPS {l:.3} between their renders"));
+    }
+    (!why.is_empty()).then(|| why.join(", "))
 }

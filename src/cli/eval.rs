@@ -23,7 +23,8 @@ pub struct EvalArgs {
     pub summarize: bool,
     /// `procedural-test` (the 50 held-out procedural materials), `procedural-test:I` (one of them), `procedural-dark-test`
     /// (30 held-out dark materials: diffuse albedo x0.02-0.35), `procedural-saturated-test` (30 held-out saturated
-    /// materials: a full hue whose weakest channel is 0.004-0.1 of its strongest) or a dataset folder/strip file
+    /// materials: a full hue whose weakest channel is 0.004-0.1 of its strongest), `procedural-metals` (6 held-out coloured
+    /// metals and saturated glossy materials: gold, copper, anodised aluminium, a glazed tile) or a dataset folder/strip file
     /// (materials centre-cropped to a square and resized to --size; one that cannot be read is left out and named in
     /// summary.md, and the run then exits with 1).
     #[arg(long, default_value = PROCEDURAL_TEST)]
@@ -91,10 +92,10 @@ pub struct EvalArgs {
     #[arg(long, value_name = "STEPS", num_args = 0..=1, value_delimiter = ',', default_missing_value = flashmat::infer::refine::DEFAULT_REFINE_STEPS_ARG)]
     pub refine: Option<Vec<usize>>,
     #[command(flatten)]
-    pub refine_weights: super::infer::RefineWeights,
+    pub refine_weights: super::estimate_options::RefineWeights,
     /// How flashmat models handle the photo's exposure (see `flashmat estimate --help`).
-    #[arg(long, value_enum, default_value_t = super::infer::ExposureMode::Calibrated)]
-    pub exposure_mode: super::infer::ExposureMode,
+    #[arg(long, value_enum, default_value_t = flashmat::infer::exposure::ExposureMode::Calibrated)]
+    pub exposure_mode: flashmat::infer::exposure::ExposureMode,
     /// Also score every flashmat model with the photographed flash highlight filled in its map (rows NAME+fill;
     /// `copy`: codes copied from beside the highlight, `blend`: interpolated; see `flashmat estimate --help`).
     #[arg(long, value_enum, value_name = "MODE", num_args = 0..=1, default_missing_value = "copy")]

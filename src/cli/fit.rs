@@ -1,7 +1,8 @@
 //! `flashmat fit`: GGX maps fitted to a neural material, exported as PBR
 //! texture sets (work done in `flashmat::fit`).
 
-use super::infer::{open_material, EstimateOptions};
+use super::estimate_options::EstimateOptions;
+use super::infer::open_material;
 use flashmat::fit::export::{check_output_dir, write_fit, GLTF_DIR, GLTF_FILE, MAPS_DIR, SVBRDF_DIR};
 use flashmat::fit::relief::ReliefConfig;
 use flashmat::fit::{fit_material, FitConfig};

@@ -5,6 +5,7 @@ pub mod batch;
 pub mod bench;
 pub mod capture;
 pub mod estimate_capture;
+pub mod estimate_options;
 pub mod eval;
 pub mod fit;
 pub mod infer;

@@ -274,6 +274,13 @@ pub struct TeacherArgs {
     /// committed teacher's recipe, whose renderer then never sees the sharpest lobes.
     #[arg(long, value_name = "R", default_value_t = flashmat::train::teacher::COMMITTED_MIN_ROUGHNESS, value_parser = super::fraction)]
     pub min_roughness: f64,
+    /// Which GGX pixels to learn: `procedural` (the committed 2026-11-23 teacher's) or `any-ggx` (every material the
+    /// capture fit can return: metals, saturated colours, steep normals; use with --min-roughness 0.02).
+    #[arg(long, value_enum, default_value_t = flashmat::train::teacher::PixelMaterials::Procedural)]
+    pub materials: flashmat::train::teacher::PixelMaterials,
+    /// Start a new teacher from this teacher file's weights (same preset), with a fresh optimizer.
+    #[arg(long, value_name = "TEACHER")]
+    pub warm_start: Option<PathBuf>,
     /// cpu or cuda.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -294,7 +301,12 @@ pub fn train_teacher(a: &TeacherArgs) -> Result<()> {
         lobe_share: a.lobe_share,
         dark_floor: a.dark_floor,
         min_roughness: a.min_roughness,
+        materials: a.materials,
+        warm_start: a.warm_start.as_ref().map(|p| p.display().to_string()),
     };
+    if let Some(from) = &a.warm_start {
+        anyhow::ensure!(from.is_file(), "--warm-start {}: no such file", from.display());
+    }
     let t = flashmat::train::teacher::run(config, &a.out, device, a.minutes, true)?;
     eprintln!(
         "teacher {} at step {} of {}: held-out L1 of ln(1 + R) {:.4}",
@@ -308,7 +320,8 @@ pub fn train_teacher(a: &TeacherArgs) -> Result<()> {
 
 #[derive(Args, Debug)]
 pub struct ExportArgs {
-    /// Run folder to export from.
+    /// Run folder to export from (a `train` run, or a `train-teacher` folder: the teacher's weights without its
+    /// optimizer).
     #[arg(long, value_name = "DIR")]
     pub run: PathBuf,
     /// Output model file (.safetensors): inference weights and configuration.
@@ -467,6 +480,16 @@ pub fn train(a: &TrainArgs) -> Result<()> {
 
 pub fn export(a: &ExportArgs) -> Result<()> {
     use flashmat::train::run::RunTrainer;
+    let teacher = flashmat::train::teacher::teacher_file(&a.run);
+    if teacher.is_file() {
+        // A teacher run: its weights without the optimizer (what models/ holds).
+        let t = flashmat::train::teacher::TeacherTrainer::resume(&teacher, Device::Cpu)?;
+        let out_dir = super::prepare_output(&a.output)?;
+        t.save_weights(&a.output)?;
+        out_dir.keep();
+        eprintln!("wrote {} (teacher of {}, step {}, weights only)", a.output.display(), t.model.model_id(), t.step);
+        return Ok(());
+    }
     let ckpt = run::checkpoint_path(&a.run);
     // Exporting a run that is still training is how its snapshots are kept
     // (docs/TRAINING.md): checkpoints are replaced by rename, so the file

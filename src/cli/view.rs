@@ -2,7 +2,8 @@
 //! `relight` does) as one self-contained HTML page that relights it live
 //! in the browser (work done in `flashmat::viewer`).
 
-use super::infer::{open_material, EstimateOptions};
+use super::estimate_options::EstimateOptions;
+use super::infer::open_material;
 use super::{prepare_output, Vec3Arg};
 use flashmat::geometry::above_surface;
 use flashmat::geometry::LightView;

@@ -21,7 +21,10 @@
 //! centred on zero), with slopes capped at [`MAX_SLOPE`].
 
 mod families;
+mod metals;
 mod noise;
+
+pub use metals::{metal_material, METAL_MATERIALS};
 
 use crate::image::Image;
 use crate::svbrdf::{normals_from_height, Svbrdf};

@@ -126,7 +126,7 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
         bar.inc(1);
     }
     if let Some(cfg) = &opts.capture_fit {
-        use crate::fit::photos::{fit_capture, load_capture_photos, load_teacher, neural_material};
+        use crate::fit::photos::{fit_capture, load_capture_photos, load_teacher, fitted_neural_material};
         let cfg = crate::fit::photos::PhotoFitConfig { size: opts.size, ..cfg.clone() };
         let loaded = crate::infer::load_model(None, opts.device)?;
         let teacher = load_teacher(None, opts.device)?;
@@ -137,7 +137,7 @@ pub fn run(opts: &CaptureEvalOptions) -> Result<Vec<CaptureResults>> {
             let kept: Vec<usize> = (0..n).filter(|&i| i != left_out).collect();
             let capture = load_capture_photos(&captures, &kept, opts.size)?;
             let fit = fit_capture(&loaded, &capture, &cfg, opts.device, |_, _, _| {})?;
-            let material = neural_material(&fit.maps, &capture.photos.get(capture.overhead as i64), &teacher, CAPTURE_FIT_METHOD)?;
+            let (material, _) = fitted_neural_material(&fit.maps, &capture.photos.get(capture.overhead as i64), &teacher, &capture.configs, &cfg.code_fit, CAPTURE_FIT_METHOD)?;
             preds.push(material.render(&[captures.config(left_out)])?.get(0));
             if identity.is_none() {
                 identity = Some(material.render(&[captures.config(input)])?.get(0));

@@ -51,6 +51,10 @@ pub const PROCEDURAL_DARK_TEST: &str = "procedural-dark-test";
 /// Dataset name of the held-out saturated materials (`procedural::saturated_test_set`).
 pub const PROCEDURAL_SATURATED_TEST: &str = "procedural-saturated-test";
 
+/// Dataset name of the held-out coloured metals and saturated glossy
+/// materials (`procedural::metal_material`; issue 83).
+pub const PROCEDURAL_METALS: &str = "procedural-metals";
+
 /// Configurations per material of the Reflect and Hemisphere cases (the
 /// paper's 128 lights x 128 views, paired).
 pub const DEFAULT_CONFIGS: usize = 128;
@@ -190,7 +194,7 @@ pub fn load_readable_materials(dataset: &str, size: usize, limit: Option<usize>)
 }
 
 /// The procedural sets (`procedural-test`, `procedural-dark-test`,
-/// `procedural-saturated-test`, `procedural-test:I`) at `size`; None for a
+/// `procedural-saturated-test`, `procedural-metals`, `procedural-test:I`) at `size`; None for a
 /// dataset on disk.
 fn procedural_materials(dataset: &str, size: usize, limit: Option<usize>) -> Result<Option<Vec<(String, Svbrdf)>>> {
     if dataset == PROCEDURAL_TEST {
@@ -208,6 +212,10 @@ fn procedural_materials(dataset: &str, size: usize, limit: Option<usize>) -> Res
         let mats = procedural::saturated_test_set(size);
         let n = limit.unwrap_or(mats.len()).min(mats.len());
         return Ok(Some(mats.into_iter().take(n).enumerate().map(|(i, m)| (format!("sat{i:02}"), m)).collect()));
+    }
+    if dataset == PROCEDURAL_METALS {
+        let n = limit.unwrap_or(procedural::METAL_MATERIALS.len()).min(procedural::METAL_MATERIALS.len());
+        return Ok(Some((0..n).map(|i| (procedural::METAL_MATERIALS[i].to_string(), procedural::metal_material(i, size))).collect()));
     }
     if let Some(i) = procedural::parse_test_material(dataset)? {
         return Ok(Some(vec![(format!("test{i:02}"), procedural::test_material(i, size))]));

@@ -26,6 +26,7 @@
 //! The smoothness term is edge-aware: e = exp(-|grad mean target| / 0.05) is
 //! near 1 where the material looks smooth and near 0 across its edges.
 
+pub mod codes;
 pub mod export;
 pub mod photos;
 pub mod relief;

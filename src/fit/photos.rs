@@ -27,6 +27,7 @@
 //! (measured in reports/capture.md, off by default). Poses are taken as
 //! told: refining them by this fit moved them further off.
 
+use super::codes::{fit_codes, held_out_configs, neural_gap, CodeFit, CodeFitConfig, NeuralGap};
 use super::{decode, edge_weights, encode, fit_core, fit_material, region_means, region_mix, sample_directions, with_raw_lobe, CoreSettings, FitConfig, FitReport, FitResult, SharedLobes, CHARBONNIER_EPS, MAX_FIT_STEPS};
 use crate::data::captures::{compensated, load_photo_sized, Captures};
 use crate::geometry::{LightView, MODEL_FOV_DEG};
@@ -44,7 +45,7 @@ use tch::{Device, Kind, Tensor};
 
 /// The committed teacher (models/MODEL.md), whose encoder turns fitted GGX
 /// maps into codes its renderer draws.
-pub const BUNDLED_TEACHER: &str = "teacher-compact.safetensors";
+pub const BUNDLED_TEACHER: &str = "teacher-any-ggx.safetensors";
 
 /// The bundled teacher, in [`crate::infer::models_dir`].
 pub fn default_teacher_path() -> PathBuf {
@@ -191,11 +192,16 @@ pub struct PhotoFitConfig {
     /// Share of the steps run at half the resolution first ([`fit_photos`];
     /// 0 fits at full resolution throughout; maps under [`MIN_COARSE_SIDE`] always do).
     pub coarse_share: f64,
+    /// How the neural material's codes are fitted to the fitted maps
+    /// ([`super::codes`]). Older fit files carry none: their codes were
+    /// the teacher's as they are (0 steps).
+    #[serde(default = "CodeFitConfig::none")]
+    pub code_fit: CodeFitConfig,
 }
 
 impl Default for PhotoFitConfig {
     fn default() -> Self {
-        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01, lobe_shift_regions: 3, clipped_tail_weight: 1.0, regional_start_lobe: true, photo_gains: false, coarse_share: 0.5 }
+        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01, lobe_shift_regions: 3, clipped_tail_weight: 1.0, regional_start_lobe: true, photo_gains: false, coarse_share: 0.5, code_fit: CodeFitConfig::default() }
     }
 }
 
@@ -212,7 +218,7 @@ impl PhotoFitConfig {
         ensure!(self.clipped_tail_weight.is_finite() && self.clipped_tail_weight >= 0.0, "the clipped tail weight must be a finite number >= 0, got {}", self.clipped_tail_weight);
         ensure!(self.lobe_weight.is_finite() && self.lobe_weight >= 0.0, "the lobe weight must be a finite number >= 0, got {}", self.lobe_weight);
         ensure!(self.size >= 32 && self.size.is_multiple_of(8) && self.size <= 4096, "--size must be a multiple of 8 between 32 and 4096, got {}", self.size);
-        Ok(())
+        self.code_fit.validate()
     }
 }
 
@@ -646,6 +652,16 @@ pub fn neural_material(maps: &Tensor, photo: &Tensor, teacher: &TeacherWeights, 
     NeuralMaterial::from_parts(codes, photo.shallow_clone(), &teacher.config, &teacher.renderer, meta)
 }
 
+/// [`neural_material`] with its codes then fitted to what the maps render
+/// ([`fit_codes`], under directions around the photos' `configs`), kept
+/// where that lowered the fit's check loss (else the teacher's codes stay,
+/// and [`CodeFit::kept`] says so). maps: `[10, H, W]`; photo: `[3, H, W]`.
+pub fn fitted_neural_material(maps: &Tensor, photo: &Tensor, teacher: &TeacherWeights, configs: &[LightView], cfg: &CodeFitConfig, source: &str) -> Result<(NeuralMaterial, CodeFit)> {
+    let mut material = neural_material(maps, photo, teacher, source)?;
+    let fit = fit_codes(&mut material, maps, &teacher.encoder, configs, cfg)?;
+    Ok((material, fit))
+}
+
 /// The photos of a capture folder ready for [`fit_photos`].
 #[derive(Debug)]
 pub struct CapturePhotos {
@@ -828,14 +844,26 @@ pub fn capture_material(
     outlier_warnings(&fit, &capture.names).iter().for_each(|w| on_warning(w));
     let dir = &captures.dir;
     let source = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
-    let material = neural_material(&fit.maps, &capture.photos.get(capture.overhead as i64), &teacher, &source)?;
-    Ok(CaptureMaterial { material, fit, names: capture.names })
+    let (material, code_fit) = fitted_neural_material(&fit.maps, &capture.photos.get(capture.overhead as i64), &teacher, &capture.configs, &cfg.code_fit, &source)?;
+    // LPIPS where its weights are installed; the other figures always.
+    let lpips = crate::lpips::Lpips::new(device).ok();
+    let gap = neural_gap(&material, &fit.maps, &held_out_configs(GAP_CONFIGS), lpips.as_ref())?;
+    Ok(CaptureMaterial { material, fit, code_fit, gap, names: capture.names })
 }
+
+/// Held-out configurations per case (Hemisphere, Reflect) of the gap
+/// [`capture_material`] measures.
+pub const GAP_CONFIGS: usize = 4;
 
 /// What [`capture_material`] made.
 pub struct CaptureMaterial {
     pub material: NeuralMaterial,
     pub fit: PhotoFit,
+    /// How the material's codes were fitted to the maps.
+    pub code_fit: CodeFit,
+    /// How far the material is from its maps under held-out directions
+    /// ([`GAP_CONFIGS`] of each of eval's Hemisphere and Reflect cases).
+    pub gap: NeuralGap,
     /// File names of the photos fitted, in the fit's order.
     pub names: Vec<String>,
 }

@@ -103,7 +103,7 @@ impl GgxEncoder {
 
     /// rows: `[R, 10]` -> codes `[R, C]`.
     pub fn forward_rows(&self, rows: &Tensor) -> Tensor {
-        layers(&self.weights(), rows, |x, w| x.matmul(&w.tr()))
+        forward_rows_with(&self.weights(), rows)
     }
 
     /// maps: `[N, 10, H, W]` -> codes `[N, C, H, W]`.
@@ -114,7 +114,7 @@ impl GgxEncoder {
 
 /// The least normal z [`valid_values`] leaves: a normal kept facing the
 /// camera, as every normal of the data is.
-const MIN_NORMAL_Z: f64 = 0.1;
+pub const MIN_NORMAL_Z: f64 = 0.1;
 
 /// GGX values projected onto the data's ranges: kd and ks clamped to
 /// [0, 1], roughness to [`MIN_ROUGHNESS`], 1], the normal's z to at least
@@ -133,6 +133,12 @@ pub fn valid_values(values: &Tensor) -> Tensor {
     let normal = Tensor::cat(&[values.narrow(1, r + 1, 2), values.narrow(1, r + 3, 1).clamp_min(MIN_NORMAL_Z)], 1);
     let length = normal.square().sum_dim_intlist([1i64].as_slice(), true, normal.kind()).sqrt();
     Tensor::cat(&[albedos, roughness, normal / length], 1)
+}
+
+/// The encoder of `weights` (`[out, in]` each, as [`GgxEncoder::weights`])
+/// on rows `[R, 10]` -> codes `[R, C]` (gradients reach the weights).
+pub fn forward_rows_with(weights: &[Tensor], rows: &Tensor) -> Tensor {
+    layers(weights, rows, |x, w| x.matmul(&w.tr()))
 }
 
 /// The encoder of `weights` (`[out, in]` each, as [`GgxEncoder::weights`])

@@ -7,6 +7,7 @@ pub mod cpu;
 pub mod ggx;
 pub mod height;
 pub mod render;
+pub mod rows;
 pub mod scalar;
 pub mod shadow;
 

@@ -16,7 +16,8 @@
 use crate::optim::Adam;
 use crate::archive::{restore_vars, Archive};
 use crate::model::{Model, ModelConfig};
-use crate::svbrdf::render::render_directions;
+use crate::model::ggx_codes::MIN_NORMAL_Z as MIN_FIT_NORMAL_Z;
+pub use crate::svbrdf::rows::{ggx_log_rows, lobe_lights, log_rows_loss as teacher_loss, normalize_rows, random_directions};
 use anyhow::{ensure, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
@@ -61,6 +62,29 @@ pub struct TeacherConfig {
     /// [`MIN_ROUGHNESS`], so their sharpest lobes are never sampled.
     #[serde(default = "committed_min_roughness")]
     pub min_roughness: f64,
+    /// Which GGX pixels [`pixel_samples`] draws. Older teacher files carry
+    /// none: [`PixelMaterials::Procedural`], the committed recipe.
+    #[serde(default)]
+    pub materials: PixelMaterials,
+    /// The teacher file this run started from (weights only; a fresh
+    /// optimizer), for the record: a recipe names its start.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub warm_start: Option<String>,
+}
+
+/// The GGX pixels a teacher learns.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum PixelMaterials {
+    /// The procedural generator's corner (the committed 2026-11-23 teacher):
+    /// kd U^2.2 per channel, ks a dielectric 0.04 for 70% of pixels, normals
+    /// within about 15 degrees of the axis.
+    #[default]
+    Procedural,
+    /// Every material the capture fit can return ([`any_ggx_values`]):
+    /// metals with coloured specular, saturated colours, black to white in
+    /// kd and ks independently, and normals out to the fit's limit.
+    AnyGgx,
 }
 
 /// The committed teacher's lowest sampled roughness.
@@ -72,7 +96,19 @@ fn committed_min_roughness() -> f64 {
 
 impl Default for TeacherConfig {
     fn default() -> Self {
-        Self { model: ModelConfig::compact(), pixels: 16_384, lr: 1e-3, steps: 5_000, checkpoint_every: 250, seed: 1, lobe_share: 0.0, dark_floor: 0.0, min_roughness: COMMITTED_MIN_ROUGHNESS }
+        Self {
+            model: ModelConfig::compact(),
+            pixels: 16_384,
+            lr: 1e-3,
+            steps: 5_000,
+            checkpoint_every: 250,
+            seed: 1,
+            lobe_share: 0.0,
+            dark_floor: 0.0,
+            min_roughness: COMMITTED_MIN_ROUGHNESS,
+            materials: PixelMaterials::Procedural,
+            warm_start: None,
+        }
     }
 }
 
@@ -94,6 +130,7 @@ impl TeacherConfig {
         check("--dark-floor", self.dark_floor.to_string(), given.dark_floor.to_string());
         check("--min-roughness", self.min_roughness.to_string(), given.min_roughness.to_string());
         check("--checkpoint-every", self.checkpoint_every.to_string(), given.checkpoint_every.to_string());
+        check("--materials", format!("{:?}", self.materials), format!("{:?}", given.materials));
         out
     }
 }
@@ -131,27 +168,24 @@ impl Teacher {
 /// drawn around the pixel's normal with a spread of 1.5 alpha per tangent
 /// axis (alpha = roughness^2): inside the GGX lobe, where a glossy pixel's
 /// radiance is (kept where the mirrored light stays above the surface).
-pub fn pixel_samples(n: i64, lobe_share: f64, min_roughness: f64, device: Device) -> (Tensor, Tensor, Tensor, Tensor) {
+/// With [`PixelMaterials::AnyGgx`] the GGX values are [`any_ggx_values`]'
+/// instead (`min_roughness` then its roughness floor).
+pub fn pixel_samples(n: i64, lobe_share: f64, min_roughness: f64, materials: PixelMaterials, device: Device) -> (Tensor, Tensor, Tensor, Tensor) {
     let opts = (Kind::Float, device);
-    let kd = Tensor::rand([n, 3], opts).pow_tensor_scalar(2.2);
-    let coloured = Tensor::rand([n, 1], opts).lt(0.3).to_kind(Kind::Float);
-    let ks = &coloured * Tensor::rand([n, 3], opts).pow_tensor_scalar(2.2) + (1.0 - &coloured) * 0.04;
-    let rough = Tensor::rand([n, 1], opts) * (1.0 - min_roughness) + min_roughness;
-    let tilt = Tensor::randn([n, 2], opts) * 0.25;
-    let normal = normalize_rows(&Tensor::cat(&[tilt, Tensor::ones([n, 1], opts)], 1));
-    let cosine = |n: i64| {
-        let u1 = Tensor::rand([n, 1], opts);
-        let phi = Tensor::rand([n, 1], opts) * (2.0 * std::f64::consts::PI);
-        let r = u1.sqrt();
-        Tensor::cat(&[&r * phi.cos(), &r * phi.sin(), (1.0f64 - &u1).clamp_min(1e-4).sqrt()], 1)
+    let values = match materials {
+        PixelMaterials::Procedural => {
+            let kd = Tensor::rand([n, 3], opts).pow_tensor_scalar(2.2);
+            let coloured = Tensor::rand([n, 1], opts).lt(0.3).to_kind(Kind::Float);
+            let ks = &coloured * Tensor::rand([n, 3], opts).pow_tensor_scalar(2.2) + (1.0 - &coloured) * 0.04;
+            let rough = Tensor::rand([n, 1], opts) * (1.0 - min_roughness) + min_roughness;
+            let tilt = Tensor::randn([n, 2], opts) * 0.25;
+            let normal = normalize_rows(&Tensor::cat(&[tilt, Tensor::ones([n, 1], opts)], 1));
+            Tensor::cat(&[kd, ks, rough, normal], 1)
+        }
+        PixelMaterials::AnyGgx => any_ggx_values(n, min_roughness, device),
     };
-    let wi = cosine(n);
-    let near = normalize_rows(&(&wi + Tensor::randn([n, 3], opts) * 0.05));
-    let near = Tensor::cat(&[near.narrow(1, 0, 2), near.narrow(1, 2, 1).clamp_min(0.05)], 1);
-    let near = normalize_rows(&near);
-    let colocated = Tensor::rand([n, 1], opts).lt(0.25).to_kind(Kind::Float);
-    let wo = normalize_rows(&(&colocated * near + (1.0 - &colocated) * cosine(n)));
-    let maps = Tensor::cat(&[kd, ks, rough, normal], 1);
+    let (wi, wo) = random_directions(n, device);
+    let maps = values;
     let wi = if lobe_share > 0.0 {
         let (mirrored, above) = lobe_lights(&maps, &wo, &Tensor::randn([n, 2], opts));
         let lobe = Tensor::rand([n, 1], opts).lt(lobe_share).logical_and(&above).to_kind(Kind::Float);
@@ -163,44 +197,61 @@ pub fn pixel_samples(n: i64, lobe_share: f64, min_roughness: f64, device: Device
     (maps, wi, wo, target)
 }
 
-/// Lights inside each row's GGX lobe: the view `wo` mirrored about a half
-/// vector drawn around the row's normal, `offsets` x 1.5 alpha along x and
-/// y (alpha = roughness^2). maps: `[R, 10]` (kd, ks, roughness, normal);
-/// wo: `[R, 3]` unit; offsets: `[R, 2]` standard normal draws -> (wi
-/// `[R, 3]`, `[R, 1]` bool: the light is above the surface, z > 0.02).
-pub fn lobe_lights(maps: &Tensor, wo: &Tensor, offsets: &Tensor) -> (Tensor, Tensor) {
-    let alpha = maps.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1).square();
-    let n = maps.size()[0];
-    let shift = Tensor::cat(&[offsets * (&alpha * 1.5), Tensor::zeros([n, 1], (offsets.kind(), offsets.device()))], 1);
-    let h = normalize_rows(&(maps.narrow(1, 7, 3) + shift));
-    let mirrored = normalize_rows(&(&h * (wo * &h).sum_dim_intlist([1i64].as_slice(), true, Kind::Float) * 2.0 - wo));
-    let above = mirrored.narrow(1, 2, 1).gt(0.02);
-    (mirrored, above)
+/// Share of [`any_ggx_values`]' pixels that are metals: kd below 0.03,
+/// a bright coloured ks.
+const METAL_SHARE: f64 = 0.25;
+/// Share of its dielectrics whose ks is a grey level of 0.02-0.08.
+const GREY_SPECULAR_SHARE: f64 = 0.4;
+/// Share of its normals drawn uniformly over the fit's whole cone.
+const STEEP_NORMAL_SHARE: f64 = 0.15;
+
+/// A random colour `[R, 3]` in [0, 1]: a hue of saturation up to 1 (the
+/// brightest channel 1, the others U^3 scaled, mixed toward white by a
+/// random amount) times a brightness `value` `[R, 1]`.
+fn random_colours(n: i64, value: &Tensor, device: Device) -> Tensor {
+    let opts = (Kind::Float, device);
+    let hue = Tensor::rand([n, 3], opts).pow_tensor_scalar(3.0);
+    let hue = &hue / hue.amax([1i64].as_slice(), true).clamp_min(1e-6);
+    let saturation = Tensor::rand([n, 1], opts);
+    (&saturation * hue + (1.0 - saturation)) * value
 }
 
-pub(crate) fn normalize_rows(v: &Tensor) -> Tensor {
-    v / v.square().sum_dim_intlist([1i64].as_slice(), true, Kind::Float).sqrt().clamp_min(1e-12)
-}
-
-/// ln(1 + R) of the GGX renderer for rows. maps `[R, 10]`, wi, wo `[R, 3]` -> `[R, 3]`.
-pub fn ggx_log_rows(maps: &Tensor, wi: &Tensor, wo: &Tensor) -> Tensor {
-    let n = maps.size()[0];
-    let as_image = |t: &Tensor| t.transpose(0, 1).reshape([1, -1, n, 1]);
-    let dirs = |t: &Tensor| as_image(t).unsqueeze(1); // [1, 1, 3, R, 1]
-    let r = render_directions(&as_image(maps), &dirs(wi), &dirs(wo)); // [1, 1, 3, R, 1]
-    r.reshape([3, n]).transpose(0, 1).clamp_min(0.0).log1p()
-}
-
-/// The teacher's loss: the L1 of ln(1 + R), plus with `dark_floor` F > 0 the
-/// L1 of ln(F + R) (the prediction's radiance clamped at 0 there; the first
-/// term still pulls a negative one up). pred, target: ln(1 + R) `[R, 3]` -> scalar.
-pub fn teacher_loss(pred: &Tensor, target: &Tensor, dark_floor: f64) -> Tensor {
-    let l1 = (pred - target).abs().mean(Kind::Float);
-    if dark_floor <= 0.0 {
-        return l1;
-    }
-    let relative = |log1p: &Tensor| (log1p.expm1().clamp_min(0.0) + dark_floor).log();
-    l1 + (relative(pred) - relative(target)).abs().mean(Kind::Float)
+/// GGX values `[R, 10]` of every kind the capture fit can return
+/// (issue 83): a quarter metals (kd below 0.03, ks a saturated or pale
+/// colour of brightness 0.25-1: gold, copper, anodised colours); the
+/// dielectrics' kd half independent channels U^2.2 (black to white), half
+/// a random hue of random saturation and brightness U^1.5; their ks a grey
+/// 0.02-0.08 for 40%, else a random colour of brightness U^1.5 (ks from
+/// black to white, independent of kd). Roughness half uniform and half
+/// log-uniform on [`min_roughness`, 1] (sharp lobes are drawn as often as
+/// broad ones). Normals: tilted by N(0, 0.25) slopes, or for 15% uniform
+/// over the cone the fit allows (z from 0.1, `model::ggx_codes::valid_values`).
+pub fn any_ggx_values(n: i64, min_roughness: f64, device: Device) -> Tensor {
+    let opts = (Kind::Float, device);
+    let share = |p: f64| Tensor::rand([n, 1], opts).lt(p).to_kind(Kind::Float);
+    let metal = share(METAL_SHARE);
+    let channels = share(0.5);
+    let dielectric_kd = &channels * Tensor::rand([n, 3], opts).pow_tensor_scalar(2.2)
+        + (1.0 - &channels) * random_colours(n, &Tensor::rand([n, 1], opts).pow_tensor_scalar(1.5), device);
+    let metal_kd = Tensor::rand([n, 3], opts) * 0.03;
+    let kd = &metal * metal_kd + (1.0 - &metal) * dielectric_kd;
+    let grey = share(GREY_SPECULAR_SHARE);
+    let grey_ks = (Tensor::rand([n, 1], opts) * 0.06 + 0.02).expand([n, 3], false);
+    let dielectric_ks = &grey * grey_ks + (1.0 - &grey) * random_colours(n, &Tensor::rand([n, 1], opts).pow_tensor_scalar(1.5), device);
+    let metal_ks = random_colours(n, &(Tensor::rand([n, 1], opts) * 0.75 + 0.25), device);
+    let ks = &metal * metal_ks + (1.0 - &metal) * dielectric_ks;
+    let uniform = Tensor::rand([n, 1], opts) * (1.0 - min_roughness) + min_roughness;
+    let log_uniform = (Tensor::rand([n, 1], opts) * -min_roughness.ln()).exp() * min_roughness;
+    let half = share(0.5);
+    let rough = &half * uniform + (1.0 - &half) * log_uniform;
+    let tilted = normalize_rows(&Tensor::cat(&[Tensor::randn([n, 2], opts) * 0.25, Tensor::ones([n, 1], opts)], 1));
+    let z = Tensor::rand([n, 1], opts) * (1.0 - MIN_FIT_NORMAL_Z) + MIN_FIT_NORMAL_Z;
+    let phi = Tensor::rand([n, 1], opts) * (2.0 * std::f64::consts::PI);
+    let sin = (1.0f64 - z.square()).clamp_min(0.0).sqrt();
+    let steep_normal = Tensor::cat(&[&sin * phi.cos(), &sin * phi.sin(), z], 1);
+    let steep = share(STEEP_NORMAL_SHARE);
+    let normal = &steep * steep_normal + (1.0 - &steep) * tilted;
+    Tensor::cat(&[kd, ks, rough, normal], 1)
 }
 
 /// The teacher's training state.
@@ -221,6 +272,10 @@ pub struct TeacherStep {
     /// L1 on the fixed held-out samples (checkpoint steps only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub held_out_l1: Option<f64>,
+    /// The same on held-out samples of [`PixelMaterials::AnyGgx`] with lobe
+    /// lights (checkpoint steps of such teachers only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_out_any_l1: Option<f64>,
     pub seconds: f64,
 }
 
@@ -254,7 +309,8 @@ impl TeacherTrainer {
     pub fn train_step(&mut self) -> Result<f64> {
         let device = self.model.device();
         tch::manual_seed((self.config.seed ^ self.step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) as i64);
-        let (maps, wi, wo, target) = tch::no_grad(|| pixel_samples(self.config.pixels as i64, self.config.lobe_share, self.config.min_roughness, device));
+        let c = &self.config;
+        let (maps, wi, wo, target) = tch::no_grad(|| pixel_samples(c.pixels as i64, c.lobe_share, c.min_roughness, c.materials, device));
         self.opt.zero_grad();
         let pred = self.model.renderer.forward_rows(&self.encoder.forward_rows(&maps), &wi, &wo)?;
         let loss = teacher_loss(&pred, &target, self.config.dark_floor);
@@ -267,27 +323,63 @@ impl TeacherTrainer {
         Ok(l1)
     }
 
-    /// L1 of ln(1 + R) on the fixed held-out samples.
+    /// L1 of ln(1 + R) on the fixed held-out samples of the committed
+    /// recipe's distribution, whatever the run trains on: comparable across runs.
     pub fn held_out_l1(&self) -> Result<f64> {
+        self.held_out_l1_of(0.0, COMMITTED_MIN_ROUGHNESS, PixelMaterials::Procedural)
+    }
+
+    /// L1 of ln(1 + R) on fixed held-out samples of every GGX material
+    /// ([`any_ggx_values`] from the fit's roughness floor, half the lights in the lobe).
+    pub fn held_out_any_l1(&self) -> Result<f64> {
+        self.held_out_l1_of(0.5, crate::data::procedural::MIN_ROUGHNESS as f64, PixelMaterials::AnyGgx)
+    }
+
+    fn held_out_l1_of(&self, lobe_share: f64, min_roughness: f64, materials: PixelMaterials) -> Result<f64> {
         let device = self.model.device();
         tch::no_grad(|| {
             tch::manual_seed(HELD_OUT_SEED);
-            // The committed recipe's distribution, whatever the run trains on: comparable across runs.
-            let (maps, wi, wo, target) = pixel_samples(HELD_OUT_PIXELS, 0.0, COMMITTED_MIN_ROUGHNESS, device);
+            let (maps, wi, wo, target) = pixel_samples(HELD_OUT_PIXELS, lobe_share, min_roughness, materials, device);
             let pred = self.model.renderer.forward_rows(&self.encoder.forward_rows(&maps), &wi, &wo)?;
             Ok((pred - target).abs().mean(Kind::Float).double_value(&[]))
         })
     }
 
     pub fn save(&self, path: &Path) -> Result<()> {
+        self.save_with(path, true)
+    }
+
+    /// The teacher without its optimizer's moments (a third of the size):
+    /// what the encoder's users and `--warm-start` read, not a checkpoint
+    /// `--resume` can continue.
+    pub fn save_weights(&self, path: &Path) -> Result<()> {
+        self.save_with(path, false)
+    }
+
+    fn save_with(&self, path: &Path, optimizer: bool) -> Result<()> {
         let mut a = Archive::new();
         a.insert_all("renderer/", &self.model.renderer_vs.variables());
         a.insert_all("teacher/", &self.teacher_vs.variables());
-        self.opt.save_into(&mut a, "opt/");
+        if optimizer {
+            self.opt.save_into(&mut a, "opt/");
+        }
         a.set_meta("step", self.step.to_string());
         a.set_meta("model_id", self.model.model_id());
         a.set_meta("teacher_config", serde_json::to_string(&self.config)?);
         a.save(path, FORMAT, VERSION)
+    }
+
+    /// A new run of `config` from the encoder and renderer of the teacher
+    /// file `from` (same model), with a fresh optimizer at step 0.
+    pub fn warm_started(config: TeacherConfig, from: &Path, device: Device) -> Result<Self> {
+        let t = Self::new(config, device)?;
+        let a = Archive::load(from, FORMAT, VERSION)?;
+        let theirs = a.meta("model_id")?;
+        ensure!(theirs == t.model.model_id(), "{}: a teacher of model '{theirs}' cannot start a '{}' teacher", from.display(), t.model.model_id());
+        let ctx = |what: &str| format!("{}: {what}", from.display());
+        restore_vars(&t.model.renderer_vs.variables(), &a.with_prefix("renderer/"), &ctx("renderer"))?;
+        restore_vars(&t.teacher_vs.variables(), &a.with_prefix("teacher/"), &ctx("teacher encoder"))?;
+        Ok(t)
     }
 
     pub fn resume(path: &Path, device: Device) -> Result<Self> {
@@ -324,7 +416,10 @@ pub fn run(config: TeacherConfig, dir: &Path, device: Device, minutes: Option<f6
         t.config.steps = config.steps;
         t
     } else {
-        let t = TeacherTrainer::new(config, device)?;
+        let t = match config.warm_start.clone() {
+            Some(from) => TeacherTrainer::warm_started(config, Path::new(&from), device)?,
+            None => TeacherTrainer::new(config, device)?,
+        };
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         t
     };
@@ -340,11 +435,14 @@ pub fn run(config: TeacherConfig, dir: &Path, device: Device, minutes: Option<f6
         let out_of_time = minutes.is_some_and(|m| started.elapsed().as_secs_f64() >= m * 60.0) || super::run::stop_requested();
         let checkpoint = t.step % t.config.checkpoint_every.max(1) == 0 || t.step == t.config.steps || out_of_time;
         let held_out_l1 = if checkpoint { Some(t.held_out_l1()?) } else { None };
-        writeln!(log, "{}", serde_json::to_string(&TeacherStep { step: t.step, l1, held_out_l1, seconds: t0.elapsed().as_secs_f64() })?)?;
+        let held_out_any_l1 = if checkpoint && t.config.materials == PixelMaterials::AnyGgx { Some(t.held_out_any_l1()?) } else { None };
+        let seconds = t0.elapsed().as_secs_f64();
+        writeln!(log, "{}", serde_json::to_string(&TeacherStep { step: t.step, l1, held_out_l1, held_out_any_l1, seconds })?)?;
         if let Some(h) = held_out_l1 {
             log.flush()?;
             t.save(&file)?;
-            bar.set_message(format!("held-out L1 {h:.4}"));
+            let any = held_out_any_l1.map(|a| format!(", every GGX material {a:.4}")).unwrap_or_default();
+            bar.set_message(format!("held-out L1 {h:.4}{any}"));
         }
         bar.set_position(t.step);
         if out_of_time {
@@ -362,7 +460,7 @@ mod tests {
     #[test]
     fn samples_match_the_scalar_ggx_oracle() {
         tch::manual_seed(3);
-        let (maps, wi, wo, target) = pixel_samples(64, 0.5, COMMITTED_MIN_ROUGHNESS, Device::Cpu);
+        let (maps, wi, wo, target) = pixel_samples(64, 0.5, COMMITTED_MIN_ROUGHNESS, PixelMaterials::Procedural, Device::Cpu);
         assert_eq!(maps.size(), [64, 10]);
         for r in [0i64, 17, 63] {
             let v = |t: &Tensor, i: i64| t.double_value(&[r, i]);
@@ -384,7 +482,7 @@ mod tests {
         let z = |t: &Tensor| t.narrow(1, 2, 1).min().double_value(&[]);
         assert!(z(&wi) > 0.0 && z(&wo) > 0.0);
         tch::manual_seed(4);
-        let (_, wi, wo, _) = pixel_samples(20_000, 0.0, COMMITTED_MIN_ROUGHNESS, Device::Cpu);
+        let (_, wi, wo, _) = pixel_samples(20_000, 0.0, COMMITTED_MIN_ROUGHNESS, PixelMaterials::Procedural, Device::Cpu);
         let near = (&wi * &wo).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).gt(0.99).to_kind(Kind::Float).mean(Kind::Float).double_value(&[]);
         assert!((0.2..0.32).contains(&near), "fraction of near-co-located pairs {near}");
         // With a lobe share, about that share of a glossy pixel's pairs (alpha
@@ -392,7 +490,7 @@ mod tests {
         // has its half vector within 4 alpha of the normal; without, few.
         let in_lobe = |share: f64| {
             tch::manual_seed(5);
-            let (maps, wi, wo, _) = pixel_samples(50_000, share, COMMITTED_MIN_ROUGHNESS, Device::Cpu);
+            let (maps, wi, wo, _) = pixel_samples(50_000, share, COMMITTED_MIN_ROUGHNESS, PixelMaterials::Procedural, Device::Cpu);
             let h = normalize_rows(&(&wi + &wo));
             let cos = (&h * maps.narrow(1, 7, 3)).sum_dim_intlist([1i64].as_slice(), false, Kind::Float).clamp(-1.0, 1.0);
             let alpha = maps.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1).squeeze_dim(1).square();
@@ -407,7 +505,7 @@ mod tests {
     #[test]
     fn the_sampled_roughness_starts_at_the_recipes_floor() {
         tch::manual_seed(6);
-        let rough = |floor: f64| pixel_samples(40_000, 0.5, floor, Device::Cpu).0.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1);
+        let rough = |floor: f64| pixel_samples(40_000, 0.5, floor, PixelMaterials::Procedural, Device::Cpu).0.narrow(1, crate::svbrdf::ROUGHNESS_CHANNEL, 1);
         let below = |r: &Tensor, v: f64| r.lt(v).to_kind(Kind::Float).mean(Kind::Float).double_value(&[]);
         let committed = rough(COMMITTED_MIN_ROUGHNESS);
         assert!(committed.min().double_value(&[]) >= COMMITTED_MIN_ROUGHNESS - 1e-7 && below(&committed, COMMITTED_MIN_ROUGHNESS) == 0.0);
@@ -440,7 +538,7 @@ mod tests {
     #[test]
     fn teacher_learns_and_resumes_exactly() {
         let dir = tempfile::tempdir().unwrap();
-        let cfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 2048, steps: 60, checkpoint_every: 30, lr: 3e-3, seed: 2, lobe_share: 0.0, dark_floor: 0.0, min_roughness: COMMITTED_MIN_ROUGHNESS };
+        let cfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 2048, steps: 60, checkpoint_every: 30, lr: 3e-3, seed: 2, ..Default::default() };
         let fresh = TeacherTrainer::new(cfg.clone(), Device::Cpu).unwrap();
         let before = fresh.held_out_l1().unwrap();
         let full = run(cfg.clone(), &dir.path().join("a"), Device::Cpu, None, false).unwrap();

@@ -410,7 +410,7 @@ fn time_limit_stops_with_checkpoint_and_export_then_warm_start_continues_the_ste
 fn teacher_codes_supervise_m_est_and_fade_out() {
     use super::teacher::{self, teacher_file, TeacherConfig};
     let dir = tempfile::tempdir().unwrap();
-    let tcfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 512, steps: 5, checkpoint_every: 5, lr: 1e-3, seed: 3, lobe_share: 0.0, dark_floor: 0.0, min_roughness: crate::train::teacher::COMMITTED_MIN_ROUGHNESS };
+    let tcfg = TeacherConfig { model: ModelConfig::tiny(), pixels: 512, steps: 5, checkpoint_every: 5, lr: 1e-3, seed: 3, ..Default::default() };
     let trained_teacher = teacher::run(tcfg, &dir.path().join("t"), tch::Device::Cpu, None, false).unwrap();
     let file = teacher_file(&dir.path().join("t")).display().to_string();
     let cfg = TrainConfig { teacher: Some(file.clone()), weight_code: 1.0, code_until: 4, weight_lpips: 0.0, ..tiny_config() };

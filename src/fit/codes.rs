@@ -1,0 +1,261 @@
+//! A neural material as true as its maps (issue 83): the codes of fitted
+//! GGX maps, fitted to what the maps render.
+//!
+//! The teacher's encoder turns each pixel's GGX values into a code, but it
+//! was trained on a distribution of pixels and is only approximately
+//! right on any one material, most of all on the corners of GGX space a
+//! real capture lands in (a dark metal with a coloured specular). Here the
+//! encoder's weights are fine-tuned, the renderer frozen, on this
+//! material's own pixels, so that the renderer of the codes draws what the
+//! GGX maps draw:
+//!
+//! ```text
+//! rows: random pixels of the maps x directions (cosine-random, half the lights in the
+//!       pixel's GGX lobe; a share under the photos' configurations, jittered)
+//! loss = L1 ln(1 + R_neural) - ln(1 + R_ggx)  +  L1 ln(F + R_neural) - ln(F + R_ggx)
+//! maps ─► fine-tuned encoder ─► codes ─► the material's neural map
+//! ```
+//!
+//! The encoder is shared by all pixels, so every row teaches every pixel of
+//! similar values: a few thousand rows a step cover a 256x256 material in
+//! a few seconds. [`neural_gap`] says how far the result is from its maps
+//! under held-out directions.
+
+use crate::geometry::{LightView, Sampling, MODEL_FOV_DEG};
+use crate::infer::nmat::NeuralMaterial;
+use crate::lpips::Lpips;
+use crate::model::ggx_codes::{forward_rows_with, valid_values, GgxEncoder, GGX_CHANNELS};
+use crate::optim::Adam;
+use crate::svbrdf::render::render_directions;
+use crate::svbrdf::rows::{ggx_log_rows, lobe_lights, log_rows_loss, random_directions};
+use anyhow::{ensure, Result};
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::time::Instant;
+use tch::{Kind, Tensor};
+
+/// How the codes are fitted to their maps.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CodeFitConfig {
+    /// Adam steps on the encoder's weights (0: the teacher's codes as they are).
+    pub steps: usize,
+    /// Rows (pixel, light, view) per step.
+    pub rows: usize,
+    pub learning_rate: f64,
+    /// Share of the rows whose light lies inside the pixel's GGX lobe.
+    pub lobe_share: f64,
+    /// Share of the rows under the photos' configurations (their lights
+    /// and cameras moved by up to [`PHOTO_JITTER`]), where the material
+    /// will most often be looked at.
+    pub photo_share: f64,
+    /// F of the loss's ln(F + R) term: dark pixels fitted relative to
+    /// their radiance (0: ln(1 + R) alone).
+    pub dark_floor: f64,
+    pub seed: u64,
+}
+
+impl Default for CodeFitConfig {
+    fn default() -> Self {
+        Self { steps: 100, rows: 8192, learning_rate: 3e-4, lobe_share: 0.2, photo_share: 0.25, dark_floor: 0.01, seed: 1 }
+    }
+}
+
+impl CodeFitConfig {
+    /// No fit: the teacher's codes as they are (what older fit files did).
+    pub fn none() -> Self {
+        Self { steps: 0, ..Self::default() }
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        ensure!(self.rows >= 16, "the code fit needs at least 16 rows a step, got {}", self.rows);
+        crate::limits::STEP_PIXELS.check("the code fit's rows", self.rows as u64)?;
+        ensure!(self.learning_rate.is_finite() && self.learning_rate > 0.0, "the code fit's learning rate must be a positive number, got {}", self.learning_rate);
+        for (name, v) in [("lobe share", self.lobe_share), ("photo share", self.photo_share)] {
+            ensure!((0.0..=1.0).contains(&v), "the code fit's {name} must be from 0 to 1, got {v}");
+        }
+        ensure!(self.dark_floor >= 0.0 && self.dark_floor.is_finite(), "the code fit's dark floor must be a number >= 0, got {}", self.dark_floor);
+        Ok(())
+    }
+}
+
+/// Standard deviation (flashmat units, per axis) of the moves of the
+/// photos' lights and cameras in the code fit's photo rows.
+pub const PHOTO_JITTER: f64 = 0.5;
+
+/// Jittered copies of each photo configuration the code fit draws from.
+const PHOTO_VARIANTS: usize = 3;
+
+/// What [`fit_codes`] did: its loss on a fixed draw of rows (never
+/// trained on) before and after.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CodeFit {
+    pub steps: usize,
+    pub seconds: f64,
+    pub loss_before: f64,
+    pub loss_after: f64,
+    /// Whether the fitted codes replaced the teacher's (they lowered the loss).
+    pub kept: bool,
+}
+
+/// Fits the codes of `maps` to what the maps render: the encoder's weights
+/// fine-tuned as the module says, then `material.neural_map` replaced by
+/// the fine-tuned encoder's codes of the maps. The material's renderer is
+/// frozen. The codes are replaced only where the fit lowered its loss on a
+/// fixed draw of rows ([`CodeFit::kept`]). maps: `[10, H, W]` (the
+/// material's size); photo_configs: the capture's configurations (may be
+/// empty). A non-finite loss is an error and leaves the material as it was.
+pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEncoder, photo_configs: &[LightView], cfg: &CodeFitConfig) -> Result<CodeFit> {
+    cfg.validate()?;
+    let (h, w) = material.size();
+    ensure!(maps.size() == [GGX_CHANNELS, h as i64, w as i64], "the maps must be [{GGX_CHANNELS}, {h}, {w}], got {:?}", maps.size());
+    let device = material.device();
+    let t0 = Instant::now();
+    let values = valid_values(&maps.to_device(device).to_kind(Kind::Float).unsqueeze(0)).get(0).view([GGX_CHANNELS, -1]).transpose(0, 1).contiguous(); // [P, 10]
+    let pixels = values.size()[0];
+    let photo_dirs = photo_directions(material, photo_configs, cfg.seed); // [M, P, 3] each, or None
+    let weights: Vec<Tensor> = encoder.weights().iter().map(|w| w.detach().copy().set_requires_grad(true)).collect();
+    let mut adam = Adam::new(weights.iter().enumerate().map(|(i, w)| (format!("l{i}"), w.shallow_clone())).collect::<HashMap<_, _>>());
+    let rows = cfg.rows as i64;
+    let draw = |step: u64| {
+        tch::manual_seed((cfg.seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) as i64);
+        tch::no_grad(|| sample_rows(&values, pixels, rows, photo_dirs.as_ref(), cfg))
+    };
+    let loss_of = |weights: &[Tensor], (v, wi, wo, target): &(Tensor, Tensor, Tensor, Tensor)| -> Result<Tensor> {
+        let pred = material.renderer.forward_rows(&forward_rows_with(weights, v), wi, wo)?;
+        Ok(log_rows_loss(&pred, target, cfg.dark_floor))
+    };
+    // A fixed draw, never trained on, scores before and after.
+    let check = draw(u64::MAX);
+    let loss_before = tch::no_grad(|| loss_of(&weights, &check))?.double_value(&[]);
+    for step in 0..cfg.steps {
+        adam.zero_grad();
+        let loss = loss_of(&weights, &draw(step as u64))?;
+        let value = loss.double_value(&[]);
+        ensure!(value.is_finite(), "the code fit's loss became {value} at step {}", step + 1);
+        loss.backward();
+        adam.step(cfg.learning_rate, None);
+    }
+    let weights: Vec<Tensor> = weights.iter().map(Tensor::detach).collect();
+    let loss_after = tch::no_grad(|| loss_of(&weights, &check))?.double_value(&[]);
+    ensure!(loss_after.is_finite(), "the fitted codes render non-finite values");
+    let kept = cfg.steps > 0 && loss_after < loss_before;
+    if kept {
+        let codes = tch::no_grad(|| forward_rows_with(&weights, &values)).transpose(0, 1).reshape([-1, h as i64, w as i64]);
+        material.neural_map = codes.contiguous();
+    }
+    Ok(CodeFit { steps: cfg.steps, seconds: t0.elapsed().as_secs_f64(), loss_before, loss_after: if kept { loss_after } else { loss_before }, kept })
+}
+
+/// Per-pixel directions of the photos' configurations and of
+/// [`PHOTO_VARIANTS`] jittered copies of each: (wi, wo) `[M, P, 3]`, or
+/// None without configurations.
+fn photo_directions(material: &NeuralMaterial, configs: &[LightView], seed: u64) -> Option<(Tensor, Tensor)> {
+    if configs.is_empty() {
+        return None;
+    }
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let normal = rand_distr::Normal::new(0.0, PHOTO_JITTER).expect("a positive deviation");
+    let mut moved = |p: [f64; 3]| [p[0] + rng.sample(normal), p[1] + rng.sample(normal), p[2].max(0.5)];
+    let mut all = configs.to_vec();
+    for c in configs {
+        for _ in 0..PHOTO_VARIANTS {
+            let (light, view) = (moved(c.light), moved(c.view));
+            all.push(LightView { light, view });
+        }
+    }
+    let (wi, wo) = material.direction_maps(&all); // [1, M, 3, H, W]
+    let rows = |t: Tensor| t.get(0).flatten(2, 3).transpose(1, 2).contiguous(); // [M, P, 3]
+    Some((rows(wi), rows(wo)))
+}
+
+/// A step's rows: values `[R, 10]`, wi, wo `[R, 3]`, target ln(1 + R) `[R, 3]`.
+fn sample_rows(values: &Tensor, pixels: i64, rows: i64, photo: Option<&(Tensor, Tensor)>, cfg: &CodeFitConfig) -> (Tensor, Tensor, Tensor, Tensor) {
+    let device = values.device();
+    let index = Tensor::randint(pixels, [rows], (Kind::Int64, device));
+    let v = values.index_select(0, &index);
+    let (mut wi, mut wo) = random_directions(rows, device);
+    if let Some((pwi, pwo)) = photo {
+        let m = pwi.size()[0];
+        let which = Tensor::randint(m, [rows], (Kind::Int64, device));
+        let flat = &which * pixels + &index;
+        let pick = |t: &Tensor| t.view([-1, 3]).index_select(0, &flat);
+        let use_photo = Tensor::rand([rows, 1], (Kind::Float, device)).lt(cfg.photo_share).to_kind(Kind::Float);
+        wi = &use_photo * pick(pwi) + (1.0 - &use_photo) * wi;
+        wo = &use_photo * pick(pwo) + (1.0 - &use_photo) * wo;
+    }
+    if cfg.lobe_share > 0.0 {
+        let (mirrored, above) = lobe_lights(&v, &wo, &Tensor::randn([rows, 2], (Kind::Float, device)));
+        let lobe = Tensor::rand([rows, 1], (Kind::Float, device)).lt(cfg.lobe_share).logical_and(&above).to_kind(Kind::Float);
+        wi = crate::svbrdf::rows::normalize_rows(&(&lobe * mirrored + (1.0 - &lobe) * wi));
+    }
+    let target = ggx_log_rows(&v, &wi, &wo);
+    (v, wi, wo, target)
+}
+
+/// How far a neural material is from its GGX maps under some
+/// configurations (linear renders, no fall-off, both at the material's
+/// gain 1).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct NeuralGap {
+    /// Mean |ln(1 + R_neural) - ln(1 + R_ggx)| over configurations, pixels and channels.
+    pub log_l1: f64,
+    /// Largest |ln(sum_neural / sum_ggx)| of a channel's radiance summed
+    /// over the configurations and pixels: the material's colour and
+    /// brightness across the views (a channel 1.5x off: 0.41).
+    pub channel_log_ratio: f64,
+    /// Mean Euclidean distance of the pixels' chromaticities rgb / (r + g + b),
+    /// weighted by the GGX render's brightness (what the eye sees: a black
+    /// pixel's hue counts for nothing).
+    pub chromaticity: f64,
+    /// Mean LPIPS of the sRGB display renders (clamped to [0, 1]), when measured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lpips: Option<f64>,
+}
+
+/// Held-out configurations for [`neural_gap`]: `count` of the Hemisphere
+/// case and `count` of the Reflect case (flashmat eval's samplings) from a
+/// fixed seed.
+pub fn held_out_configs(count: usize) -> Vec<LightView> {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(0x9a9);
+    let mut configs = crate::geometry::sample_configs(&mut rng, Sampling::Hemisphere, count, MODEL_FOV_DEG);
+    configs.extend(crate::geometry::sample_configs(&mut rng, Sampling::Reflect, count, MODEL_FOV_DEG));
+    configs
+}
+
+/// [`NeuralGap`] of `material` against `maps` `[10, H, W]` under `configs`,
+/// with LPIPS when `lpips` is given.
+pub fn neural_gap(material: &NeuralMaterial, maps: &Tensor, configs: &[LightView], lpips: Option<&Lpips>) -> Result<NeuralGap> {
+    let (h, w) = material.size();
+    ensure!(maps.size() == [GGX_CHANNELS, h as i64, w as i64], "the maps must be [{GGX_CHANNELS}, {h}, {w}], got {:?}", maps.size());
+    let neural = material.render(configs)?; // [K, 3, H, W]
+    tch::no_grad(|| {
+        let (wi, wo) = material.direction_maps(configs);
+        let maps = valid_values(&maps.to_device(material.device()).to_kind(Kind::Float).unsqueeze(0));
+        let ggx = render_directions(&maps, &wi, &wo).get(0).clamp_min(0.0); // [K, 3, H, W]
+        gap_of_renders(&neural, &ggx, lpips)
+    })
+}
+
+/// [`NeuralGap`] of two sets of linear renders `[K, 3, H, W]`.
+pub fn gap_of_renders(neural: &Tensor, ggx: &Tensor, lpips: Option<&Lpips>) -> Result<NeuralGap> {
+    ensure!(neural.size() == ggx.size() && neural.dim() == 4 && neural.size()[1] == 3, "renders must be two [K, 3, H, W] of one size, got {:?} and {:?}", neural.size(), ggx.size());
+    let log_l1 = (neural.log1p() - ggx.log1p()).abs().mean(Kind::Double).double_value(&[]);
+    let sums = |t: &Tensor| t.sum_dim_intlist([0i64, 2, 3].as_slice(), false, Kind::Double).clamp_min(1e-9); // [3]
+    let channel_log_ratio = (sums(neural) / sums(ggx)).log().abs().max().double_value(&[]);
+    let chroma = |t: &Tensor| t / t.sum_dim_intlist([1i64].as_slice(), true, Kind::Double).clamp_min(1e-9);
+    let brightness = ggx.sum_dim_intlist([1i64].as_slice(), false, Kind::Double); // [K, H, W]
+    let distance = (chroma(&neural.to_kind(Kind::Double)) - chroma(&ggx.to_kind(Kind::Double))).square().sum_dim_intlist([1i64].as_slice(), false, Kind::Double).sqrt();
+    let chromaticity = (distance * &brightness).sum(Kind::Double).double_value(&[]) / brightness.sum(Kind::Double).double_value(&[]).max(1e-12);
+    let lpips = match lpips {
+        Some(net) => {
+            let display = |t: &Tensor| crate::spaces::linear_to_display(t).clamp(0.0, 1.0).to_kind(Kind::Float).to_device(net.device());
+            Some(net.distance_01(&display(neural), &display(ggx)).mean(Kind::Double).double_value(&[]))
+        }
+        None => None,
+    };
+    Ok(NeuralGap { log_l1, channel_log_ratio, chromaticity, lpips })
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,74 @@
+use super::*;
+use crate::data::procedural::metal_material;
+use crate::fit::photos::{load_teacher, neural_material};
+use tch::Device;
+
+#[test]
+fn the_gap_of_identical_renders_is_zero_and_a_tint_is_measured() {
+    let ggx = Tensor::rand([2, 3, 8, 8], (Kind::Float, Device::Cpu)) + 0.1;
+    let same = gap_of_renders(&ggx, &ggx, None).unwrap();
+    assert!(same.log_l1 < 1e-9 && same.channel_log_ratio < 1e-9 && same.chromaticity < 1e-9);
+    // Red doubled: the channel ratio is ln 2 (the sums scale with it).
+    let tint = Tensor::from_slice(&[2.0f32, 1.0, 1.0]).view([1, 3, 1, 1]);
+    let gap = gap_of_renders(&(&ggx * &tint), &ggx, None).unwrap();
+    assert!((gap.channel_log_ratio - 2f64.ln()).abs() < 1e-6, "{}", gap.channel_log_ratio);
+    // A grey pixel (1, 1, 1) drawn (2, 1, 1): chromaticity (1/2, 1/4, 1/4) against
+    // (1/3, 1/3, 1/3), distance sqrt(1/36 + 2/144) = 0.2041.
+    let grey = Tensor::ones([1, 3, 4, 4], (Kind::Float, Device::Cpu));
+    let gap = gap_of_renders(&(&grey * &tint), &grey, None).unwrap();
+    assert!((gap.chromaticity - (1.0f64 / 36.0 + 2.0 / 144.0).sqrt()).abs() < 1e-6, "{}", gap.chromaticity);
+}
+
+#[test]
+fn fitted_codes_bring_a_wrong_encoders_colour_back_to_the_maps() {
+    // The gold and teal checker at 48x48, its codes from the bundled
+    // teacher's encoder with the last layer's weights of the red-leaning half
+    // of the codes scaled by 0.7: an encoder off on this material, as the
+    // procedural teacher was on metals. The fit brings the renders back to
+    // what the maps draw.
+    let teacher = load_teacher(None, Device::Cpu).unwrap();
+    let side = 48;
+    let maps = metal_material(0, side).stacked().to_tensor();
+    let photo = Tensor::zeros([3, side as i64, side as i64], (Kind::Float, Device::Cpu));
+    let mut material = neural_material(&maps, &photo, &teacher, "metal").unwrap();
+    let vs = tch::nn::VarStore::new(Device::Cpu);
+    let wrong = GgxEncoder::new(&(vs.root() / "teacher"), teacher.config.neural_channels);
+    tch::no_grad(|| {
+        for (i, (w, theirs)) in wrong.weights().iter().zip(teacher.encoder.weights()).enumerate() {
+            let mut w = w.shallow_clone();
+            w.copy_(&theirs);
+            if i == 2 {
+                let half = w.size()[0] / 2;
+                let _ = w.narrow(0, 0, half).g_mul_scalar_(0.7);
+            }
+        }
+    });
+    material.neural_map = tch::no_grad(|| wrong.forward_maps(&valid_values(&maps.unsqueeze(0)))).get(0);
+    let configs = held_out_configs(4);
+    let before = neural_gap(&material, &maps, &configs, None).unwrap();
+    let cfg = CodeFitConfig { steps: 100, rows: 4096, ..Default::default() };
+    let fit = fit_codes(&mut material, &maps, &wrong, &[NeuralMaterial::identity_config()], &cfg).unwrap();
+    let after = neural_gap(&material, &maps, &configs, None).unwrap();
+    eprintln!("before {before:?}\nafter {after:?}\nfit {fit:?}");
+    assert!(fit.kept && fit.loss_after < 0.7 * fit.loss_before, "{fit:?}");
+    assert!(after.log_l1 < 0.6 * before.log_l1, "log L1 {} -> {}", before.log_l1, after.log_l1);
+    assert!(after.channel_log_ratio < 0.5 * before.channel_log_ratio, "channel log ratio {} -> {}", before.channel_log_ratio, after.channel_log_ratio);
+    assert!(after.chromaticity < before.chromaticity, "chromaticity {} -> {}", before.chromaticity, after.chromaticity);
+    assert_eq!(material.neural_map.size(), [teacher.config.neural_channels, side as i64, side as i64]);
+}
+
+#[test]
+fn a_fit_that_does_not_lower_the_loss_keeps_the_teachers_codes() {
+    // No steps: the check loss cannot fall, and the codes stay the teacher's.
+    let teacher = load_teacher(None, Device::Cpu).unwrap();
+    let maps = metal_material(4, 16).stacked().to_tensor();
+    let photo = Tensor::zeros([3, 16, 16], (Kind::Float, Device::Cpu));
+    let mut material = neural_material(&maps, &photo, &teacher, "tile").unwrap();
+    let codes = material.neural_map.copy();
+    let fit = fit_codes(&mut material, &maps, &teacher.encoder, &[], &CodeFitConfig::none()).unwrap();
+    assert!(!fit.kept && fit.loss_after == fit.loss_before, "{fit:?}");
+    assert!(material.neural_map.equal(&codes));
+    // Maps of another size are refused in one line.
+    let e = fit_codes(&mut material, &maps.narrow(1, 0, 8), &teacher.encoder, &[], &CodeFitConfig::default()).unwrap_err();
+    assert!(format!("{e}").contains("the maps must be [10, 16, 16]"), "{e}");
+}
