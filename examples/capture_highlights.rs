@@ -37,6 +37,8 @@
 //! of `TILTED_PHONES`, in that order (default 0,1,2,3: the issue's
 //! positions first).
 //!
+//! BASELINE_TEACHER=FILE adds `neural-before`: the neural material of that
+//! teacher's codes as they are (the capture path before issue 83).
 //! TEACHER=FILE makes the neural material with that teacher, CODE_STEPS=N
 //! fits its codes N steps (0: the teacher's codes as they are), SET=metals
 //! scores the coloured-metal set (`data::procedural::metal_material`,
@@ -129,6 +131,8 @@ fn main() -> Result<()> {
     // CODE_STEPS=N: its code fit's steps (0: the teacher's codes as they are).
     let teacher = load_teacher(std::env::var_os("TEACHER").map(std::path::PathBuf::from).as_deref(), Device::Cpu)?;
     let code_steps: Option<usize> = std::env::var("CODE_STEPS").ok().map(|s| s.parse()).transpose()?;
+    // BASELINE_TEACHER=FILE: also the neural material of that teacher's codes as they are (`neural-before`).
+    let baseline_teacher = std::env::var_os("BASELINE_TEACHER").map(|f| load_teacher(Some(std::path::Path::new(&f)), Device::Cpu)).transpose()?;
     // SET=metals: the coloured-metal set (data::procedural::metal_material) in place of the 50.
     let metals = std::env::var("SET").is_ok_and(|s| s == "metals");
     let lpips = Lpips::new(Device::Cpu)?;
@@ -312,6 +316,12 @@ fn main() -> Result<()> {
                 );
             }
             rows.entry((k, "ggx")).or_default().push(score(&render)?);
+            relit.push((format!("GGX maps, {k} photo(s)"), render(&moved.configs())?));
+            if let Some(before) = &baseline_teacher {
+                let material = flashmat::fit::photos::neural_material(&fit.maps, &photo, before, "capture")?;
+                rows.entry((k, "neural-before")).or_default().push(score(&|c| material.render(c))?);
+                relit.push((format!("fit, {k} photo(s), neural before"), material.render(&moved.configs())?));
+            }
             let (material, _) = fitted_neural_material(&fit.maps, &photo, &teacher, &capture.configs, &cfg.code_fit, "capture")?;
             rows.entry((k, "neural")).or_default().push(score(&|c| material.render(c))?);
             relit.push((format!("fit, {k} photo(s)"), material.render(&moved.configs())?));
@@ -323,7 +333,7 @@ fn main() -> Result<()> {
             eprintln!("{name}, {k} photo(s): data term {:.4} -> {:.4} in {:.1} s, gains {:?}", fit.report.data_before, fit.report.data_after, fit.report.seconds, fit.report.photo_gains.iter().map(|g| format!("{g:.3}")).collect::<Vec<_>>());
         }
         if let Some(out) = &pictures {
-            // Rows: the moved lights; columns: truth, the bundled model, the fits by photo count.
+            // Rows: the moved lights; columns: truth, the bundled model, per photo count the GGX maps and the neural materials.
             let grid: Vec<Vec<flashmat::image::Image>> = (0..truth.size()[0])
                 .map(|l| relit.iter().map(|(_, r)| flashmat::image::Image::display_of(&r.get(l))).collect::<Result<_>>())
                 .collect::<Result<_>>()?;

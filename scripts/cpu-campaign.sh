@@ -12,10 +12,14 @@
 # Where it stands: $FLASHMAT_CACHE/campaign (default ~/.cache/flashmat/campaign):
 # run/ (the train run: resumed when this machine still has it), exports/
 # (its checkpoints' exports), adapter.safetensors (the start), gate/.
-# Without run/, a new run starts from models/campaign.safetensors when the
-# tree holds one (the last committed export; Adam's state starts afresh:
-# the recipe warms up 50 steps), else from the bundled model with its head
-# fitted linearly to the teacher's codes (examples/code_adapter.rs).
+# Without run/, a new run starts from $CAMPAIGN/continue.safetensors (a
+# model put there by hand: a GPU distill job's), else from
+# models/campaign.safetensors when the tree holds one (the last committed
+# export; Adam's state starts afresh: the recipe warms up 50 steps), else
+# from the bundled model with its head fitted linearly to the teacher's
+# codes (examples/code_adapter.rs). A student is 10.6 MB: it fits the
+# tracked tree's 32 MiB only in place of the bundled model, so until one
+# passes the gate a new machine starts from the adapter.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -48,10 +52,13 @@ recipe() {
 }
 
 start_model() {
-  if [ -f "$COMMITTED" ]; then
-    echo "$COMMITTED"
-    return
-  fi
+  local model
+  for model in "$CAMPAIGN/continue.safetensors" "$COMMITTED"; do
+    if [ -f "$model" ]; then
+      echo "$model"
+      return
+    fi
+  done
   local adapter="$CAMPAIGN/adapter.safetensors"
   if [ ! -f "$adapter" ]; then
     echo "cpu-campaign: fitting the bundled model's head to the teacher's codes (one time, about 2 minutes)" >&2

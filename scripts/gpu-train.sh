@@ -198,6 +198,10 @@ BIN="${FLASHMAT_GPU_BIN:-$ROOT/.gpu/flashmat}"
 RESUME_MODEL="${FLASHMAT_GPU_RESUME:-$ROOT/.gpu/resume.safetensors}"
 # The teacher a warm start needs (brought back by the chunk that trained it).
 CARRIED_TEACHER="${FLASHMAT_GPU_CARRIED_TEACHER:-$ROOT/.gpu/teacher.safetensors}"
+# Without a carried teacher, distill learns the committed teacher for every
+# GGX material (models/MODEL.md), the CPU campaign's; FLASHMAT_GPU_COMMITTED_TEACHER=
+# (empty) trains one on the device instead.
+COMMITTED_TEACHER="${FLASHMAT_GPU_COMMITTED_TEACHER-$ROOT/models/teacher-any-ggx.safetensors}"
 EVAL_EXTRA=()
 
 die() { echo "gpu-train: $*" >&2; exit 1; }
@@ -489,6 +493,10 @@ distill() {
   local t0; t0=$(date +%s)
   if [ -f "$teacher" ]; then
     how="the carried teacher $(basename "$teacher")"
+  elif [ -f "$COMMITTED_TEACHER" ]; then
+    # The CPU campaign's teacher (issue 86): the capture path's renderer too.
+    teacher="$COMMITTED_TEACHER"
+    how="the committed teacher $(basename "$teacher")"
   else
     "$BIN" train-teacher --preset "$DISTILL_PRESET" --out "$dir/teacher" --steps "$DISTILL_TEACHER_STEPS" \
       --pixels "$TEACHER_PIXELS" --lobe-share "$DISTILL_TEACHER_LOBE" --dark-floor "$DISTILL_TEACHER_DARK" --seed "$SEED" --device "$DEVICE" >"$dir/teacher.log" 2>&1 \
@@ -807,7 +815,7 @@ cpu_dry_run() {
   n=$(find "$tmp/out4" -type f | wc -l)
   [ "$n" -le 8 ] || die "dry run: the frozen chain brings back $n files (a job returns at most 8)"
   echo "== distill: a teacher trained with lobe samples, then M_est alone learning its codes"
-  FLASHMAT_GPU_DISTILL_PRESET=tiny FLASHMAT_GPU_DISTILL_CROP=32 FLASHMAT_GPU_DISTILL_TEACHER_STEPS=20 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/no-teacher" FLASHMAT_GPU_DISTILL_GRAD_CLIP=5 \
+  FLASHMAT_GPU_DISTILL_PRESET=tiny FLASHMAT_GPU_DISTILL_CROP=32 FLASHMAT_GPU_DISTILL_TEACHER_STEPS=20 FLASHMAT_GPU_CARRIED_TEACHER="$tmp/no-teacher" FLASHMAT_GPU_COMMITTED_TEACHER= FLASHMAT_GPU_DISTILL_GRAD_CLIP=5 \
     FLASHMAT_GPU_FROZEN_EVERY=2 FLASHMAT_GPU_EVAL_EXTRA="--limit 2 --size 64" OUT="$tmp/out6" bash "$self" distill 0.1
   for f in model.safetensors teacher.safetensors distill.md distill.tgz; do
     [ -f "$tmp/out6/$f" ] || die "dry run: distill brought back no $f"
