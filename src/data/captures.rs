@@ -57,7 +57,7 @@ impl Captures {
     /// file at fault.
     pub fn open(dir: &Path) -> Result<Self> {
         ensure!(dir.is_dir(), "capture folder {} does not exist", dir.display());
-        let photos = numbered_photos(dir)?;
+        let (numbers, photos) = numbered_photos(dir)?;
         let size_path = dir.join("image_size.txt");
         let size_text = read_text(&size_path)?;
         let sample_width: f64 = size_text
@@ -66,10 +66,22 @@ impl Captures {
             .map_err(|_| anyhow!("{}: expected one number (the sample's width), got '{}'", size_path.display(), size_text.trim()))?;
         ensure!(sample_width.is_finite() && sample_width > 0.0, "{}: the sample's width must be > 0, got {sample_width}", size_path.display());
         let scale = 2.0 / sample_width;
-        let cameras = read_positions(&dir.join("camera_pos.txt"), scale, photos.len())?;
-        let lights = read_positions(&dir.join("light_pos.txt"), scale, photos.len())?;
+        // Line n of each position file belongs to photo n: with gaps in the
+        // numbering the files keep a line for every number up to the last.
+        let lines = numbers.last().map_or(0, |&n| n as usize + 1);
+        let gaps = lines != photos.len();
+        let by_number = |values: Vec<[f64; 3]>| numbers.iter().map(|&n| values[n as usize]).collect::<Vec<_>>();
+        let with_gaps = |e: anyhow::Error| if gaps { anyhow!("{e}; the photos are numbered with gaps ({} missing), and line n belongs to photo n", missing_numbers(&numbers)) } else { e };
+        let needs = if gaps { format!("photos numbered up to {:02} need {lines}", lines - 1) } else { format!("the folder has {lines} photos") };
+        let cameras = by_number(read_positions(&dir.join("camera_pos.txt"), scale, lines, &needs).map_err(with_gaps)?);
+        let lights = by_number(read_positions(&dir.join("light_pos.txt"), scale, lines, &needs).map_err(with_gaps)?);
         let exposures_path = dir.join(EXPOSURES_FILE);
-        let exposures = if exposures_path.exists() { read_exposures(&exposures_path, photos.len())? } else { vec![1.0; photos.len()] };
+        let exposures = if exposures_path.exists() {
+            let all = read_exposures(&exposures_path, lines, &needs).map_err(with_gaps)?;
+            numbers.iter().map(|&n| all[n as usize]).collect()
+        } else {
+            vec![1.0; photos.len()]
+        };
         Ok(Self { dir: dir.to_path_buf(), photos, cameras, lights, sample_width, exposures })
     }
 
@@ -168,7 +180,7 @@ fn read_text(path: &Path) -> Result<String> {
 const PHOTO_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
 
 /// `NN.png` / `NN.jpg` files of `dir` sorted by number; errors when there are none.
-fn numbered_photos(dir: &Path) -> Result<Vec<PathBuf>> {
+fn numbered_photos(dir: &Path) -> Result<(Vec<u64>, Vec<PathBuf>)> {
     let mut found: Vec<(u64, PathBuf)> = Vec::new();
     for p in crate::io::sorted_entries(dir)? {
         let is_photo = p.extension().and_then(|e| e.to_str()).is_some_and(|e| PHOTO_EXTENSIONS.iter().any(|x| e.eq_ignore_ascii_case(x)));
@@ -181,12 +193,29 @@ fn numbered_photos(dir: &Path) -> Result<Vec<PathBuf>> {
     if let Some(w) = found.windows(2).find(|w| w[0].0 == w[1].0) {
         bail!("capture folder {}: photos {} and {} have the same number", dir.display(), w[0].1.display(), w[1].1.display());
     }
-    Ok(found.into_iter().map(|(_, p)| p).collect())
+    // A number far past the photos would ask for that many position lines.
+    let last = found.last().map_or(0, |(n, _)| *n);
+    ensure!(last < 10 * found.len() as u64 + 100, "capture folder {}: photo {} is numbered far past the {} photos (number them 00, 01, ... in order)", dir.display(), found.last().map_or(String::new(), |(_, p)| p.display().to_string()), found.len());
+    Ok(found.into_iter().unzip())
+}
+
+/// The numbers below the last of `numbers` (sorted) that no photo has, as
+/// "02, 05-06".
+fn missing_numbers(numbers: &[u64]) -> String {
+    let mut out: Vec<String> = vec![];
+    let mut expected = 0;
+    for &n in numbers {
+        if n > expected {
+            out.push(if n - 1 == expected { format!("{expected:02}") } else { format!("{expected:02}-{:02}", n - 1) });
+        }
+        expected = n + 1;
+    }
+    out.join(", ")
 }
 
 /// Parses one `x,y,z` per non-empty line, scaled by `scale`; there must be
 /// `expected` lines and every z must be > 0.
-fn read_positions(path: &Path, scale: f64, expected: usize) -> Result<Vec<[f64; 3]>> {
+fn read_positions(path: &Path, scale: f64, expected: usize, needs: &str) -> Result<Vec<[f64; 3]>> {
     let text = read_text(path)?;
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate() {
@@ -199,7 +228,7 @@ fn read_positions(path: &Path, scale: f64, expected: usize) -> Result<Vec<[f64; 
     }
     ensure!(
         out.len() == expected,
-        "{} has {} positions but the folder has {expected} photos (one line per photo)",
+        "{} has {} positions but {needs} (one line per photo)",
         path.display(),
         out.len()
     );
@@ -207,7 +236,7 @@ fn read_positions(path: &Path, scale: f64, expected: usize) -> Result<Vec<[f64; 
 }
 
 /// Parses one exposure per non-empty line: `expected` finite numbers > 0.
-fn read_exposures(path: &Path, expected: usize) -> Result<Vec<f64>> {
+fn read_exposures(path: &Path, expected: usize, needs: &str) -> Result<Vec<f64>> {
     let text = read_text(path)?;
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
@@ -215,7 +244,7 @@ fn read_exposures(path: &Path, expected: usize) -> Result<Vec<f64>> {
         ensure!(v.is_finite() && v > 0.0, "{} line {}: an exposure must be a finite number > 0, got '{}'", path.display(), i + 1, line.trim());
         out.push(v);
     }
-    ensure!(out.len() == expected, "{} has {} exposures but the folder has {expected} photos (one line per photo)", path.display(), out.len());
+    ensure!(out.len() == expected, "{} has {} exposures but {needs} (one line per photo)", path.display(), out.len());
     Ok(out)
 }
 
@@ -441,6 +470,35 @@ mod tests {
         // 01.png beside 01.jpg: two photos with one number.
         crate::io::write_png(&t.path().join("01.png"), &grey, crate::io::BitDepth::Eight).unwrap();
         assert!(err(t.path()).contains("have the same number"));
+    }
+
+    #[test]
+    fn photos_numbered_with_gaps_take_the_lines_of_their_numbers() {
+        // Photos 00, 01, 03 (02 deleted, as a user deletes a blurred one):
+        // line n of the position files is photo n's.
+        let t = tempfile::tempdir().unwrap();
+        fixture(t.path(), 4, "0,0,4\n0,0,5\n0,0,6\n0,0,7\n", "0,0,4\n0,0,5\n0,0,6\n0,0,7\n", "2");
+        std::fs::remove_file(t.path().join("02.png")).unwrap();
+        let c = Captures::open(t.path()).unwrap();
+        // Sample width 2: positions unscaled; photo 03 at z 7, not 6.
+        assert_eq!(c.cameras.iter().map(|p| p[2]).collect::<Vec<_>>(), [4.0, 5.0, 7.0]);
+        assert_eq!(c.lights[2][2], 7.0);
+        // Files with one line per photo (3) are ambiguous: refused, naming the gap.
+        std::fs::write(t.path().join("camera_pos.txt"), "0,0,4\n0,0,5\n0,0,7\n").unwrap();
+        let m = err(t.path());
+        assert!(m.contains("camera_pos.txt has 3 positions but photos numbered up to 03 need 4") && m.contains("numbered with gaps (02 missing)"), "{m}");
+        assert!(!m.contains('\n'), "one line: {m}");
+        // Exposures follow the numbers too.
+        std::fs::write(t.path().join("camera_pos.txt"), "0,0,4\n0,0,5\n0,0,6\n0,0,7\n").unwrap();
+        std::fs::write(t.path().join(EXPOSURES_FILE), "1\n2\n3\n4\n").unwrap();
+        assert_eq!(Captures::open(t.path()).unwrap().exposures, [1.0, 2.0, 4.0]);
+        // The gaps' names: single numbers and runs.
+        assert_eq!(missing_numbers(&[0, 1, 3, 4, 7]), "02, 05-06");
+        assert_eq!(missing_numbers(&[2]), "00-01");
+        assert_eq!(missing_numbers(&[0, 1]), "");
+        // A number far past the photos is refused before any file is read.
+        std::fs::rename(t.path().join("03.png"), t.path().join("999.png")).unwrap();
+        assert!(err(t.path()).contains("is numbered far past the 3 photos"));
     }
 
     #[test]
