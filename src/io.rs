@@ -496,6 +496,33 @@ pub fn write_png(path: &Path, image: &Image, bits: BitDepth) -> Result<()> {
     })
 }
 
+/// [`write_png`] with a pHYs chunk saying `dpi` pixels per inch, so image
+/// viewers and printers size the page true (a printed frame's tags must
+/// be their stated millimetres). The file is replaced atomically.
+pub fn write_png_at_dpi(path: &Path, image: &Image, bits: BitDepth, dpi: f64) -> Result<()> {
+    anyhow::ensure!(dpi.is_finite() && dpi > 0.0, "a PNG's resolution must be a number > 0 dpi, got {dpi}");
+    write_png(path, image, bits)?;
+    let png = std::fs::read(path).map_err(|e| anyhow::anyhow!("cannot read back {}: {e}", path.display()))?;
+    atomic_write_bytes(path, &with_png_dpi(&png, dpi)?)
+}
+
+/// PNG bytes with a pHYs chunk (pixels per metre, both axes) after IHDR.
+fn with_png_dpi(png: &[u8], dpi: f64) -> Result<Vec<u8>> {
+    // Signature (8), then IHDR: length (4), type (4), 13 data bytes, CRC (4).
+    const AFTER_IHDR: usize = 8 + 4 + 4 + 13 + 4;
+    anyhow::ensure!(png.len() > AFTER_IHDR && &png[12..16] == b"IHDR", "not a PNG to give a resolution");
+    let per_metre = (dpi / 0.0254).round() as u32;
+    let mut chunk = Vec::with_capacity(21);
+    chunk.extend_from_slice(&9u32.to_be_bytes());
+    chunk.extend_from_slice(b"pHYs");
+    chunk.extend_from_slice(&per_metre.to_be_bytes());
+    chunk.extend_from_slice(&per_metre.to_be_bytes());
+    chunk.push(1); // unit: the metre
+    let crc = crc32fast::hash(&chunk[4..]);
+    chunk.extend_from_slice(&crc.to_be_bytes());
+    Ok([&png[..AFTER_IHDR], &chunk[..], &png[AFTER_IHDR..]].concat())
+}
+
 /// Writes an 8-bit JPEG (the display values as [`write_png`] would store
 /// them, alpha dropped) at `quality` (1-100): report pictures, a tenth of
 /// a PNG's size. Replaced atomically.
@@ -891,6 +918,26 @@ mod tests {
             assert!(back.data.iter().all(|v| (v - 0.4).abs() <= 1.5 / 255.0), "c={c}");
         }
         assert!(leftovers(dir.path()).is_empty());
+    }
+
+    #[test]
+    fn a_png_at_a_dpi_says_it_and_reads_back_the_same() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frame.png");
+        let im = Image::from_fn(1, 6, 4, |_, y, x| (y * 4 + x) as f32 / 23.0);
+        write_png_at_dpi(&path, &im, BitDepth::Eight, 300.0).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        // pHYs right after IHDR: 300 dpi is 300 / 0.0254 = 11,811 pixels a metre on both axes, unit 1.
+        assert_eq!(&bytes[37..41], b"pHYs");
+        assert_eq!(u32::from_be_bytes(bytes[41..45].try_into().unwrap()), 11_811);
+        assert_eq!(u32::from_be_bytes(bytes[45..49].try_into().unwrap()), 11_811);
+        assert_eq!(bytes[49], 1);
+        assert_eq!(u32::from_be_bytes(bytes[50..54].try_into().unwrap()), crc32fast::hash(&bytes[37..50]));
+        // Decoded, the same pixels as the PNG without it.
+        let plain = dir.path().join("plain.png");
+        write_png(&plain, &im, BitDepth::Eight).unwrap();
+        assert_eq!(read_image(&path).unwrap().data, read_image(&plain).unwrap().data);
+        assert!(write_png_at_dpi(&path, &im, BitDepth::Eight, f64::NAN).is_err());
     }
 
     #[test]

@@ -100,6 +100,17 @@ fn photos_of_the_printed_frame_become_a_capture_folder_and_a_material() {
     assert!(std::fs::read(d.join("frame.pdf")).unwrap().starts_with(b"%PDF-"));
     assert_error(&flashmat(&["capture", "frame", "-o", s(&d.join("frame.svg"))]), &["frame.svg: the frame is written as .pdf or .png"]);
     assert_error(&flashmat(&["capture", "frame", "--opening", "20", "-o", s(&d.join("f.pdf"))]), &["--opening must be a whole number of centimetres from 5 to 14"]);
+    // A PNG says its resolution (pHYs after IHDR: 100 dpi = 3,937 pixels a metre); --dpi with a PDF is refused.
+    assert_ok(&flashmat(&["capture", "frame", "--dpi", "100", "-o", s(&d.join("frame.png"))]));
+    let png = std::fs::read(d.join("frame.png")).unwrap();
+    assert_eq!((&png[37..41], u32::from_be_bytes(png[41..45].try_into().unwrap())), (&b"pHYs"[..], 3_937));
+    assert_error(&flashmat(&["capture", "frame", "--dpi", "5", "-o", s(&d.join("f2.pdf"))]), &["--dpi sets a PNG's resolution; ", "f2.pdf is a PDF"]);
+    assert!(!d.join("f2.pdf").exists());
+    // capture --estimate checks the estimate's options before it reads a photo or writes the folder.
+    let none = [s(&d.join("a.jpg")), s(&d.join("b.jpg"))];
+    assert_error(&flashmat(&["capture", none[0], none[1], "--estimate", "-o", s(&d.join("m.nmat")), "--size", "7"]), &["--size must be a multiple of 8"]);
+    assert_error(&flashmat(&["capture", none[0], none[1], "--estimate", "-o", s(&d.join("m.nmat")), "--device", "tpu"]), &["tpu"]);
+    assert!(!d.join("m-capture").exists() && !d.join("m.nmat").exists());
 
     let photos = frame_photos(d);
     let p: Vec<&str> = photos.iter().map(|p| s(p)).collect();

@@ -65,10 +65,14 @@ pub struct FrameArgs {
     /// Side of the square opening, whole centimetres (5 to 14): the sample that shows through it.
     #[arg(long, value_name = "CM", default_value_t = 10)]
     pub opening: u32,
-    /// Resolution of a PNG, dots per inch.
-    #[arg(long, default_value_t = 300.0)]
-    pub dpi: f64,
+    /// Resolution of a PNG, dots per inch (default 300; stored in the file, so it prints at its true size). A PDF is
+    /// vector: it takes none.
+    #[arg(long)]
+    pub dpi: Option<f64>,
 }
+
+/// The PNG frame's resolution when none is given.
+const DEFAULT_FRAME_DPI: f64 = 300.0;
 
 fn parse_offset(s: &str) -> std::result::Result<[f64; 2], String> {
     let parts: Vec<&str> = s.split(',').map(str::trim).collect();
@@ -97,6 +101,11 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
     };
     if folder.exists() && std::fs::read_dir(&folder).map(|mut d| d.next().is_some()).unwrap_or(true) {
         bail!("{} exists and is not empty: choose a new folder for the capture", folder.display());
+    }
+    if a.estimate {
+        // Every option of the whole command before any work or write.
+        flashmat::fit::photos::PhotoFitConfig { steps: a.steps, size: a.size, ..Default::default() }.validate()?;
+        flashmat::device::parse_device(&a.device)?;
     }
     let cfg = CaptureConfig { flash_offset_mm: a.flash_offset, max_side: a.max_size, ..Default::default() };
     let bar = ProgressBar::new(a.photos.len() as u64).with_style(ProgressStyle::with_template("{msg} {bar:40} {pos}/{len}")?);
@@ -158,7 +167,11 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         opts.size = a.size;
         opts.device = a.device.clone();
         let args = CaptureArgs { capture: Some(folder.clone()), photos: None, steps: a.steps, photo_gains: exposures_differ.is_some(), pbr: None };
-        super::estimate_capture::estimate_capture(&folder, &material, &args, &opts)?;
+        // The folder and the material together, or neither: a failed estimate takes the folder with it.
+        if let Err(e) = super::estimate_capture::estimate_capture(&folder, &material, &args, &opts) {
+            let _ = std::fs::remove_dir_all(&folder);
+            return Err(e);
+        }
     }
     Ok(())
 }
@@ -171,17 +184,21 @@ fn mm(v: f64) -> String {
 fn write_frame(f: &FrameArgs) -> Result<()> {
     let layout = FrameLayout::new(f.opening)?;
     let ext = f.output.extension().map(|e| e.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    if ext == "pdf" {
+        anyhow::ensure!(f.dpi.is_none(), "--dpi sets a PNG's resolution; {} is a PDF (vector: it prints at its true size at any resolution)", f.output.display());
+    }
+    let dpi = f.dpi.unwrap_or(DEFAULT_FRAME_DPI);
     let out = super::prepare_output(&f.output)?;
     match ext.as_str() {
         "pdf" => flashmat::io::atomic_write_bytes(&f.output, &frame::frame_pdf(&layout, f.paper)?)?,
         "png" => {
-            let (image, caption) = frame::frame_raster(&layout, f.paper, f.dpi)?;
+            let (image, caption) = frame::frame_raster(&layout, f.paper, dpi)?;
             // 9 pt text: 9/72 inch high; `Mark::Text` places its top-left corner.
-            let size = f.dpi / 72.0 * 9.0;
+            let size = dpi / 72.0 * 9.0;
             let marks: Vec<flashmat::viz::Mark> =
                 caption.into_iter().map(|(text, [x, baseline])| flashmat::viz::Mark::Text { at: (x, baseline - size), text, size: size * 1.3, color: [0, 0, 0] }).collect();
             let page = flashmat::viz::annotate(&image, &marks)?;
-            flashmat::io::write_png(&f.output, &page, flashmat::io::BitDepth::Eight)?;
+            flashmat::io::write_png_at_dpi(&f.output, &page, flashmat::io::BitDepth::Eight, dpi)?;
         }
         _ => bail!("{}: the frame is written as .pdf or .png", f.output.display()),
     }
