@@ -322,8 +322,13 @@ fn main() -> Result<()> {
                 rows.entry((k, "neural-before")).or_default().push(score(&|c| material.render(c))?);
                 relit.push((format!("fit, {k} photo(s), neural before"), material.render(&moved.configs())?));
             }
-            let (material, _) = fitted_neural_material(&fit.maps, &photo, &teacher, &capture.configs, &cfg.code_fit, "capture")?;
+            let (material, code_fit) = fitted_neural_material(&fit.maps, &photo, &teacher, &capture.configs, &cfg.code_fit, "capture")?;
             rows.entry((k, "neural")).or_default().push(score(&|c| material.render(c))?);
+            let gap = flashmat::fit::codes::neural_gap(&material, &fit.maps, &flashmat::fit::codes::held_out_configs(4), None)?;
+            eprintln!(
+                "  gap of {name}'s neural material to its maps: log L1 {:.4}, channel |ln ratio| {:.3}, chromaticity {:.4} (pixels) {:.4} (mean colour); code fit {:.1} s, kept {}",
+                gap.log_l1, gap.channel_log_ratio, gap.chromaticity, gap.mean_chromaticity, code_fit.seconds, code_fit.kept
+            );
             relit.push((format!("fit, {k} photo(s)"), material.render(&moved.configs())?));
             if let (Some(out), true) = (&pictures, k == *counts.iter().max().unwrap_or(&k)) {
                 let cells: Vec<flashmat::image::Image> = (0..k).map(|j| flashmat::image::Image::display_of(&capture.photos.get(j as i64))).collect::<Result<_>>()?;

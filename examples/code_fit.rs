@@ -7,7 +7,7 @@
 //! seconds.
 //!
 //! ```sh
-//! THREADS=1 LOBE_SHARE=.. ROWS=.. LR=.. DARK_FLOOR=.. cargo run --release --example code_fit -- [TEACHER] [SIZE] [STEPS] [MATERIALS: metals,0-4]
+//! CONFIGS=moved THREADS=1 LOBE_SHARE=.. ROWS=.. LR=.. DARK_FLOOR=.. cargo run --release --example code_fit -- [TEACHER] [SIZE] [STEPS] [MATERIALS: metals,0-4]
 //! # defaults: the bundled teacher, 128, CodeFitConfig's steps, metals,0-3
 //! ```
 
@@ -56,11 +56,12 @@ fn main() -> Result<()> {
         }
     }
     let lpips = Lpips::new(Device::Cpu)?;
-    let configs = held_out_configs(8);
+    // CONFIGS=moved: the moved-highlight test's three lights with the photo's camera (eval::highlights).
+    let configs = if std::env::var("CONFIGS").is_ok_and(|c| c == "moved") { flashmat::eval::highlights::HighlightConfig::default().configs() } else { held_out_configs(8) };
     let photo_configs = flashmat::data::captures::synthetic_configs(3);
-    let show = |g: &NeuralGap| format!("{:.3} {:.3} {:.4} {:.3}", g.log_l1, g.channel_log_ratio, g.chromaticity, g.lpips.unwrap_or(f64::NAN));
-    println!("material | teacher: log L1, channel ratio, chroma, LPIPS | fitted: the same | seconds");
-    let mut sums = [[0.0; 4]; 2];
+    let show = |g: &NeuralGap| format!("{:.3} {:.3} {:.4} {:.4} {:.3}", g.log_l1, g.channel_log_ratio, g.chromaticity, g.mean_chromaticity, g.lpips.unwrap_or(f64::NAN));
+    println!("material | teacher: log L1, channel ratio, chroma (pixels), chroma (mean colour), LPIPS | fitted: the same | seconds");
+    let mut sums = [[0.0; 5]; 2];
     for (name, m) in &materials {
         let maps = m.stacked().to_tensor();
         let photo = Tensor::zeros([3, size as i64, size as i64], (Kind::Float, Device::Cpu));
@@ -70,11 +71,12 @@ fn main() -> Result<()> {
         let after = neural_gap(&material, &maps, &configs, Some(&lpips))?;
         println!("{name} | {} | {} | {:.1} (loss {:.4} -> {:.4})", show(&before), show(&after), fit.seconds, fit.loss_before, fit.loss_after);
         for (s, g) in sums.iter_mut().zip([&before, &after]) {
-            for (v, x) in s.iter_mut().zip([g.log_l1, g.channel_log_ratio, g.chromaticity, g.lpips.unwrap_or(0.0)]) {
+            for (v, x) in s.iter_mut().zip([g.log_l1, g.channel_log_ratio, g.chromaticity, g.mean_chromaticity, g.lpips.unwrap_or(0.0)]) {
                 *v += x / materials.len() as f64;
             }
         }
     }
-    println!("mean | {:.3} {:.3} {:.4} {:.3} | {:.3} {:.3} {:.4} {:.3}", sums[0][0], sums[0][1], sums[0][2], sums[0][3], sums[1][0], sums[1][1], sums[1][2], sums[1][3]);
+    let row = |s: &[f64; 5]| format!("{:.3} {:.3} {:.4} {:.4} {:.3}", s[0], s[1], s[2], s[3], s[4]);
+    println!("mean | {} | {}", row(&sums[0]), row(&sums[1]));
     Ok(())
 }

@@ -31,6 +31,8 @@ TEACHER="${FLASHMAT_CAMPAIGN_TEACHER:-$ROOT/models/teacher-any-ggx.safetensors}"
 COMMITTED="$ROOT/models/campaign.safetensors"
 BUNDLED="$ROOT/models/flashmat.safetensors"
 BIN="${FLASHMAT_BIN:-$ROOT/target/release/flashmat}"
+# The gate's dry run (the plumbing on a few small materials and photos):
+# FLASHMAT_GATE_EVAL_EXTRA="--limit 2 --size 64" FLASHMAT_GATE_PHOTOS="examples/photos/IMG_6950.png".
 # Exports every this many steps: about 5 minutes of one thread at crop 256.
 EVERY="${FLASHMAT_CAMPAIGN_EVERY:-25}"
 
@@ -122,10 +124,11 @@ gate() {
   cp "$model" "$out/candidate.safetensors"
   # The 50 held-out materials: Identity, Reflect and Hemisphere LPIPS at 16
   # configurations and the moved-highlight table, both models in one run.
-  "$BIN" eval --model "$BUNDLED" --model "$out/candidate.safetensors" --ldr-input --configs 16 -o "$out/eval"
+  # shellcheck disable=SC2086
+  "$BIN" eval --model "$BUNDLED" --model "$out/candidate.safetensors" --ldr-input --configs 16 -o "$out/eval" ${FLASHMAT_GATE_EVAL_EXTRA:-}
   # The 13 bundled photos: the identity render's brightness over the photo.
   local photo name which
-  for photo in examples/photos/*; do
+  for photo in ${FLASHMAT_GATE_PHOTOS:-examples/photos/*}; do
     name=$(basename "${photo%.*}")
     for which in bundled candidate; do
       local m="$BUNDLED"; [ "$which" = candidate ] && m="$out/candidate.safetensors"

@@ -53,7 +53,9 @@ FLASHMAT_DRY_RUN_BIN="$(realpath -m "${CARGO_TARGET_DIR:-target}")/debug/flashma
   bash scripts/gpu-train.sh --cpu-dry-run 2>&1 || campaign_rc=$?
 # A GPU job takes at most 64 MiB: the tracked tree stays within 32 MiB so
 # the binary and a model to resume from fit beside it.
+gate_rc=0
+python3 scripts/test_campaign_gate.py 2>&1 || gate_rc=$?
 size_rc=0
 bash scripts/check-size.sh || size_rc=$?
-echo "rust tests exit $rust_rc, python tests exit $python_rc, GPU campaign dry run exit $campaign_rc, tree size check exit $size_rc"
-[ "$rust_rc" = 0 ] && [ "$python_rc" = 0 ] && [ "$campaign_rc" = 0 ] && [ "$size_rc" = 0 ]
+echo "rust tests exit $rust_rc, python tests exit $python_rc, GPU campaign dry run exit $campaign_rc, CPU campaign gate tests exit $gate_rc, tree size check exit $size_rc"
+[ "$rust_rc" = 0 ] && [ "$python_rc" = 0 ] && [ "$campaign_rc" = 0 ] && [ "$gate_rc" = 0 ] && [ "$size_rc" = 0 ]

@@ -208,6 +208,10 @@ pub struct NeuralGap {
     /// weighted by the GGX render's brightness (what the eye sees: a black
     /// pixel's hue counts for nothing).
     pub chromaticity: f64,
+    /// Mean over the configurations of the distance between the
+    /// chromaticities of the two renders' mean colours (the relit colour).
+    #[serde(default)]
+    pub mean_chromaticity: f64,
     /// Mean LPIPS of the sRGB display renders (clamped to [0, 1]), when measured.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lpips: Option<f64>,
@@ -247,6 +251,8 @@ pub fn gap_of_renders(neural: &Tensor, ggx: &Tensor, lpips: Option<&Lpips>) -> R
     let brightness = ggx.sum_dim_intlist([1i64].as_slice(), false, Kind::Double); // [K, H, W]
     let distance = (chroma(&neural.to_kind(Kind::Double)) - chroma(&ggx.to_kind(Kind::Double))).square().sum_dim_intlist([1i64].as_slice(), false, Kind::Double).sqrt();
     let chromaticity = (distance * &brightness).sum(Kind::Double).double_value(&[]) / brightness.sum(Kind::Double).double_value(&[]).max(1e-12);
+    let mean_colour = |t: &Tensor| chroma(&t.mean_dim([2i64, 3].as_slice(), false, Kind::Double)); // [K, 3]
+    let mean_chromaticity = (mean_colour(neural) - mean_colour(ggx)).square().sum_dim_intlist([1i64].as_slice(), false, Kind::Double).sqrt().mean(Kind::Double).double_value(&[]);
     let lpips = match lpips {
         Some(net) => {
             let display = |t: &Tensor| crate::spaces::linear_to_display(t).clamp(0.0, 1.0).to_kind(Kind::Float).to_device(net.device());
@@ -254,7 +260,7 @@ pub fn gap_of_renders(neural: &Tensor, ggx: &Tensor, lpips: Option<&Lpips>) -> R
         }
         None => None,
     };
-    Ok(NeuralGap { log_l1, channel_log_ratio, chromaticity, lpips })
+    Ok(NeuralGap { log_l1, channel_log_ratio, chromaticity, mean_chromaticity, lpips })
 }
 
 #[cfg(test)]

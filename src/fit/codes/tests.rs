@@ -7,7 +7,7 @@ use tch::Device;
 fn the_gap_of_identical_renders_is_zero_and_a_tint_is_measured() {
     let ggx = Tensor::rand([2, 3, 8, 8], (Kind::Float, Device::Cpu)) + 0.1;
     let same = gap_of_renders(&ggx, &ggx, None).unwrap();
-    assert!(same.log_l1 < 1e-9 && same.channel_log_ratio < 1e-9 && same.chromaticity < 1e-9);
+    assert!(same.log_l1 < 1e-9 && same.channel_log_ratio < 1e-9 && same.chromaticity < 1e-9 && same.mean_chromaticity < 1e-9);
     // Red doubled: the channel ratio is ln 2 (the sums scale with it).
     let tint = Tensor::from_slice(&[2.0f32, 1.0, 1.0]).view([1, 3, 1, 1]);
     let gap = gap_of_renders(&(&ggx * &tint), &ggx, None).unwrap();
@@ -17,6 +17,7 @@ fn the_gap_of_identical_renders_is_zero_and_a_tint_is_measured() {
     let grey = Tensor::ones([1, 3, 4, 4], (Kind::Float, Device::Cpu));
     let gap = gap_of_renders(&(&grey * &tint), &grey, None).unwrap();
     assert!((gap.chromaticity - (1.0f64 / 36.0 + 2.0 / 144.0).sqrt()).abs() < 1e-6, "{}", gap.chromaticity);
+    assert!((gap.mean_chromaticity - (1.0f64 / 36.0 + 2.0 / 144.0).sqrt()).abs() < 1e-6, "{}", gap.mean_chromaticity);
 }
 
 #[test]
