@@ -104,27 +104,9 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
         c.loss_before,
         c.loss_after
     );
-    if let Some(why) = gap_warning(g) {
+    if let Some(why) = g.warning() {
         let pbr = if a.pbr.is_some() { "the PBR maps you wrote" } else { "the PBR maps (--pbr DIR)" };
         eprintln!("warning: the neural material is far from its fitted maps ({why}); relight {pbr} where they matter, or refit at a smaller --size");
     }
     Ok(())
-}
-
-/// Why a neural material's [`NeuralGap`] is large enough to warn about,
-/// if it is: a channel 1.15x off, a chromaticity off by 0.03, or LPIPS
-/// above 0.1 between the two renders (the 50 held-out materials' code fits
-/// stay under each; reports/capture.md).
-pub fn gap_warning(g: &flashmat::fit::codes::NeuralGap) -> Option<String> {
-    let mut why = vec![];
-    if g.channel_log_ratio > 0.14 {
-        why.push(format!("a colour channel {:.2}x off", g.channel_log_ratio.exp()));
-    }
-    if g.chromaticity > 0.03 {
-        why.push(format!("chromaticity off by {:.3}", g.chromaticity));
-    }
-    if let Some(l) = g.lpips.filter(|l| *l > 0.1) {
-        why.push(format!("LPIPS {l:.3} between their renders"));
-    }
-    (!why.is_empty()).then(|| why.join(", "))
 }

@@ -217,6 +217,32 @@ pub struct NeuralGap {
     pub lpips: Option<f64>,
 }
 
+/// Past these a [`NeuralGap`] is worth a warning: a channel 1.15x off
+/// (ln 1.15 = 0.14), a chromaticity off by 0.04, LPIPS 0.1 between the
+/// renders (reports/capture.md, eighth slice: the held-out materials'
+/// and the coloured metals' gaps stay under them).
+pub const WARN_CHANNEL_LOG_RATIO: f64 = 0.14;
+pub const WARN_CHROMATICITY: f64 = 0.04;
+pub const WARN_LPIPS: f64 = 0.1;
+
+impl NeuralGap {
+    /// Why this gap is large enough to warn about, if it is (one phrase per
+    /// measure past its bound, joined by commas).
+    pub fn warning(&self) -> Option<String> {
+        let mut why = vec![];
+        if self.channel_log_ratio > WARN_CHANNEL_LOG_RATIO {
+            why.push(format!("a colour channel {:.2}x off", self.channel_log_ratio.exp()));
+        }
+        if self.chromaticity > WARN_CHROMATICITY {
+            why.push(format!("chromaticity off by {:.3}", self.chromaticity));
+        }
+        if let Some(l) = self.lpips.filter(|l| *l > WARN_LPIPS) {
+            why.push(format!("LPIPS {l:.3} between their renders"));
+        }
+        (!why.is_empty()).then(|| why.join(", "))
+    }
+}
+
 /// Held-out configurations for [`neural_gap`]: `count` of the Hemisphere
 /// case and `count` of the Reflect case (flashmat eval's samplings) from a
 /// fixed seed.
