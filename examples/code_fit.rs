@@ -7,7 +7,7 @@
 //! seconds.
 //!
 //! ```sh
-//! CONFIGS=moved THREADS=1 LOBE_SHARE=.. ROWS=.. LR=.. DARK_FLOOR=.. cargo run --release --example code_fit -- [TEACHER] [SIZE] [STEPS] [MATERIALS: metals,0-4]
+//! CONFIGS=moved|identity PHOTO_SHARE=.. THREADS=1 LOBE_SHARE=.. ROWS=.. LR=.. DARK_FLOOR=.. cargo run --release --example code_fit -- [TEACHER] [SIZE] [STEPS] [MATERIALS: metals,0-4]
 //! # defaults: the bundled teacher, 128, CodeFitConfig's steps, metals,0-3
 //! ```
 
@@ -40,6 +40,9 @@ fn main() -> Result<()> {
     if let Some(v) = env("LR") {
         cfg.learning_rate = v;
     }
+    if let Some(v) = env("PHOTO_SHARE") {
+        cfg.photo_share = v;
+    }
     if let Some(v) = env("DARK_FLOOR") {
         cfg.dark_floor = v;
     }
@@ -57,7 +60,12 @@ fn main() -> Result<()> {
     }
     let lpips = Lpips::new(Device::Cpu)?;
     // CONFIGS=moved: the moved-highlight test's three lights with the photo's camera (eval::highlights).
-    let configs = if std::env::var("CONFIGS").is_ok_and(|c| c == "moved") { flashmat::eval::highlights::HighlightConfig::default().configs() } else { held_out_configs(8) };
+    // CONFIGS=identity: the overhead photo's co-located flash alone.
+    let configs = match std::env::var("CONFIGS").as_deref() {
+        Ok("moved") => flashmat::eval::highlights::HighlightConfig::default().configs(),
+        Ok("identity") => vec![flashmat::infer::nmat::NeuralMaterial::identity_config()],
+        _ => held_out_configs(8),
+    };
     let photo_configs = flashmat::data::captures::synthetic_configs(3);
     let show = |g: &NeuralGap| format!("{:.3} {:.3} {:.4} {:.4} {:.3}", g.log_l1, g.channel_log_ratio, g.chromaticity, g.mean_chromaticity, g.lpips.unwrap_or(f64::NAN));
     println!("material | teacher: log L1, channel ratio, chroma (pixels), chroma (mean colour), LPIPS | fitted: the same | seconds");

@@ -107,7 +107,8 @@ fn photos_of_the_printed_frame_become_a_capture_folder_and_a_material() {
     assert_error(&flashmat(&["capture", "frame", "--dpi", "5", "-o", s(&d.join("f2.pdf"))]), &["--dpi sets a PNG's resolution; ", "f2.pdf is a PDF"]);
     assert!(!d.join("f2.pdf").exists());
     // capture --estimate checks the estimate's options before it reads a photo or writes the folder.
-    let none = [s(&d.join("a.jpg")), s(&d.join("b.jpg"))];
+    let (a, b) = (d.join("a.jpg"), d.join("b.jpg"));
+    let none = [s(&a), s(&b)];
     assert_error(&flashmat(&["capture", none[0], none[1], "--estimate", "-o", s(&d.join("m.nmat")), "--size", "7"]), &["--size must be a multiple of 8"]);
     assert_error(&flashmat(&["capture", none[0], none[1], "--estimate", "-o", s(&d.join("m.nmat")), "--device", "tpu"]), &["tpu"]);
     assert!(!d.join("m-capture").exists() && !d.join("m.nmat").exists());

@@ -217,12 +217,13 @@ pub struct NeuralGap {
     pub lpips: Option<f64>,
 }
 
-/// Past these a [`NeuralGap`] is worth a warning: a channel 1.15x off
-/// (ln 1.15 = 0.14), a chromaticity off by 0.04, LPIPS 0.1 between the
-/// renders (reports/capture.md, eighth slice: the held-out materials'
-/// and the coloured metals' gaps stay under them).
-pub const WARN_CHANNEL_LOG_RATIO: f64 = 0.14;
-pub const WARN_CHROMATICITY: f64 = 0.04;
+/// Past these a [`NeuralGap`] is worth a warning: a channel 1.22x off
+/// (ln 1.22 = 0.2), a chromaticity off by 0.05, LPIPS 0.1 between the
+/// renders. The largest seen on 3-photo captures at 256x256 (held-out
+/// materials 10-19 and the gold and teal checker; reports/capture.md,
+/// eighth slice): 0.155 and 0.044.
+pub const WARN_CHANNEL_LOG_RATIO: f64 = 0.2;
+pub const WARN_CHROMATICITY: f64 = 0.05;
 pub const WARN_LPIPS: f64 = 0.1;
 
 impl NeuralGap {

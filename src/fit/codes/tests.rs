@@ -78,9 +78,9 @@ fn a_fit_that_does_not_lower_the_loss_keeps_the_teachers_codes() {
 fn a_gap_past_its_bounds_names_each_measure() {
     let close = NeuralGap { log_l1: 0.01, channel_log_ratio: 0.05, chromaticity: 0.02, mean_chromaticity: 0.01, lpips: Some(0.05) };
     assert_eq!(close.warning(), None);
-    // ln 1.2 = 0.182: a channel 1.20x off; LPIPS unmeasured says nothing.
-    let far = NeuralGap { channel_log_ratio: 1.2f64.ln(), chromaticity: 0.05, lpips: None, ..close.clone() };
-    assert_eq!(far.warning().unwrap(), "a colour channel 1.20x off, chromaticity off by 0.050");
+    // ln 1.3 = 0.262: a channel 1.30x off; LPIPS unmeasured says nothing.
+    let far = NeuralGap { channel_log_ratio: 1.3f64.ln(), chromaticity: 0.06, lpips: None, ..close.clone() };
+    assert_eq!(far.warning().unwrap(), "a colour channel 1.30x off, chromaticity off by 0.060");
     let blurred = NeuralGap { lpips: Some(0.15), ..close };
     assert_eq!(blurred.warning().unwrap(), "LPIPS 0.150 between their renders");
 }
