@@ -113,13 +113,13 @@ pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEnco
     let t0 = Instant::now();
     let values = valid_values(&maps.to_device(device).to_kind(Kind::Float).unsqueeze(0)).get(0).view([GGX_CHANNELS, -1]).transpose(0, 1).contiguous(); // [P, 10]
     let pixels = values.size()[0];
-    let photo_dirs = photo_directions(material, photo_configs, cfg.seed); // [M, P, 3] each, or None
+    let photo = photo_positions(material, photo_configs, cfg.seed);
     let weights: Vec<Tensor> = encoder.weights().iter().map(|w| w.detach().copy().set_requires_grad(true)).collect();
     let mut adam = Adam::new(weights.iter().enumerate().map(|(i, w)| (format!("l{i}"), w.shallow_clone())).collect::<HashMap<_, _>>());
     let rows = cfg.rows as i64;
     let draw = |step: u64| {
         tch::manual_seed((cfg.seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) as i64);
-        tch::no_grad(|| sample_rows(&values, pixels, rows, photo_dirs.as_ref(), cfg))
+        tch::no_grad(|| sample_rows(&values, pixels, rows, photo.as_ref(), cfg))
     };
     let loss_of = |weights: &[Tensor], (v, wi, wo, target): &(Tensor, Tensor, Tensor, Tensor)| -> Result<Tensor> {
         let pred = material.renderer.forward_rows(&forward_rows_with(weights, v), wi, wo)?;
@@ -147,10 +147,12 @@ pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEnco
     Ok(CodeFit { steps: cfg.steps, seconds: t0.elapsed().as_secs_f64(), loss_before, loss_after: if kept { loss_after } else { loss_before }, kept })
 }
 
-/// Per-pixel directions of the photos' configurations and of
-/// [`PHOTO_VARIANTS`] jittered copies of each: (wi, wo) `[M, P, 3]`, or
-/// None without configurations.
-fn photo_directions(material: &NeuralMaterial, configs: &[LightView], seed: u64) -> Option<(Tensor, Tensor)> {
+/// The photos' configurations and [`PHOTO_VARIANTS`] jittered copies of
+/// each, as (lights, cameras) `[M, 3]`, and every pixel's surface point
+/// `[P, 3]` (the material's extent, as its renders place them): a row's
+/// directions are computed from its pixel and configuration, so memory
+/// stays a step's rows at any size. None without configurations.
+fn photo_positions(material: &NeuralMaterial, configs: &[LightView], seed: u64) -> Option<(Tensor, Tensor, Tensor)> {
     if configs.is_empty() {
         return None;
     }
@@ -164,25 +166,27 @@ fn photo_directions(material: &NeuralMaterial, configs: &[LightView], seed: u64)
             all.push(LightView { light, view });
         }
     }
-    let (wi, wo) = material.direction_maps(&all); // [1, M, 3, H, W]
-    let rows = |t: Tensor| t.get(0).flatten(2, 3).transpose(1, 2).contiguous(); // [M, P, 3]
-    Some((rows(wi), rows(wo)))
+    let device = material.device();
+    let (lights, views) = crate::geometry::config_tensors(&all, device);
+    let (h, w) = material.size();
+    let points = crate::geometry::pixel_positions(h, w, (Kind::Float, device)).view([3, -1]).transpose(0, 1).contiguous(); // [P, 3]
+    Some((lights.to_kind(Kind::Float), views.to_kind(Kind::Float), points))
 }
 
 /// A step's rows: values `[R, 10]`, wi, wo `[R, 3]`, target ln(1 + R) `[R, 3]`.
-fn sample_rows(values: &Tensor, pixels: i64, rows: i64, photo: Option<&(Tensor, Tensor)>, cfg: &CodeFitConfig) -> (Tensor, Tensor, Tensor, Tensor) {
+/// photo: the capture's (lights `[M, 3]`, cameras `[M, 3]`, pixel points `[P, 3]`).
+fn sample_rows(values: &Tensor, pixels: i64, rows: i64, photo: Option<&(Tensor, Tensor, Tensor)>, cfg: &CodeFitConfig) -> (Tensor, Tensor, Tensor, Tensor) {
     let device = values.device();
     let index = Tensor::randint(pixels, [rows], (Kind::Int64, device));
     let v = values.index_select(0, &index);
     let (mut wi, mut wo) = random_directions(rows, device);
-    if let Some((pwi, pwo)) = photo {
-        let m = pwi.size()[0];
-        let which = Tensor::randint(m, [rows], (Kind::Int64, device));
-        let flat = &which * pixels + &index;
-        let pick = |t: &Tensor| t.view([-1, 3]).index_select(0, &flat);
+    if let Some((lights, views, points)) = photo {
+        let which = Tensor::randint(lights.size()[0], [rows], (Kind::Int64, device));
+        let at = points.index_select(0, &index); // [R, 3]
+        let towards = |positions: &Tensor| crate::svbrdf::rows::normalize_rows(&(positions.index_select(0, &which) - &at));
         let use_photo = Tensor::rand([rows, 1], (Kind::Float, device)).lt(cfg.photo_share).to_kind(Kind::Float);
-        wi = &use_photo * pick(pwi) + (1.0 - &use_photo) * wi;
-        wo = &use_photo * pick(pwo) + (1.0 - &use_photo) * wo;
+        wi = &use_photo * towards(lights) + (1.0 - &use_photo) * wi;
+        wo = &use_photo * towards(views) + (1.0 - &use_photo) * wo;
     }
     if cfg.lobe_share > 0.0 {
         let (mirrored, above) = lobe_lights(&v, &wo, &Tensor::randn([rows, 2], (Kind::Float, device)));

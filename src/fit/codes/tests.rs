@@ -84,3 +84,23 @@ fn a_gap_past_its_bounds_names_each_measure() {
     let blurred = NeuralGap { lpips: Some(0.15), ..close };
     assert_eq!(blurred.warning().unwrap(), "LPIPS 0.150 between their renders");
 }
+
+#[test]
+fn the_photo_rows_point_where_the_materials_renders_do() {
+    // The code fit's rows under a photo take its light and camera from the
+    // pixel's surface point, as the material's own direction maps do.
+    let teacher = load_teacher(None, Device::Cpu).unwrap();
+    let maps = metal_material(2, 24).stacked().to_tensor().narrow(2, 0, 16); // 24 x 16: a rectangle
+    let photo = Tensor::zeros([3, 24, 16], (Kind::Float, Device::Cpu));
+    let material = neural_material(&maps, &photo, &teacher, "copper").unwrap();
+    let config = LightView { light: [0.9, -0.7, 3.7], view: [0.2, 0.1, 3.9] };
+    let (lights, views, points) = photo_positions(&material, &[config], 7).unwrap();
+    assert_eq!((lights.size(), points.size()), (vec![1 + PHOTO_VARIANTS as i64, 3], vec![24 * 16, 3]));
+    let (wi, wo) = material.direction_maps(&[config]); // [1, 1, 3, H, W]
+    let as_rows = |t: &Tensor| t.get(0).get(0).view([3, -1]).transpose(0, 1);
+    let towards = |p: &Tensor| crate::svbrdf::rows::normalize_rows(&(p.narrow(0, 0, 1) - &points));
+    assert!(towards(&lights).allclose(&as_rows(&wi), 1e-5, 1e-6, false));
+    assert!(towards(&views).allclose(&as_rows(&wo), 1e-5, 1e-6, false));
+    // The jittered copies stay above the sample.
+    assert!(lights.narrow(1, 2, 1).min().double_value(&[]) >= 0.5 && views.narrow(1, 2, 1).min().double_value(&[]) >= 0.5);
+}
