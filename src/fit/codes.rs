@@ -263,35 +263,86 @@ pub fn held_out_configs(count: usize) -> Vec<LightView> {
 pub fn neural_gap(material: &NeuralMaterial, maps: &Tensor, configs: &[LightView], lpips: Option<&Lpips>) -> Result<NeuralGap> {
     let (h, w) = material.size();
     ensure!(maps.size() == [GGX_CHANNELS, h as i64, w as i64], "the maps must be [{GGX_CHANNELS}, {h}, {w}], got {:?}", maps.size());
-    let neural = material.render(configs)?; // [K, 3, H, W]
-    tch::no_grad(|| {
-        let (wi, wo) = material.direction_maps(configs);
-        let maps = valid_values(&maps.to_device(material.device()).to_kind(Kind::Float).unsqueeze(0));
-        let ggx = render_directions(&maps, &wi, &wo).get(0).clamp_min(0.0); // [K, 3, H, W]
-        gap_of_renders(&neural, &ggx, lpips)
-    })
+    let maps = valid_values(&maps.to_device(material.device()).to_kind(Kind::Float).unsqueeze(0));
+    // One configuration at a time: a 4096x4096 material's eight renders at once would take gigabytes.
+    let mut sums = GapSums::default();
+    for config in configs {
+        let neural = material.render(std::slice::from_ref(config))?; // [1, 3, H, W]
+        let ggx = tch::no_grad(|| {
+            let (wi, wo) = material.direction_maps(std::slice::from_ref(config));
+            render_directions(&maps, &wi, &wo).get(0).clamp_min(0.0) // [1, 3, H, W]
+        });
+        tch::no_grad(|| sums.add(&neural, &ggx, lpips));
+    }
+    sums.gap(lpips.is_some())
 }
 
 /// [`NeuralGap`] of two sets of linear renders `[K, 3, H, W]`.
 pub fn gap_of_renders(neural: &Tensor, ggx: &Tensor, lpips: Option<&Lpips>) -> Result<NeuralGap> {
     ensure!(neural.size() == ggx.size() && neural.dim() == 4 && neural.size()[1] == 3, "renders must be two [K, 3, H, W] of one size, got {:?} and {:?}", neural.size(), ggx.size());
-    let log_l1 = (neural.log1p() - ggx.log1p()).abs().mean(Kind::Double).double_value(&[]);
-    let sums = |t: &Tensor| t.sum_dim_intlist([0i64, 2, 3].as_slice(), false, Kind::Double).clamp_min(1e-9); // [3]
-    let channel_log_ratio = (sums(neural) / sums(ggx)).log().abs().max().double_value(&[]);
-    let chroma = |t: &Tensor| t / t.sum_dim_intlist([1i64].as_slice(), true, Kind::Double).clamp_min(1e-9);
-    let brightness = ggx.sum_dim_intlist([1i64].as_slice(), false, Kind::Double); // [K, H, W]
-    let distance = (chroma(&neural.to_kind(Kind::Double)) - chroma(&ggx.to_kind(Kind::Double))).square().sum_dim_intlist([1i64].as_slice(), false, Kind::Double).sqrt();
-    let chromaticity = (distance * &brightness).sum(Kind::Double).double_value(&[]) / brightness.sum(Kind::Double).double_value(&[]).max(1e-12);
-    let mean_colour = |t: &Tensor| chroma(&t.mean_dim([2i64, 3].as_slice(), false, Kind::Double)); // [K, 3]
-    let mean_chromaticity = (mean_colour(neural) - mean_colour(ggx)).square().sum_dim_intlist([1i64].as_slice(), false, Kind::Double).sqrt().mean(Kind::Double).double_value(&[]);
-    let lpips = match lpips {
-        Some(net) => {
-            let display = |t: &Tensor| crate::spaces::linear_to_display(t).clamp(0.0, 1.0).to_kind(Kind::Float).to_device(net.device());
-            Some(net.distance_01(&display(neural), &display(ggx)).mean(Kind::Double).double_value(&[]))
+    let mut sums = GapSums::default();
+    tch::no_grad(|| {
+        for k in 0..neural.size()[0] {
+            sums.add(&neural.narrow(0, k, 1), &ggx.narrow(0, k, 1), lpips);
         }
-        None => None,
-    };
-    Ok(NeuralGap { log_l1, channel_log_ratio, chromaticity, mean_chromaticity, lpips })
+    });
+    sums.gap(lpips.is_some())
+}
+
+/// [`NeuralGap`]'s sums over configurations, one added at a time.
+#[derive(Default)]
+struct GapSums {
+    configs: f64,
+    /// Sum of the per-configuration mean |log difference| (each configuration has as many pixels).
+    log_l1: f64,
+    neural_channels: [f64; 3],
+    ggx_channels: [f64; 3],
+    /// Brightness-weighted sum of the pixels' chromaticity distances, and the weights.
+    chroma_weighted: f64,
+    brightness: f64,
+    mean_chromaticity: f64,
+    lpips: f64,
+}
+
+impl GapSums {
+    /// One configuration's renders, `[1, 3, H, W]` each.
+    fn add(&mut self, neural: &Tensor, ggx: &Tensor, lpips: Option<&Lpips>) {
+        let value = |t: Tensor| t.double_value(&[]);
+        self.configs += 1.0;
+        self.log_l1 += value((neural.log1p() - ggx.log1p()).abs().mean(Kind::Double));
+        let channels = |t: &Tensor| Vec::<f64>::try_from(t.sum_dim_intlist([0i64, 2, 3].as_slice(), false, Kind::Double)).expect("three channel sums");
+        for (total, v) in self.neural_channels.iter_mut().zip(channels(neural)) {
+            *total += v;
+        }
+        for (total, v) in self.ggx_channels.iter_mut().zip(channels(ggx)) {
+            *total += v;
+        }
+        let chroma = |t: &Tensor| t / t.sum_dim_intlist([1i64].as_slice(), true, Kind::Double).clamp_min(1e-9);
+        let (n, g) = (neural.to_kind(Kind::Double), ggx.to_kind(Kind::Double));
+        let brightness = g.sum_dim_intlist([1i64].as_slice(), false, Kind::Double); // [1, H, W]
+        let distance = (chroma(&n) - chroma(&g)).square().sum_dim_intlist([1i64].as_slice(), false, Kind::Double).sqrt();
+        self.chroma_weighted += value((distance * &brightness).sum(Kind::Double));
+        self.brightness += value(brightness.sum(Kind::Double));
+        let mean_colour = |t: &Tensor| chroma(&t.mean_dim([2i64, 3].as_slice(), false, Kind::Double)); // [1, 3]
+        self.mean_chromaticity += value((mean_colour(&n) - mean_colour(&g)).square().sum(Kind::Double).sqrt());
+        if let Some(net) = lpips {
+            let display = |t: &Tensor| crate::spaces::linear_to_display(t).clamp(0.0, 1.0).to_kind(Kind::Float).to_device(net.device());
+            self.lpips += value(net.distance_01(&display(neural), &display(ggx)).mean(Kind::Double));
+        }
+    }
+
+    fn gap(&self, with_lpips: bool) -> Result<NeuralGap> {
+        ensure!(self.configs > 0.0, "the neural material's gap needs at least one configuration");
+        let per_config = |v: f64| v / self.configs;
+        let channel_log_ratio = (0..3).map(|c| (self.neural_channels[c].max(1e-9) / self.ggx_channels[c].max(1e-9)).ln().abs()).fold(0.0, f64::max);
+        Ok(NeuralGap {
+            log_l1: per_config(self.log_l1),
+            channel_log_ratio,
+            chromaticity: self.chroma_weighted / self.brightness.max(1e-12),
+            mean_chromaticity: per_config(self.mean_chromaticity),
+            lpips: with_lpips.then(|| per_config(self.lpips)),
+        })
+    }
 }
 
 #[cfg(test)]
