@@ -6,7 +6,7 @@
 //! ```text
 //! overhead photo ─► M_est ─► fit_material ─► start maps ─► lobe by albedo region ─┐
 //! photos [K,3,H,W] (fall-off compensated) ────────────────────────────────────────┴─► fit_core ─► maps [10,H,W]
-//!   loss = mean charbonnier(ln(1+R_ggx(l_k, v_k)) - ln(1+photo_k))   (clipped pixels: only R below the photo)
+//!   loss = mean charbonnier(ln(1+R_ggx(l_k, v_k)) - ln(1+photo_k))   (clipped channels: only R below the photo)
 //!        + smooth (edges of the mean photo) + pull toward the start maps
 //!        + the specular tail ks alpha^2 where a photo clipped
 //! maps ─► teacher's GgxEncoder ─► neural map; teacher's ND_enc + M_render ─► .nmat
@@ -251,10 +251,12 @@ pub struct PhotoFit {
     pub report: PhotoFitReport,
 }
 
-/// Pixels clipped in 8-bit photos: any channel at or above [`CLIP_LEVEL`].
-/// photos: `[K, 3, H, W]` as decoded, before any compensation -> `[K, 1, H, W]` bool.
+/// Channels clipped in 8-bit photos: at or above [`CLIP_LEVEL`]. Per
+/// channel: a teal highlight that clipped green and blue still measures
+/// its red, which keeps the fitted colour (reports/capture.md, "Ninth slice").
+/// photos: `[K, 3, H, W]` as decoded, before any compensation -> `[K, 3, H, W]` bool.
 pub fn clip_mask(photos: &Tensor) -> Tensor {
-    photos.ge(CLIP_LEVEL).any_dim(1, true)
+    photos.ge(CLIP_LEVEL)
 }
 
 /// A start knowing nothing but the photo: kd = photo / cos(light) (the
@@ -285,7 +287,7 @@ pub fn estimated_start(loaded: &LoadedModel, photo: &Tensor, fit: &FitConfig, on
 }
 
 /// Per-element data term and |log difference|: pred, target `[K, 3, H, W]`
-/// ln(1 + R); clipped `[K, 1, H, W]`, where only a render below the photo counts.
+/// ln(1 + R); clipped `[K, 3, H, W]`, where only a render below the photo counts.
 fn log_differences(pred: &Tensor, target: &Tensor, clipped: &Tensor) -> (Tensor, Tensor) {
     let diff = pred - target;
     let diff = diff.clamp_max(0.0).where_self(clipped, &diff);
@@ -332,21 +334,21 @@ fn regional_lobe(maps: &Tensor, memberships: &Tensor) -> Tensor {
 struct Level {
     /// ln(1 + photo) `[K, 3, H, W]`.
     target: Tensor,
-    /// `[K, 1, H, W]` bool.
+    /// `[K, 3, H, W]` bool.
     clipped: Tensor,
-    /// `[1, 1, H, W]` float: 1 where any photo clipped.
+    /// `[1, 1, H, W]` float: 1 where any photo clipped a channel.
     clipped_any: Tensor,
 }
 
 impl Level {
     fn new(photos: &Tensor, clipped: &Tensor) -> Self {
         let clipped = clipped.to_device(photos.device()).to_kind(Kind::Bool);
-        let clipped_any = clipped.any_dim(0, true).to_kind(Kind::Float);
+        let clipped_any = clipped.any_dim(0, true).any_dim(1, true).to_kind(Kind::Float);
         Level { target: crate::spaces::to_log(&photos.to_kind(Kind::Float)), clipped, clipped_any }
     }
 
     /// The level at half the resolution: photos averaged over 2x2 pixels,
-    /// a pixel clipped where any of its four was.
+    /// a channel clipped where any of its four pixels' was.
     fn halved(photos: &Tensor, clipped: &Tensor) -> Self {
         let photos = average_2x2(&photos.to_kind(Kind::Float));
         let clipped = clipped.to_kind(Kind::Float).max_pool2d([2, 2], [2, 2], [0, 0], [1, 1], false).gt(0.5);
@@ -518,6 +520,40 @@ fn renormalised(maps: &Tensor) -> Tensor {
     Tensor::cat(&[maps.narrow(1, 0, 7), crate::geometry::normalize_channels(&maps.narrow(1, 7, 3))], 1)
 }
 
+/// Maps `[1, 10, H, W]` whose pixels under `clipped` (`[1, 1, H, W]` bool,
+/// where the start's photo clipped) are filled from their unclipped
+/// neighbours, ring by ring (each pass the 3x3 mean of the pixels known so
+/// far); all of them when nothing is known.
+///
+/// A start read from a clipped photo (the flat start's kd = photo / cos,
+/// or M_est's estimate of it) paints the clipped highlight into kd and
+/// ks as a flat, saturated patch. Kept, the fit then explains the other
+/// photos' dark view of that patch by bending its normals away from their
+/// lights (reports/capture.md, "Ninth slice"). The neighbours' material is
+/// the better guess; the photos that saw the pixel unclipped correct it.
+fn filled_where_clipped(maps: &Tensor, clipped: &Tensor) -> Tensor {
+    let s = maps.size();
+    // The clip's shoulder, where the highlight is still most of the photo, too.
+    let r = (s[2].min(s[3]) / 32).max(1);
+    let clipped = clipped.to_kind(Kind::Float).max_pool2d([2 * r + 1, 2 * r + 1], [1, 1], [r, r], [1, 1], false);
+    let mut known = clipped.neg() + 1.0;
+    if known.sum(Kind::Double).double_value(&[]) == 0.0 {
+        return maps.shallow_clone();
+    }
+    let mut maps = maps * &known;
+    for _ in 0..(s[2] + s[3]) {
+        if known.min().double_value(&[]) > 0.0 {
+            break;
+        }
+        let pool = |t: &Tensor| t.avg_pool2d([3, 3], [1, 1], [1, 1], false, false, None::<i64>);
+        let (sum, count) = (pool(&maps), pool(&known));
+        let fill = count.gt(0.0).logical_and(&known.eq(0.0)).to_kind(Kind::Float);
+        maps = &maps + &fill * (sum / count.clamp_min(1e-12));
+        known = &known + &fill;
+    }
+    renormalised(&maps)
+}
+
 /// `[N, C, H, W]` averaged over 2x2 pixels: the coarse level's pixels.
 fn average_2x2(t: &Tensor) -> Tensor {
     t.avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None::<i64>)
@@ -529,7 +565,7 @@ fn halved_maps(maps: &Tensor) -> Tensor {
 }
 
 /// Fits GGX maps to photos with known lights and cameras.
-/// photos: `[K, 3, H, W]` linear, fall-off compensated; clipped: `[K, 1, H, W]`
+/// photos: `[K, 3, H, W]` linear, fall-off compensated; clipped: `[K, 3, H, W]`
 /// bool ([`clip_mask`]); configs: K lights/cameras (flashmat units); start:
 /// `[10, H, W]`. Runs on the photos' device; `on_step(i)` after each step.
 ///
@@ -545,7 +581,7 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
     let (k, h, w) = (s[0], s[2], s[3]);
     ensure!(k >= 1 && configs.len() == k as usize, "{} photos but {} light/camera positions", k, configs.len());
     ensure!(h >= 2 && w >= 2, "the fit needs at least 2x2 pixels, got {w}x{h}");
-    ensure!(clipped.size() == [k, 1, h, w], "the clip mask must be [{k}, 1, {h}, {w}], got {:?}", clipped.size());
+    ensure!(clipped.size() == [k, 3, h, w], "the clip mask must be [{k}, 3, {h}, {w}], got {:?}", clipped.size());
     ensure!(start.size() == [10, h, w], "the start maps must be [10, {h}, {w}], got {:?}", start.size());
     ensure!(crate::image::all_finite(photos), "the photos hold NaN/Inf values");
     ensure!(crate::image::all_finite(start), "the start maps hold NaN/Inf values");
@@ -556,6 +592,7 @@ pub fn fit_photos(photos: &Tensor, clipped: &Tensor, configs: &[LightView], star
     let start = tch::no_grad(|| decode(&encode(&start.to_device(device).to_kind(Kind::Float).unsqueeze(0))));
     let overhead = crate::data::captures::overhead_index(&configs.iter().map(|c| c.view).collect::<Vec<_>>());
     let photo = PhotoParams::new(configs, overhead, device);
+    let start = tch::no_grad(|| filled_where_clipped(&start, &clipped.to_device(device).get(overhead as i64).any_dim(0, true).unsqueeze(0)));
     let measure = |maps: &Tensor| {
         tch::no_grad(|| {
             let (data, diff) = full.differences(maps, &photo);
@@ -667,7 +704,7 @@ pub fn fitted_neural_material(maps: &Tensor, photo: &Tensor, teacher: &TeacherWe
 pub struct CapturePhotos {
     /// `[K, 3, S, S]` linear, fall-off compensated (on the CPU).
     pub photos: Tensor,
-    /// `[K, 1, S, S]` bool: clipped in the 8-bit photo ([`clip_mask`]).
+    /// `[K, 3, S, S]` bool: clipped in the 8-bit photo ([`clip_mask`]).
     pub clipped: Tensor,
     pub configs: Vec<LightView>,
     /// Index of the overhead photo ([`Captures::overhead`] among these).
@@ -717,6 +754,8 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
     let mut names = Vec::with_capacity(indices.len());
     let mut warnings = Vec::new();
     let mut first_size = None;
+    // (index, photo as decoded) of the photos before this one.
+    let mut decoded: Vec<(usize, Tensor)> = Vec::with_capacity(indices.len());
     for (&i, c) in indices.iter().zip(&configs) {
         let path = &captures.photos[i];
         let (photo, dims) = load_photo_sized(path, size)?;
@@ -739,6 +778,13 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
             "{}: the photo is white (clipped everywhere); nothing to fit",
             path.display()
         );
+        let clipped_share = clipped.any_dim(1, false).to_kind(Kind::Float).mean(Kind::Double).double_value(&[]);
+        ensure!(
+            clipped_share < MOSTLY_CLIPPED,
+            "{}: {:.0}% of the photo's pixels are clipped (white in a channel); take it again at a lower exposure, or leave it out",
+            path.display(),
+            100.0 * clipped_share
+        );
         let [x, y] = highlight_point(c);
         if x.abs() > 1.0 || y.abs() > 1.0 {
             warnings.push(format!(
@@ -746,12 +792,54 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
                 path.display()
             ));
         }
+        check_distinct(&decoded, &photo, i, captures, &configs[..decoded.len()], c)?;
         // Brought to the overhead photo's exposure; the clipped mask stays the photo's own.
         photos.push(compensated(&photo, c.light, r0, e0 / captures.exposures[i]));
+        decoded.push((i, photo));
         raw.push(clipped);
         names.push(path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());
     }
     Ok(CapturePhotos { photos: Tensor::stack(&photos, 0), clipped: Tensor::cat(&raw, 0), configs, overhead, names, warnings })
+}
+
+/// A photo with at least this share of its pixels clipped is refused: it
+/// tells the fit almost nothing but "brighter than white".
+const MOSTLY_CLIPPED: f64 = 0.9;
+
+/// Photos whose mean |difference| as decoded (linear) is below this are
+/// the same photo: a third of an 8-bit step at mid-grey, what re-encoding
+/// a photo changes.
+const SAME_PHOTO: f64 = 1e-3;
+
+/// Positions (flashmat units, light and camera) closer than this are the same.
+const SAME_POSITION: f64 = 1e-4;
+
+/// Refuses a photo `photo` (`[3, S, S]` as decoded, capture index `i`,
+/// taken at `config`) that repeats one of `earlier` (index, photo), whose
+/// positions are `earlier_configs`: the same picture at two different
+/// positions (a photo copied, or a list of positions off by one), or two
+/// pictures at one position and one exposure (a line copied in the
+/// position files). One position at two exposures is bracketing, and fine.
+fn check_distinct(earlier: &[(usize, Tensor)], photo: &Tensor, i: usize, captures: &Captures, earlier_configs: &[LightView], config: &LightView) -> Result<()> {
+    let name = |j: usize| captures.photos[j].file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let apart = |a: &LightView, b: &LightView| crate::geometry::length(crate::geometry::sub(a.light, b.light)).max(crate::geometry::length(crate::geometry::sub(a.view, b.view)));
+    for ((j, other), other_config) in earlier.iter().zip(earlier_configs) {
+        let same_position = apart(config, other_config) < SAME_POSITION;
+        let difference = (photo - other).abs().mean(Kind::Double).double_value(&[]);
+        ensure!(
+            !(difference < SAME_PHOTO && !same_position),
+            "{}: the same photo as {} (mean difference {difference:.1e}) at another position; each position needs its own photo (a file copied, or positions listed in another order?)",
+            captures.photos[i].display(),
+            name(*j)
+        );
+        ensure!(
+            !(same_position && captures.exposures[i] == captures.exposures[*j]),
+            "{}: taken at the same light and camera positions and exposure as {}; each photo needs its own position (a line copied in camera_pos.txt or light_pos.txt?)",
+            captures.photos[i].display(),
+            name(*j)
+        );
+    }
+    Ok(())
 }
 
 /// A photo whose mean error after the fit is above this many times the
