@@ -424,8 +424,8 @@ fn a_clipped_highlight_leaves_no_patch_in_the_maps() {
     // `estimate --capture` fits (pull toward a start read from the overhead
     // photo, here the flat one). Before the start was filled where the
     // photo clipped (and the clip mask was per channel), the band became a
-    // bright patch in kd (up to 0.27; the truth 0.006) with normals bent up
-    // to 88 degrees (99th percentile 41).
+    // bright patch in kd (up to 0.98; the truth 0.006) with normals bent up
+    // to 87 degrees at the 99th percentile.
     let truth = clipped_checker();
     let side = CHECKER_SIDE;
     let dir = tempfile::tempdir().unwrap();
