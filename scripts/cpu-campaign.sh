@@ -79,7 +79,8 @@ run() {
   mkdir -p "$CAMPAIGN/exports"
   if [ -f "$CAMPAIGN/run/checkpoint.safetensors" ]; then
     echo "cpu-campaign: resuming $CAMPAIGN/run for $minutes minutes" >&2
-    "$BIN" train --resume "$CAMPAIGN/run" --minutes "$minutes" --export-dir "$CAMPAIGN/exports" --threads 1
+    # --keep-exports is the run's option, not the recipe's: given again on resume.
+    "$BIN" train --resume "$CAMPAIGN/run" --minutes "$minutes" --export-dir "$CAMPAIGN/exports" --keep-exports --threads 1
   else
     local start; start=$(start_model)
     echo "cpu-campaign: a new run from $start for $minutes minutes" >&2

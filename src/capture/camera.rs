@@ -275,7 +275,9 @@ impl Problem<'_> {
     fn unpack(&self, p: &[f64], photo: usize) -> (Intrinsics, Pose) {
         let g = 3 + 2 * self.group[photo];
         let o = 3 + 2 * self.groups() + 6 * photo;
-        let k = Intrinsics { focal: p[0], centre: [p[g], p[g + 1]], k1: p[1], k2: p[2] };
+        // One lens: the focal length scales with the photo's size.
+        let scale = self.group_centre[self.group[photo]].1 / self.group_centre[0].1;
+        let k = Intrinsics { focal: p[0] * scale, centre: [p[g], p[g + 1]], k1: p[1], k2: p[2] };
         let w = [p[o], p[o + 1], p[o + 2]];
         let pose = Pose { rotation: mat_mul(&rotation_from_vector(w), &self.base[photo]), translation: [p[o + 3], p[o + 4], p[o + 5]] };
         (k, pose)
@@ -382,8 +384,10 @@ fn rebase(problem: &mut Problem, mut p: Vec<f64>) -> Vec<f64> {
 
 /// Refines one focal length and distortion, a principal point per photo
 /// size and a pose per photo from each photo's tag corners. `sizes`: each
-/// photo's (width, height); `focal`: the first guess (pixels); `poses`:
-/// first guesses (from [`pose_from_homography`]).
+/// photo's (width, height), of one aspect ratio: a photo of another size
+/// is the same lens scaled (a downscaled copy), its focal length in pixels
+/// scaled with its longer side; `focal`: the first guess (pixels of the
+/// first photo's size); `poses`: first guesses (from [`pose_from_homography`]).
 pub fn calibrate(obs: &[Correspondences], sizes: &[(usize, usize)], focal: f64, poses: &[Pose]) -> Result<Calibration> {
     ensure!(obs.len() == sizes.len() && obs.len() == poses.len(), "one size and one pose per photo");
     let mut kinds: Vec<(usize, usize)> = Vec::new();

@@ -55,6 +55,10 @@ pub const MIN_TAGS: usize = 4;
 /// Most reprojection error a photo may keep after the fit, pixels per
 /// 1000 pixels of its longer side (2 px on a 12 MP photo's 4032).
 pub const MAX_RMS_PER_1000_PX: f64 = 0.5;
+/// Photos whose width / height differ by more than this (relative) from
+/// the first photo's were cropped.
+const MAX_ASPECT_DIFFERENCE: f64 = 0.01;
+
 /// How far the fitted focal length may stray from the EXIF's (relative).
 pub const FOCAL_AGREEMENT: f64 = 0.15;
 /// Below this sharpness ([`markers::sharpness`]: a Gaussian blur of about
@@ -285,12 +289,28 @@ fn rectified_side(k: &Intrinsics, pose: &Pose, half: f64, max_side: usize) -> us
 fn calibrate_photos(photos: &[FramePhoto], obs: &[Correspondences]) -> Result<Calibration> {
     let homographies: Vec<camera::Mat3> = obs.iter().map(|o| camera::homography(o)).collect::<Result<_>>()?;
     let sizes: Vec<(usize, usize)> = photos.iter().map(|p| (p.rgb.width, p.rgb.height)).collect();
-    let exif = photos.iter().find_map(|p| p.exif_focal.map(|f| (f, p.rgb.width.max(p.rgb.height))));
     let (w0, h0) = sizes[0];
-    let from_tags = camera::focal_from_homographies(&homographies, [w0 as f64 / 2.0, h0 as f64 / 2.0]);
-    // EXIF focals are for their own photo's size; all photos of one phone share it.
+    // Photos of one phone at other sizes are downscaled copies (a photo
+    // sent through a messenger loses its EXIF and half its pixels): the same
+    // field of view, so focal lengths in pixels scale with the longer side.
+    // A photo of another aspect ratio was cropped, and its lens centre and
+    // field of view are unknown.
+    for (p, &(w, h)) in photos.iter().zip(&sizes) {
+        let (a, a0) = (w as f64 / h as f64, w0 as f64 / h0 as f64);
+        ensure!(
+            (a / a0 - 1.0).abs() < MAX_ASPECT_DIFFERENCE,
+            "{}: the photo is {w}x{h} pixels, {} is {w0}x{h0}, another shape: it was cropped; give every photo uncropped, as the phone took it",
+            name(&p.path),
+            name(&photos[0].path)
+        );
+    }
+    let to_first = |(w, h): (usize, usize)| w0.max(h0) as f64 / w.max(h) as f64;
+    let exif = photos.iter().zip(&sizes).find_map(|(p, &s)| p.exif_focal.map(|f| f * to_first(s)));
+    // The homographies in the first photo's pixels, for the focal length they share.
+    let in_first: Vec<camera::Mat3> = homographies.iter().zip(&sizes).map(|(h, &s)| [h[0].map(|v| v * to_first(s)), h[1].map(|v| v * to_first(s)), h[2]]).collect();
+    let from_tags = camera::focal_from_homographies(&in_first, [w0 as f64 / 2.0, h0 as f64 / 2.0]);
     let focal = match (exif, from_tags) {
-        (Some((f, _)), _) => f,
+        (Some(f), _) => f,
         (None, Some(f)) => f,
         (None, None) => bail!("no focal length: the photos have no EXIF focal length, and all face the frame straight on; add a photo taken at a tilt"),
     };
@@ -298,7 +318,7 @@ fn calibrate_photos(photos: &[FramePhoto], obs: &[Correspondences]) -> Result<Ca
         .iter()
         .zip(&sizes)
         .zip(photos)
-        .map(|((h, &(w, hh)), p)| camera::pose_from_homography(h, &Intrinsics::centred(focal, w, hh)).ok_or_else(|| anyhow!("{}: no camera pose fits its tags", name(&p.path))))
+        .map(|((h, &(w, hh)), p)| camera::pose_from_homography(h, &Intrinsics::centred(focal / to_first((w, hh)), w, hh)).ok_or_else(|| anyhow!("{}: no camera pose fits its tags", name(&p.path))))
         .collect::<Result<_>>()?;
     if exif.is_none() {
         // The photos' perspective fixes the focal length only if one of them
@@ -331,7 +351,7 @@ fn calibrate_photos(photos: &[FramePhoto], obs: &[Correspondences]) -> Result<Ca
             );
         }
     }
-    if let Some((f, _)) = exif {
+    if let Some(f) = exif {
         let fitted = cal.intrinsics[0].focal;
         if (fitted / f - 1.0).abs() > FOCAL_AGREEMENT {
             bail!(

@@ -311,3 +311,48 @@ fn straight_on_photos_without_exif_have_no_focal_length() {
     }
     assert!(capture(&photos, &CaptureConfig::default(), |_, _, _| {}).is_ok());
 }
+
+/// `photo` at half its width and height (2x2 means of its codes), as a
+/// messenger sends it on.
+fn halved(photo: &FramePhoto) -> FramePhoto {
+    let (w, h) = (photo.rgb.width / 2, photo.rgb.height / 2);
+    let src = &photo.rgb.data;
+    let at = |x: usize, y: usize, c: usize| src[3 * (y * photo.rgb.width + x) + c] as u32;
+    let data = (0..h).flat_map(|y| (0..w).flat_map(move |x| (0..3).map(move |c| ((at(2 * x, 2 * y, c) + at(2 * x + 1, 2 * y, c) + at(2 * x, 2 * y + 1, c) + at(2 * x + 1, 2 * y + 1, c) + 2) / 4) as u8))).collect();
+    FramePhoto { rgb: super::rectify::Rgb8 { width: w, height: h, data }, exif_focal: None, ..photo.clone_photo() }
+}
+
+#[test]
+fn a_downscaled_photo_without_exif_keeps_its_position_and_a_cropped_one_is_named() {
+    // Photo 0 (overhead) sent on at half size without its EXIF: one lens,
+    // its focal length in pixels halved with the photo. Fitted with one
+    // focal length in pixels for all, it put that lens 260 mm off.
+    let dir = tempfile::tempdir().unwrap();
+    let views = views(0.0);
+    let (mut photos, _) = shoot(&views, [0.0, 0.0], PhoneEffects { jpeg_quality: None, ..Default::default() }, dir.path());
+    photos[0] = halved(&photos[0]);
+    let cap = capture(&photos, &CaptureConfig::default(), |_, _, _| {}).unwrap();
+    for (result, view) in cap.photos.iter().zip(&views) {
+        let d = length(sub(result.camera, view.pose.centre()));
+        eprintln!("{}: camera {d:.2} mm off, focal {:.1} px", result.source.display(), result.intrinsics.focal);
+        assert!(d < 3.0, "{}: camera {d:.2} mm off", result.source.display());
+    }
+    let small = cap.photos.iter().find(|r| r.source == photos[0].path).unwrap();
+    assert!((small.intrinsics.focal / (FOCAL / 2.0) - 1.0).abs() < 0.02, "the halved photo's focal length {}", small.intrinsics.focal);
+    // No photo with EXIF: the tilted photos' perspective gives the focal length, for both sizes.
+    for p in &mut photos {
+        p.exif_focal = None;
+    }
+    let cap = capture(&photos, &CaptureConfig::default(), |_, _, _| {}).unwrap();
+    for (result, view) in cap.photos.iter().zip(&views) {
+        let d = length(sub(result.camera, view.pose.centre()));
+        assert!(d < 3.0, "without EXIF, {}: camera {d:.2} mm off", result.source.display());
+    }
+    // A photo cropped to another shape: named.
+    let mut cropped = photos[1].clone_photo();
+    let (w, h) = (cropped.rgb.width, cropped.rgb.height);
+    cropped.rgb = super::rectify::Rgb8 { width: h, height: h, data: (0..h).flat_map(|y| cropped.rgb.data[3 * (y * w + (w - h) / 2)..3 * (y * w + (w + h) / 2)].to_vec()).collect() };
+    photos[1] = cropped;
+    let e = format!("{:#}", capture(&photos, &CaptureConfig::default(), |_, _, _| {}).err().expect("an error"));
+    assert!(e.contains("IMG_1.jpg") && e.contains("900x900") && e.contains("cropped") && !e.contains('\n'), "{e}");
+}
