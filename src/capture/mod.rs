@@ -109,6 +109,30 @@ pub fn relative_exposures(photos: &[FramePhoto]) -> Option<Vec<f64>> {
     differ.then(|| scales.iter().map(|s| s / first).collect())
 }
 
+/// What a phone's EXIF can state: exposure time (s), f-number, ISO.
+const PHONE_TIME_S: std::ops::RangeInclusive<f64> = 1e-6..=60.0;
+const PHONE_F_NUMBER: std::ops::RangeInclusive<f64> = 0.7..=64.0;
+const PHONE_ISO: std::ops::RangeInclusive<u32> = 10..=409_600;
+
+/// Refuses a photo whose EXIF exposure no phone takes (a time of 4e9 s):
+/// a broken EXIF would scale the photo by it in `exposures.txt`.
+fn check_exif_exposure(photo: &FramePhoto) -> Result<()> {
+    let Some(e) = &photo.exposure else { return Ok(()) };
+    let bad = e.time_s.is_some_and(|t| !PHONE_TIME_S.contains(&t)) || e.f_number.is_some_and(|f| !PHONE_F_NUMBER.contains(&f)) || e.iso.is_some_and(|i| !PHONE_ISO.contains(&i));
+    ensure!(
+        !bad,
+        "{}: its EXIF states an exposure no phone takes ({e}; times {}-{} s, f/{}-{}, ISO {}-{}): the EXIF is broken; save the photo again from the phone",
+        name(&photo.path),
+        PHONE_TIME_S.start(),
+        PHONE_TIME_S.end(),
+        PHONE_F_NUMBER.start(),
+        PHONE_F_NUMBER.end(),
+        PHONE_ISO.start(),
+        PHONE_ISO.end()
+    );
+    Ok(())
+}
+
 /// Exposures closer than this (relative) are one exposure.
 const EXPOSURE_TOLERANCE: f64 = 0.01;
 
@@ -226,6 +250,9 @@ fn correspondences(layout: &FrameLayout, found: &[Marker]) -> Correspondences {
 pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl FnMut(usize, usize, usize)) -> Result<Capture> {
     ensure!(photos.len() >= 2, "a capture needs at least 2 photos of the frame, got {}", photos.len());
     ensure!(cfg.max_side >= MIN_SIDE, "--max-size must be at least {MIN_SIDE}, got {}", cfg.max_side);
+    for photo in photos {
+        check_exif_exposure(photo)?;
+    }
     let mut found = Vec::new();
     for (i, photo) in photos.iter().enumerate() {
         on_progress(0, i, photos.len());

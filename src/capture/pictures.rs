@@ -13,11 +13,20 @@ use anyhow::{Context, Result};
 /// Longer side of each photo's thumbnail, pixels.
 const THUMB: usize = 360;
 
-/// The whole picture: one column per photo, the top view at the end.
+/// Photos per row of the picture.
+const PER_ROW: usize = 8;
+
+/// Photos the picture shows at most (six rows; 180 photos in one row
+/// made a picture 65,888 pixels wide, past what JPEG can hold).
+const MAX_SHOWN: usize = 6 * PER_ROW;
+
+/// The whole picture: a column per photo (the photo over its rectified
+/// opening), [`PER_ROW`] to a row, the first [`MAX_SHOWN`] photos; the top
+/// view (every photo's position) at the end.
 pub fn capture_picture(capture: &Capture, photos: &[FramePhoto]) -> Result<Image> {
     let mut top = Vec::new();
     let mut bottom = Vec::new();
-    for (n, result) in capture.photos.iter().enumerate() {
+    for (n, result) in capture.photos.iter().enumerate().take(MAX_SHOWN) {
         let photo = photos.iter().find(|p| p.path == result.source).context("a capture's photo is missing from its inputs")?;
         let (w, h) = (photo.rgb.width, photo.rgb.height);
         let scale = THUMB as f64 / w.max(h) as f64;
@@ -49,8 +58,22 @@ pub fn capture_picture(capture: &Capture, photos: &[FramePhoto]) -> Result<Image
         let small = (THUMB * 2 / 3).min(side);
         bottom.push(display.resize_area(small, small));
     }
-    top.push(top_view(capture, THUMB)?);
-    crate::viz::grid(&[top, bottom], 4)
+    let mut view = top_view(capture, THUMB)?;
+    let total = capture.photos.len();
+    if total > MAX_SHOWN {
+        view = annotate(&view, &[Mark::Text { at: (4.0, 22.0), text: format!("photos 00-{:02} of {total} shown", MAX_SHOWN - 1), size: 13.0, color: [200, 20, 20] }])?;
+    }
+    let mut rows = Vec::new();
+    let mut bottoms = bottom.chunks(PER_ROW);
+    for tops in top.chunks(PER_ROW) {
+        rows.push(tops.to_vec());
+        rows.push(bottoms.next().map(<[Image]>::to_vec).unwrap_or_default());
+    }
+    match rows.first_mut() {
+        Some(first) => first.push(view),
+        None => rows.push(vec![view]),
+    }
+    crate::viz::grid(&rows, 4)
 }
 
 /// The frame seen from above (`size` pixels square): the tags' ring and

@@ -356,3 +356,37 @@ fn a_downscaled_photo_without_exif_keeps_its_position_and_a_cropped_one_is_named
     let e = format!("{:#}", capture(&photos, &CaptureConfig::default(), |_, _, _| {}).err().expect("an error"));
     assert!(e.contains("IMG_1.jpg") && e.contains("900x900") && e.contains("cropped") && !e.contains('\n'), "{e}");
 }
+
+#[test]
+fn the_picture_of_many_photos_wraps_its_rows_and_says_how_many_it_shows() {
+    // 50 photos (the 4 of a capture, repeated): 8 to a row, the first 48
+    // shown in 6 rows of photos over their openings; 180 in one row made a
+    // picture 65,888 pixels wide.
+    let dir = tempfile::tempdir().unwrap();
+    let (photos, _) = shoot(&views(0.0), [0.0, 0.0], PhoneEffects { jpeg_quality: None, ..Default::default() }, dir.path());
+    let mut cap = capture(&photos, &CaptureConfig::default(), |_, _, _| {}).unwrap();
+    let n = cap.photos.len();
+    cap.photos = (0..50).map(|i| cap.photos[i % n].clone()).collect();
+    cap.rectified = (0..50).map(|i| cap.rectified[i % n].clone()).collect();
+    let picture = super::pictures::capture_picture(&cap, &photos).unwrap();
+    // Cells of 360 pixels (the thumbnails' longer side and the top view) and 4-pixel gaps.
+    let cell = 360 + 4;
+    assert_eq!((picture.width, picture.height), (9 * cell + 4, 12 * cell + 4));
+}
+
+#[test]
+fn an_exposure_no_phone_takes_is_named_before_any_work() {
+    let mut photo = FramePhoto { path: "IMG_7.jpg".into(), rgb: super::rectify::Rgb8 { width: 2, height: 2, data: vec![0; 12] }, exif_focal: None, orientation: 1, exposure: None };
+    let exposure = |t: f64, iso: u32| Some(crate::infer::camera::Exposure { time_s: Some(t), f_number: Some(1.8), iso: Some(iso) });
+    photo.exposure = exposure(1.0 / 60.0, 100);
+    assert!(check_exif_exposure(&photo).is_ok());
+    for (t, iso) in [(4e9, 100), (1.0 / 60.0, 0), (1e-9, 100)] {
+        photo.exposure = exposure(t, iso);
+        let e = format!("{:#}", check_exif_exposure(&photo).unwrap_err());
+        assert!(e.starts_with("IMG_7.jpg: its EXIF states an exposure no phone takes") && !e.contains('\n'), "{e}");
+    }
+    // capture refuses it before looking for tags (the 2x2 photo has none).
+    photo.exposure = exposure(4e9, 100);
+    let e = format!("{:#}", capture(&[photo.clone_photo(), photo.clone_photo()], &CaptureConfig::default(), |_, _, _| {}).err().expect("an error"));
+    assert!(e.contains("no phone takes"), "{e}");
+}

@@ -6,7 +6,7 @@ use flashmat::data::captures::Captures;
 use flashmat::fit::export::{check_output_dir, write_fit};
 use flashmat::fit::photos::{capture_material, PhotoFitConfig};
 use flashmat::fit::relief::ReliefConfig;
-use anyhow::{bail, ensure, Result};
+use anyhow::{bail, ensure, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::Path;
@@ -64,11 +64,13 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
     })?;
     bar.finish_and_clear();
     let out_dir = super::prepare_output(output)?;
+    // The maps first: where they cannot be written, the material is not
+    // written either (a failed run leaves no .nmat without its maps).
+    if let Some(pbr) = &a.pbr {
+        write_fit(pbr, &made.fit.as_fit_result(), &ReliefConfig::default(), &dir.display().to_string()).with_context(|| format!("{} not written", output.display()))?;
+    }
     made.material.save(output)?;
     out_dir.keep();
-    if let Some(pbr) = &a.pbr {
-        write_fit(pbr, &made.fit.as_fit_result(), &ReliefConfig::default(), &dir.display().to_string())?;
-    }
     let r = &made.fit.report;
     eprintln!(
         "estimated {} from {} of {} photos at {}x{}: data term {:.4} -> {:.4} (mean |ln(1+R) diff| {:.4} -> {:.4}), {} steps, {:.1} s ({:.1} s fit)",

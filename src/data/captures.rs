@@ -49,6 +49,10 @@ pub struct Captures {
     pub exposures: Vec<f64>,
 }
 
+/// Distances of a capture's lights and cameras from the sample's centre
+/// that [`Captures::open`] takes, in flashmat units (half sample widths).
+pub const POSITION_DISTANCES: std::ops::RangeInclusive<f64> = 0.5..=1000.0;
+
 /// The optional file of the photos' exposures in a capture folder.
 pub const EXPOSURES_FILE: &str = "exposures.txt";
 
@@ -75,6 +79,22 @@ impl Captures {
         let needs = if gaps { format!("photos numbered up to {:02} need {lines}", lines - 1) } else { format!("the folder has {lines} photos") };
         let cameras = by_number(read_positions(&dir.join("camera_pos.txt"), scale, lines, &needs).map_err(with_gaps)?);
         let lights = by_number(read_positions(&dir.join("light_pos.txt"), scale, lines, &needs).map_err(with_gaps)?);
+        // In half sample widths (the sample spans -1 to 1): a phone over a
+        // hand-sized sample is 2-20 away. Far outside, the width and the
+        // positions are in different units (or the width is mistyped).
+        for (file, positions) in [("camera_pos.txt", &cameras), ("light_pos.txt", &lights)] {
+            for (p, number) in positions.iter().zip(&numbers) {
+                let d = length(*p);
+                ensure!(
+                    POSITION_DISTANCES.contains(&d),
+                    "{}: photo {number:02} is {:.3e} sample widths from the sample (image_size.txt: the sample is {sample_width} wide), outside {}-{}: are the width and the positions in one unit?",
+                    dir.join(file).display(),
+                    d / 2.0,
+                    POSITION_DISTANCES.start() / 2.0,
+                    POSITION_DISTANCES.end() / 2.0
+                );
+            }
+        }
         let exposures_path = dir.join(EXPOSURES_FILE);
         let exposures = if exposures_path.exists() {
             let all = read_exposures(&exposures_path, lines, &needs).map_err(with_gaps)?;
@@ -245,8 +265,19 @@ fn read_exposures(path: &Path, expected: usize, needs: &str) -> Result<Vec<f64>>
         out.push(v);
     }
     ensure!(out.len() == expected, "{} has {} exposures but {needs} (one line per photo)", path.display(), out.len());
+    let (low, high) = out.iter().fold((f64::INFINITY, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));
+    ensure!(
+        high / low <= MAX_EXPOSURE_RATIO,
+        "{}: its exposures span {:.1e}x ({low} to {high}), more than the {MAX_EXPOSURE_RATIO}x (10 stops) one capture's photos can differ by and still show one material; correct the file",
+        path.display(),
+        high / low
+    );
     Ok(out)
 }
+
+/// The most two photos of one capture may differ in exposure: 10 stops
+/// (bracketing spans 2-6; a photo 10 stops under its neighbour is black).
+pub const MAX_EXPOSURE_RATIO: f64 = 1024.0;
 
 /// Co-located phone positions after the overhead photo (flashmat units:
 /// the sample spans [-1, 1]) whose flash reflections land half-way to the
@@ -446,6 +477,11 @@ mod tests {
         assert!(err(t.path()).contains("exposures.txt line 2: an exposure must be a finite number > 0"));
         std::fs::write(t.path().join(EXPOSURES_FILE), "1\nbright\n").unwrap();
         assert!(err(t.path()).contains("exposures.txt line 2: expected one number"));
+        std::fs::write(t.path().join(EXPOSURES_FILE), "1\n1e300\n").unwrap();
+        assert!(err(t.path()).contains("exposures.txt: its exposures span 1.0e300x"), "{}", err(t.path()));
+        // 10 stops is still a capture.
+        std::fs::write(t.path().join(EXPOSURES_FILE), "1\n0.0009765625\n").unwrap();
+        assert_eq!(Captures::open(t.path()).unwrap().exposures, [1.0, 1.0 / 1024.0]);
         std::fs::remove_file(t.path().join(EXPOSURES_FILE)).unwrap();
         assert_eq!(Captures::open(t.path()).unwrap().exposures, [1.0, 1.0]);
     }
@@ -519,6 +555,12 @@ mod tests {
         let t = tempfile::tempdir().unwrap();
         fixture(t.path(), 2, "0,0,4\n0,0,5\n", "0,0,4\n0,0,-5\n", "2");
         assert!(err(t.path()).contains("light_pos.txt line 2: z must be > 0"));
+
+        // A width in other units than the positions (1e-30: positions of 1e31 half-widths).
+        let t = tempfile::tempdir().unwrap();
+        fixture(t.path(), 2, "0,0,40\n0,0,50\n", "0,0,40\n0,0,50\n", "1e-30");
+        let m = err(t.path());
+        assert!(m.contains("camera_pos.txt: photo 00 is 4.000e31 sample widths") && m.contains("one unit"), "{m}");
 
         let t = tempfile::tempdir().unwrap();
         fixture(t.path(), 2, "0,0,4\n0,0,5\n", "0,0,4\n0,0,5\n", "2");
