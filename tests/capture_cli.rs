@@ -133,6 +133,8 @@ fn photos_of_the_printed_frame_become_a_capture_folder_and_a_material() {
     assert_error(&flashmat(&["capture", p[0], s(&missing), "-o", s(&out)]), &["IMG_9.jpg"]);
     let bad_offset = flashmat(&["capture", p[0], p[1], "--flash-offset", "8", "-o", s(&out)]);
     assert!(!bad_offset.status.success() && stderr(&bad_offset).contains("'8' is not X,Y"), "{}", stderr(&bad_offset));
+    // A negative offset is a value, as written (clap's tip for it, `-- -8,3`, failed).
+    assert_error(&flashmat(&["capture", p[0], s(&missing), "--flash-offset", "-8,3", "-o", s(&out)]), &["IMG_9.jpg"]);
     assert_error(&flashmat(&["capture", p[0], p[1], "-o", s(&folder)]), &["exists and is not empty"]);
     assert!(!out.exists());
     no_temp_files(d);

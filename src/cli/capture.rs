@@ -29,7 +29,7 @@ pub struct CaptureCommandArgs {
     /// The flash's offset from the lens in mm, X,Y in the camera frame of the photo as the phone's sensor stores
     /// it (X along its rows, Y down its columns; turned with each photo's EXIF orientation). 0,0 takes them as
     /// one point; docs/CAPTURE.md says how to measure it.
-    #[arg(long, value_name = "X,Y", default_value = "0,0", value_parser = parse_offset, allow_negative_numbers = true)]
+    #[arg(long, value_name = "X,Y", default_value = "0,0", value_parser = parse_offset, allow_hyphen_values = true)]
     pub flash_offset: [f64; 2],
     /// The largest side of the rectified photos, pixels (they keep the overhead photo's resolution of the opening up to it).
     #[arg(long, default_value_t = CaptureConfig::default().max_side)]
