@@ -83,6 +83,16 @@ fn parse_offset(s: &str) -> std::result::Result<[f64; 2], String> {
     }
 }
 
+/// `estimate`'s options at their defaults: what `--estimate` runs with.
+fn default_estimate_options() -> Result<EstimateOptions> {
+    #[derive(Parser)]
+    struct Defaults {
+        #[command(flatten)]
+        options: EstimateOptions,
+    }
+    Ok(Defaults::try_parse_from(["flashmat"])?.options)
+}
+
 pub fn run(a: &CaptureCommandArgs) -> Result<()> {
     if let Some(FrameCommand::Frame(f)) = &a.frame {
         return write_frame(f);
@@ -106,6 +116,7 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         // Every option of the whole command before any work or write.
         flashmat::fit::photos::PhotoFitConfig { steps: a.steps, size: a.size, ..Default::default() }.validate()?;
         flashmat::device::parse_device(&a.device)?;
+        super::estimate_capture::check_capture_memory(a.size, a.photos.len(), &default_estimate_options()?.max_memory)?;
     }
     let cfg = CaptureConfig { flash_offset_mm: a.flash_offset, max_side: a.max_size, ..Default::default() };
     let bar = ProgressBar::new(a.photos.len() as u64).with_style(ProgressStyle::with_template("{msg} {bar:40} {pos}/{len}")?);
@@ -158,12 +169,7 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         eprintln!("warning: {w}{}", if a.estimate { "; --estimate fits them" } else { "" });
     }
     if let Some(material) = material {
-        #[derive(Parser)]
-        struct Defaults {
-            #[command(flatten)]
-            options: EstimateOptions,
-        }
-        let mut opts = Defaults::try_parse_from(["flashmat"])?.options;
+        let mut opts = default_estimate_options()?;
         opts.size = a.size;
         opts.device = a.device.clone();
         let args = CaptureArgs { capture: Some(folder.clone()), photos: None, steps: a.steps, photo_gains: exposures_differ.is_some(), pbr: None };

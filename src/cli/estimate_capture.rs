@@ -50,6 +50,7 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
     let device = flashmat::device::parse_device(&opts.device)?;
     let captures = Captures::open(dir)?;
     let count = a.photos.unwrap_or(captures.photos.len());
+    check_capture_memory(opts.size, count, &opts.max_memory)?;
     let style = |what: &str| ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} ETA {{eta}}"));
     let stages = [style("start: estimate of the overhead photo, GGX fit")?, style(&format!("fitting {count} photos"))?];
     let bar = ProgressBar::new(0);
@@ -110,5 +111,19 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
         let pbr = if a.pbr.is_some() { "the PBR maps you wrote" } else { "the PBR maps (--pbr DIR)" };
         eprintln!("warning: the neural material is far from its fitted maps ({why}); relight {pbr} where they matter, or refit at a smaller --size");
     }
+    Ok(())
+}
+
+/// Refuses a capture fit at side `size` with `photos` photos whose memory
+/// ([`capture_fit_memory`](flashmat::fit::photos::capture_fit_memory)) is
+/// above `max_memory` (`--max-memory`), before any work.
+pub fn check_capture_memory(size: usize, photos: usize, max_memory: &str) -> Result<()> {
+    let limit = flashmat::infer::tiles::parse_memory(max_memory)?;
+    let need = flashmat::fit::photos::capture_fit_memory(size, photos);
+    ensure!(
+        need <= limit as f64,
+        "a capture fit at --size {size} with {photos} photos needs about {:.1} GiB, more than --max-memory {max_memory}: lower --size, or raise --max-memory where the machine has it",
+        need / (1u64 << 30) as f64
+    );
     Ok(())
 }

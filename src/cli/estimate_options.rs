@@ -41,7 +41,8 @@ pub struct EstimateOptions {
     /// Keep only the centre square of the photo (before rectangles, every photo was estimated this way).
     #[arg(long)]
     pub square: bool,
-    /// Memory M_est may use (e.g. 8G, 512M, or bytes): beyond it, M_est runs in overlapping tiles.
+    /// Memory M_est may use (e.g. 8G, 512M, or bytes): beyond it, M_est runs in overlapping tiles. With --capture,
+    /// also the bound on the capture fit: a --size it cannot stay within is refused before any work.
     #[arg(long, value_name = "SIZE", default_value = "8G")]
     pub max_memory: String,
     /// cpu, cuda or cuda:N.

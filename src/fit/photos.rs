@@ -939,6 +939,22 @@ pub fn capture_material(
     Ok(CaptureMaterial { material, fit, code_fit, gap, names: capture.names })
 }
 
+/// Bytes [`capture_material`] needs beyond the loaded models, per pixel
+/// of the fitted maps and per photo (at least three counted: the neural
+/// material's renders and its gap do not shrink with fewer photos).
+/// Measured peak memory of `estimate --capture` (`/usr/bin/time`, 3
+/// photos of procedural-test:3, CPU): 256 px 1.13 GB, 768 px 2.68 GB,
+/// 1024 px 4.17 GB: 3.3 kB per pixel for 3 photos above the base (512 px,
+/// 2.63 GB, peaks in the start's M_est instead, which `--max-memory` tiles).
+const CAPTURE_BYTES_PER_PIXEL_PHOTO: f64 = 1100.0;
+
+/// Peak memory of [`capture_material`] at side `size` with `photos` photos
+/// besides what the models take (about 0.8 GB on the CPU), bytes: what
+/// `--max-memory` is checked against before any work.
+pub fn capture_fit_memory(size: usize, photos: usize) -> f64 {
+    CAPTURE_BYTES_PER_PIXEL_PHOTO * (size * size) as f64 * photos.max(3) as f64
+}
+
 /// Held-out configurations per case (Hemisphere, Reflect) of the gap
 /// [`capture_material`] measures.
 pub const GAP_CONFIGS: usize = 4;

@@ -507,3 +507,16 @@ fn repeated_photos_and_positions_are_refused_naming_both() {
     let m = msg(load_capture(&Captures::open(d).unwrap(), 3, 32).unwrap_err());
     assert!(m.contains("01.png") && m.contains("clipped") && m.contains("lower exposure"), "{m}");
 }
+
+#[test]
+fn the_capture_fits_memory_model_matches_its_measurements() {
+    // Peak memory measured for 3 photos less the 0.8 GB the models take:
+    // 1024 px 4.17 GB, 768 px 2.68 GB (CAPTURE_BYTES_PER_PIXEL_PHOTO).
+    for (size, peak_gb) in [(1024, 4.17), (768, 2.68)] {
+        let model = capture_fit_memory(size, 3) / 1e9 + 0.8;
+        assert!((model / peak_gb - 1.0).abs() < 0.25, "{size} px: model {model:.2} GB, measured {peak_gb}");
+    }
+    // Fewer photos are counted as three; more grow it.
+    assert_eq!(capture_fit_memory(256, 1), capture_fit_memory(256, 3));
+    assert!((capture_fit_memory(256, 6) / capture_fit_memory(256, 3) - 2.0).abs() < 1e-12);
+}
