@@ -944,9 +944,10 @@ pub fn capture_material(
 /// material's renders and its gap do not shrink with fewer photos).
 /// Measured peak memory of `estimate --capture` (`/usr/bin/time`, 3
 /// photos of procedural-test:3, CPU): 256 px 1.13 GB, 768 px 2.68 GB,
-/// 1024 px 4.17 GB: 3.3 kB per pixel for 3 photos above the base (512 px,
+/// 1024 px 4.17 GB, 1536 px 10.3 GB: 1.1-1.35 kB per pixel and photo
+/// above the base, growing with the size; the largest taken (512 px,
 /// 2.63 GB, peaks in the start's M_est instead, which `--max-memory` tiles).
-const CAPTURE_BYTES_PER_PIXEL_PHOTO: f64 = 1100.0;
+const CAPTURE_BYTES_PER_PIXEL_PHOTO: f64 = 1400.0;
 
 /// Peak memory of [`capture_material`] at side `size` with `photos` photos
 /// besides what the models take (about 0.8 GB on the CPU), bytes: what

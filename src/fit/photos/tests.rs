@@ -510,11 +510,12 @@ fn repeated_photos_and_positions_are_refused_naming_both() {
 
 #[test]
 fn the_capture_fits_memory_model_matches_its_measurements() {
-    // Peak memory measured for 3 photos less the 0.8 GB the models take:
-    // 1024 px 4.17 GB, 768 px 2.68 GB (CAPTURE_BYTES_PER_PIXEL_PHOTO).
-    for (size, peak_gb) in [(1024, 4.17), (768, 2.68)] {
+    // Peak memory measured for 3 photos, with the 0.8 GB the models take
+    // (CAPTURE_BYTES_PER_PIXEL_PHOTO): never below a measurement, at most
+    // 30% above.
+    for (size, peak_gb) in [(768, 2.68), (1024, 4.17), (1536, 10.33)] {
         let model = capture_fit_memory(size, 3) / 1e9 + 0.8;
-        assert!((model / peak_gb - 1.0).abs() < 0.25, "{size} px: model {model:.2} GB, measured {peak_gb}");
+        assert!(model >= peak_gb && model < 1.3 * peak_gb, "{size} px: model {model:.2} GB, measured {peak_gb}");
     }
     // Fewer photos are counted as three; more grow it.
     assert_eq!(capture_fit_memory(256, 1), capture_fit_memory(256, 3));
