@@ -799,6 +799,7 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
         raw.push(clipped);
         names.push(path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());
     }
+    check_colour(&decoded, captures)?;
     Ok(CapturePhotos { photos: Tensor::stack(&photos, 0), clipped: Tensor::cat(&raw, 0), configs, overhead, names, warnings })
 }
 
@@ -837,6 +838,36 @@ fn check_distinct(earlier: &[(usize, Tensor)], photo: &Tensor, i: usize, capture
             "{}: taken at the same light and camera positions and exposure as {}; each photo needs its own position (a line copied in camera_pos.txt or light_pos.txt?)",
             captures.photos[i].display(),
             name(*j)
+        );
+    }
+    Ok(())
+}
+
+/// Colour of a photo: the mean over its pixels of max - min of the
+/// chromaticity (r, g, b over their sum); 0 for a grey photo.
+fn colourfulness(photo: &Tensor) -> f64 {
+    let sum = photo.sum_dim_intlist([0i64].as_slice(), true, Kind::Float).clamp_min(1e-4);
+    let chroma = photo / sum;
+    (chroma.amax([0i64].as_slice(), false) - chroma.amin([0i64].as_slice(), false)).mean(Kind::Double).double_value(&[])
+}
+
+/// Below this colourfulness ([`colourfulness`]) a photo is grey.
+const GREY_PHOTO: f64 = 0.01;
+
+/// Refuses a grey photo among colour ones (a black-and-white filter, a
+/// monochrome mode): the fit would take the material as grey in that
+/// view. `photos`: (capture index, `[3, S, S]` as decoded).
+fn check_colour(photos: &[(usize, Tensor)], captures: &Captures) -> Result<()> {
+    let colour: Vec<f64> = photos.iter().map(|(_, p)| colourfulness(p)).collect();
+    let most = colour.iter().cloned().fold(0.0, f64::max);
+    if most < 5.0 * GREY_PHOTO {
+        return Ok(()); // a grey material: every photo grey
+    }
+    for ((i, _), &c) in photos.iter().zip(&colour) {
+        ensure!(
+            c >= GREY_PHOTO,
+            "{}: the photo is grey (colour {c:.4}) where another shows colour ({most:.3}): a black-and-white photo or filter? take it again in colour",
+            captures.photos[*i].display()
         );
     }
     Ok(())

@@ -500,6 +500,13 @@ fn repeated_photos_and_positions_are_refused_naming_both() {
     // One position at two exposures is bracketing: fine.
     std::fs::write(d.join(crate::data::captures::EXPOSURES_FILE), "1\n1\n0.5\n").unwrap();
     assert_eq!(load_capture(&Captures::open(d).unwrap(), 3, 32).unwrap().photos.size(), [3, 3, 32, 32]);
+    // A grey photo among colour ones (truth_maps' kd is brown): photo 01 made grey.
+    let colour = crate::data::captures::load_photo(&d.join("01.png"), 48).unwrap();
+    let grey = colour.mean_dim([0i64].as_slice(), true, Kind::Float).expand([3, 48, 48], false);
+    let display = crate::image::Image::from_tensor(&crate::spaces::linear_to_display(&grey)).unwrap();
+    crate::io::write_png(&d.join("01.png"), &display, crate::io::BitDepth::Eight).unwrap();
+    let m = msg(load_capture(&Captures::open(d).unwrap(), 3, 32).unwrap_err());
+    assert!(m.contains("01.png") && m.contains("grey"), "{m}");
     // A photo almost all clipped.
     let mut white = crate::image::Image::filled(3, 48, 48, 1.0);
     white.data[0] = 0.5;
