@@ -52,7 +52,7 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
     let count = a.photos.unwrap_or(captures.photos.len());
     check_capture_memory(opts.size, count, &opts.max_memory)?;
     let style = |what: &str| ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} ETA {{eta}}"));
-    let stages = [style("start: estimate of the overhead photo, GGX fit")?, style(&format!("fitting {count} photos"))?];
+    let stages = [style("start: estimate of the overhead photo, GGX fit")?, style(&format!("fitting {count} photos"))?, style("neural material: codes, then its gap to the maps")?];
     let bar = ProgressBar::new(0);
     let mut stage = usize::MAX;
     let made = capture_material(&captures, count, &cfg, opts.model.as_deref(), device, |w| bar.suspend(|| eprintln!("warning: {w}")), |s, done, total| {

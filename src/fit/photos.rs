@@ -944,7 +944,9 @@ pub fn fit_capture(loaded: &LoadedModel, capture: &CapturePhotos, cfg: &PhotoFit
 /// (None: the bundled one), [`fit_capture`], then [`neural_material`] of
 /// the fitted maps by the bundled teacher, named after the folder.
 /// `on_warning` hears the photos' warnings before the fit and the fit's
-/// outlier warnings after; `on_progress` as in [`fit_capture`].
+/// outlier warnings after; `on_progress` as in [`fit_capture`], then
+/// stage 2 for the neural material (done 0 of 2: its codes fitted, 1: its
+/// gap measured, 2: made).
 pub fn capture_material(
     captures: &Captures,
     count: usize,
@@ -952,21 +954,24 @@ pub fn capture_material(
     model: Option<&Path>,
     device: Device,
     mut on_warning: impl FnMut(&str),
-    on_progress: impl FnMut(usize, usize, usize),
+    mut on_progress: impl FnMut(usize, usize, usize),
 ) -> Result<CaptureMaterial> {
     cfg.validate()?;
     let capture = load_capture(captures, count, cfg.size)?;
     capture.warnings.iter().for_each(|w| on_warning(w));
     let loaded = crate::infer::load_model(model, device)?;
     let teacher = load_teacher(None, device)?;
-    let fit = fit_capture(&loaded, &capture, cfg, device, on_progress)?;
+    let fit = fit_capture(&loaded, &capture, cfg, device, &mut on_progress)?;
     outlier_warnings(&fit, &capture.names).iter().for_each(|w| on_warning(w));
+    on_progress(2, 0, 2);
     let dir = &captures.dir;
     let source = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
     let (material, code_fit) = fitted_neural_material(&fit.maps, &capture.photos.get(capture.overhead as i64), &teacher, &capture.configs, &cfg.code_fit, &source)?;
     // LPIPS where its weights are installed; the other figures always.
     let lpips = crate::lpips::Lpips::new(device).ok();
+    on_progress(2, 1, 2);
     let gap = neural_gap(&material, &fit.maps, &held_out_configs(GAP_CONFIGS), lpips.as_ref())?;
+    on_progress(2, 2, 2);
     Ok(CaptureMaterial { material, fit, code_fit, gap, names: capture.names })
 }
 
