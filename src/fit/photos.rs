@@ -808,7 +808,7 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
 const MOSTLY_CLIPPED: f64 = 0.9;
 
 /// Photos whose mean |difference| as decoded (linear) is below this are
-/// the same photo: a third of an 8-bit step at mid-grey, what re-encoding
+/// the same photo: about a quarter of an 8-bit step at mid-grey, what re-encoding
 /// a photo changes.
 const SAME_PHOTO: f64 = 1e-3;
 
