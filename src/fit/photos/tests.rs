@@ -112,18 +112,27 @@ fn the_teachers_material_renders_the_fitted_maps() {
     assert!((neural / ggx - 1.0).abs() < 0.2, "neural {neural} vs GGX {ggx}");
 }
 
+/// [`truth_maps`] as a 3-photo synthetic capture in `dir`; returns the material.
+fn write_truth_capture(dir: &std::path::Path) -> Svbrdf {
+    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&truth_maps()).unwrap()).unwrap();
+    write_synthetic(dir, &material, &synthetic_configs(3), 10.0).unwrap();
+    material
+}
+
+/// The error's message, asserted to be one line.
+fn one_line(e: anyhow::Error) -> String {
+    let m = format!("{e:#}");
+    assert!(!m.contains('\n'), "{m}");
+    m
+}
+
 #[test]
 fn bad_captures_are_one_line_naming_the_photo() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&truth_maps()).unwrap()).unwrap();
-    write_synthetic(d, &material, &synthetic_configs(3), 10.0).unwrap();
+    write_truth_capture(d);
     let captures = Captures::open(d).unwrap();
-    let msg = |e: anyhow::Error| {
-        let m = format!("{e:#}");
-        assert!(!m.contains('\n'), "{m}");
-        m
-    };
+    let msg = one_line;
     assert!(msg(load_capture(&captures, 0, 32).unwrap_err()).contains("--photos must be between 1 and 3"));
     assert!(msg(load_capture(&captures, 4, 32).unwrap_err()).contains("--photos must be between 1 and 3"));
     // A black photo.
@@ -470,13 +479,8 @@ fn a_clipped_highlight_leaves_no_patch_in_the_maps() {
 fn repeated_photos_and_positions_are_refused_naming_both() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&truth_maps()).unwrap()).unwrap();
-    write_synthetic(d, &material, &synthetic_configs(3), 10.0).unwrap();
-    let msg = |e: anyhow::Error| {
-        let m = format!("{e:#}");
-        assert!(!m.contains('\n'), "{m}");
-        m
-    };
+    let material = write_truth_capture(d);
+    let msg = one_line;
     // The clean capture's photos differ by far more than the bound.
     let clean = load_capture(&Captures::open(d).unwrap(), 3, 32).unwrap();
     for (a, b) in [(0, 1), (0, 2), (1, 2)] {
