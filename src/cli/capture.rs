@@ -116,7 +116,8 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         // Every option of the whole command before any work or write.
         flashmat::fit::photos::PhotoFitConfig { steps: a.steps, size: a.size, ..Default::default() }.validate()?;
         flashmat::device::parse_device(&a.device)?;
-        super::estimate_capture::check_capture_memory(a.size, a.photos.len(), &default_estimate_options()?.max_memory)?;
+        let remedy = "lower --size, or write the capture folder alone (no --estimate) and run `flashmat estimate --capture FOLDER` on it with a larger --max-memory";
+        super::estimate_capture::check_capture_memory(a.size, a.photos.len(), &default_estimate_options()?.max_memory, remedy)?;
     }
     let cfg = CaptureConfig { flash_offset_mm: a.flash_offset, max_side: a.max_size, ..Default::default() };
     let bar = ProgressBar::new(a.photos.len() as u64).with_style(ProgressStyle::with_template("{msg} {bar:40} {pos}/{len}")?);

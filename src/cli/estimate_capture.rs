@@ -50,7 +50,7 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
     let device = flashmat::device::parse_device(&opts.device)?;
     let captures = Captures::open(dir)?;
     let count = a.photos.unwrap_or(captures.photos.len());
-    check_capture_memory(opts.size, count, &opts.max_memory)?;
+    check_capture_memory(opts.size, count, &opts.max_memory, "lower --size, or raise --max-memory where the machine has it")?;
     let style = |what: &str| ProgressStyle::with_template(&format!("{what} {{bar:40}} {{pos}}/{{len}} ETA {{eta}}"));
     let stages = [style("start: estimate of the overhead photo, GGX fit")?, style(&format!("fitting {count} photos"))?, style("neural material: codes, then its gap to the maps")?];
     let bar = ProgressBar::new(0);
@@ -116,13 +116,14 @@ pub fn estimate_capture(dir: &Path, output: &Path, a: &CaptureArgs, opts: &Estim
 
 /// Refuses a capture fit at side `size` with `photos` photos whose memory
 /// ([`capture_fit_memory`](flashmat::fit::photos::capture_fit_memory)) is
-/// above `max_memory` (`--max-memory`), before any work.
-pub fn check_capture_memory(size: usize, photos: usize, max_memory: &str) -> Result<()> {
+/// above `max_memory` (`--max-memory`), before any work; `remedy` ends
+/// the line (what the user's command can change).
+pub fn check_capture_memory(size: usize, photos: usize, max_memory: &str, remedy: &str) -> Result<()> {
     let limit = flashmat::infer::tiles::parse_memory(max_memory)?;
     let need = flashmat::fit::photos::capture_fit_memory(size, photos);
     ensure!(
         need <= limit as f64,
-        "a capture fit at --size {size} with {photos} photos needs about {:.1} GiB, more than --max-memory {max_memory}: lower --size, or raise --max-memory where the machine has it",
+        "a capture fit at --size {size} with {photos} photos needs about {:.1} GiB, more than the {max_memory} allowed: {remedy}",
         need / (1u64 << 30) as f64
     );
     Ok(())

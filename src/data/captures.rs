@@ -87,7 +87,7 @@ impl Captures {
                 let d = length(*p);
                 ensure!(
                     POSITION_DISTANCES.contains(&d),
-                    "{}: photo {number:02} is {:.3e} sample widths from the sample (image_size.txt: the sample is {sample_width} wide), outside {}-{}: are the width and the positions in one unit?",
+                    "{}: photo {number:02} is {:.3e} sample widths from the sample (image_size.txt: the sample is {sample_width:?} wide), outside {}-{}: are the width and the positions in one unit?",
                     dir.join(file).display(),
                     d / 2.0,
                     POSITION_DISTANCES.start() / 2.0,
@@ -268,7 +268,7 @@ fn read_exposures(path: &Path, expected: usize, needs: &str) -> Result<Vec<f64>>
     let (low, high) = out.iter().fold((f64::INFINITY, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));
     ensure!(
         high / low <= MAX_EXPOSURE_RATIO,
-        "{}: its exposures span {:.1e}x ({low} to {high}), more than the {MAX_EXPOSURE_RATIO}x (10 stops) one capture's photos can differ by and still show one material; correct the file",
+        "{}: its exposures span {:.1e}x ({low:?} to {high:?}), more than the {MAX_EXPOSURE_RATIO}x (10 stops) one capture's photos can differ by and still show one material; correct the file",
         path.display(),
         high / low
     );
