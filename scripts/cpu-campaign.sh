@@ -45,11 +45,17 @@ build() {
 # The recipe: E12's (reports/highlights-experiments.md section 5: the code
 # term with glossy pixels weighted 4x, renderer frozen) at crop 256 (section
 # 12: more lobe than crop 128 at equal time) with half the inputs phone
-# photos (section 11).
+# photos (section 11). Stage B (from step 46,506 on): the code term at 0.25
+# and LPIPS at 1. Stage A (code 1, LPIPS 0.1) moved the highlights (ghost
+# 2.08 -> 1.51, lobe 0.18 -> 0.37) but its code error stalled at 0.58 after
+# 3 CPU hours with Identity LPIPS at 0.258 (bundled 0.115): the code term
+# was 0.6 of a 0.7 loss, the photo's own render 0.07
+# (reports/campaign/eval-46506.md). FLASHMAT_CAMPAIGN_CODE_WEIGHT and
+# FLASHMAT_CAMPAIGN_LPIPS_WEIGHT set them for a new run.
 recipe() {
-  echo --preset compact --ldr --teacher "$TEACHER" --code-weight 1 --code-gloss-weight 4 --freeze-renderer \
+  echo --preset compact --ldr --teacher "$TEACHER" --code-weight "${FLASHMAT_CAMPAIGN_CODE_WEIGHT:-0.25}" --code-gloss-weight 4 --freeze-renderer \
     --crop 256 --outputs 4 --colocated-outputs 1 --batch 2 --lr 3e-4 --warmup-steps 50 --straight-through-output \
-    --checkerboard-free --adv-weight 0 --lpips-weight 0.1 --chroma-weight 1 --phone-inputs 0.5 \
+    --checkerboard-free --adv-weight 0 --lpips-weight "${FLASHMAT_CAMPAIGN_LPIPS_WEIGHT:-1}" --chroma-weight 1 --phone-inputs 0.5 \
     --steps 100000000 --checkpoint-every "$EVERY" --keep-exports --preview-every 1000000 --seed 13 --threads 1
 }
 

@@ -16,8 +16,8 @@ cd "$(dirname "$0")/.."
 source scripts/env.sh
 # HEIC/AVIF photos (a phone's own) need libheif: installed once when
 # missing; without it they are refused with the way to convert them.
-features=()
-bash scripts/install-libheif.sh >/dev/null && features=(--features heif)
+features=(--features raw)
+bash scripts/install-libheif.sh >/dev/null && features=(--features heif,raw)
 cargo build --release --quiet ${features[@]+"${features[@]}"}
 FLASHMAT="$FLASHMAT_RELEASE_BIN"
 FRAMES=${FLASHMAT_ORBIT_FRAMES:-24}

@@ -23,11 +23,14 @@ bash scripts/install-chromium.sh >/dev/null || true
 # system libheif: Debian's libheif-dev, installed once when missing. Where
 # it cannot be installed the tests run without the feature, saying so; CI
 # (.ci/run sets FLASHMAT_REQUIRE_HEIF=1) fails instead.
-features=()
+# RAW photos (the `raw` feature, src/io/raw.rs: rawler, pure Rust) are
+# always on here.
+features=(--features raw)
+export FLASHMAT_CARGO_FEATURES=raw
 if bash scripts/install-libheif.sh >/dev/null; then
-  features=(--features heif)
-  # The Python package's extension is built with it too (scripts/test_python.sh).
-  export FLASHMAT_CARGO_FEATURES=heif
+  features=(--features heif,raw)
+  # The Python package's extension is built with them too (scripts/test_python.sh).
+  export FLASHMAT_CARGO_FEATURES=heif,raw
 elif [ "${FLASHMAT_REQUIRE_HEIF:-0}" = 1 ]; then
   echo "test: libheif-dev is required here (FLASHMAT_REQUIRE_HEIF=1) and could not be installed" >&2
   exit 1

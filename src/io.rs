@@ -22,8 +22,11 @@ use std::io::{BufWriter, Cursor, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
+pub mod dng;
 #[cfg(feature = "heif")]
 pub mod heif;
+#[cfg(feature = "raw")]
+mod raw;
 
 /// Sample depth of a written PNG.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -43,6 +46,9 @@ pub enum FileFormat {
     /// HEIC/HEIF or AVIF whose PQ, HLG or linear transfer was taken out:
     /// linear floats, 1.0 at SDR reference white.
     HeifLinear,
+    /// A RAW photo (DNG ...; the `raw` feature): linear sRGB floats, 1.0
+    /// at the sensor's white level, clipped there (`io::raw`).
+    Raw,
 }
 
 impl FileFormat {
@@ -50,7 +56,13 @@ impl FileFormat {
     /// rather than integer codes in whatever encoding the producer used
     /// (PNG, JPEG, HEIF).
     pub fn is_float(self) -> bool {
-        matches!(self, FileFormat::Exr | FileFormat::HeifLinear)
+        matches!(self, FileFormat::Exr | FileFormat::HeifLinear | FileFormat::Raw)
+    }
+
+    /// Whether the linear values stop at 1, where the sensor clipped, as an
+    /// 8-bit photo's codes do (RAW), rather than going on (EXR, HDR HEIF).
+    pub fn clips_at_one(self) -> bool {
+        !self.is_float() || self == FileFormat::Raw
     }
 
     /// Whether the file is HEIF (HEIC, AVIF): decoded with its own
@@ -63,6 +75,17 @@ impl FileFormat {
 const PNG_SIGNATURE: &[u8] = b"\x89PNG\r\n\x1a\n";
 const JPEG_SIGNATURE: &[u8] = &[0xFF, 0xD8, 0xFF];
 const EXR_SIGNATURE: &[u8] = &[0x76, 0x2F, 0x31, 0x01];
+
+/// A TIFF file, little- or big-endian (DNG and most camera RAW formats).
+fn is_tiff(bytes: &[u8]) -> bool {
+    bytes.starts_with(b"II*\0") || bytes.starts_with(b"MM\0*")
+}
+
+/// Extensions of RAW photos: DNG, and the camera formats rawler reads.
+const RAW_EXTENSIONS: [&str; 11] = ["dng", "cr2", "cr3", "crw", "nef", "arw", "orf", "rw2", "raf", "pef", "srw"];
+
+/// The refusal of a RAW photo by a build without the `raw` feature.
+const RAW_NOT_BUILT: &str = "RAW photos (DNG) are not supported by this build: export the photo as JPEG from the phone, or build flashmat with `--features raw` (scripts/test.sh and scripts/demo.sh do)";
 
 /// An ISO base-media (HEIF: HEIC, AVIF) file: a `ftyp` box first whose
 /// brand is one of the image brands.
@@ -145,7 +168,7 @@ pub fn read_input(path: &Path) -> Result<Vec<u8>> {
 enum DecodeError {
     Corrupt(String),
     TooLarge(String),
-    #[cfg_attr(not(feature = "heif"), allow(dead_code))]
+    #[cfg_attr(not(any(feature = "heif", feature = "raw")), allow(dead_code))]
     Unsupported(String),
 }
 
@@ -177,6 +200,10 @@ pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)>
         FileFormat::Exr
     } else if is_heif(&bytes) && cfg!(feature = "heif") {
         FileFormat::Heif
+    } else if (is_tiff(&bytes) || extension_lowercase(path).is_some_and(|e| RAW_EXTENSIONS.contains(&e.as_str()))) && cfg!(feature = "raw") {
+        FileFormat::Raw
+    } else if is_tiff(&bytes) || extension_lowercase(path).is_some_and(|e| RAW_EXTENSIONS.contains(&e.as_str())) {
+        return Err(read_error(path, RAW_NOT_BUILT));
     } else if is_heif(&bytes) || (!cfg!(feature = "heif") && matches!(extension_lowercase(path).as_deref(), Some("heic" | "heif" | "avif"))) {
         return Err(read_error(
             path,
@@ -187,8 +214,7 @@ pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)>
             Some(ext @ ("png" | "jpg" | "jpeg" | "exr" | "heic" | "heif" | "avif")) => {
                 read_error(path, format!("not a valid .{ext} file (unrecognised signature)"))
             }
-            _ if cfg!(feature = "heif") => read_error(path, "unsupported format (expected PNG, JPEG, OpenEXR, HEIC/HEIF or AVIF)"),
-            _ => read_error(path, "unsupported format (expected PNG, JPEG or OpenEXR)"),
+            _ => read_error(path, format!("unsupported format (expected {})", supported_formats())),
         });
     };
     // The decoders are third-party code fed arbitrary bytes; turn any panic
@@ -201,6 +227,10 @@ pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)>
         FileFormat::Heif | FileFormat::HeifLinear => heif::decode(&bytes),
         #[cfg(not(feature = "heif"))]
         FileFormat::Heif | FileFormat::HeifLinear => unreachable!("HEIF files are refused above without the heif feature"),
+        #[cfg(feature = "raw")]
+        FileFormat::Raw => raw::decode(&bytes).map(|i| (i, format)),
+        #[cfg(not(feature = "raw"))]
+        FileFormat::Raw => unreachable!("RAW files are refused above without the raw feature"),
     }))
     .unwrap_or_else(|_| Err(DecodeError::Corrupt("the decoder crashed (corrupt file?)".to_string())));
     let (image, format) = decoded.map_err(|e| {
@@ -212,6 +242,7 @@ pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)>
             FileFormat::Heif | FileFormat::HeifLinear => heif::kind(&bytes).0,
             #[cfg(not(feature = "heif"))]
             FileFormat::Heif | FileFormat::HeifLinear => "HEIF",
+            FileFormat::Raw => "RAW",
         };
         match e {
             DecodeError::Corrupt(reason) => read_error(path, format!("corrupt or truncated {kind} file: {reason}")),
@@ -225,6 +256,39 @@ pub(crate) fn read_image_with_format(path: &Path) -> Result<(Image, FileFormat)>
         return Err(read_error(path, format!("NaN/Inf value at row {y}, column {x}, channel {c}")));
     }
     Ok((image, format))
+}
+
+/// The formats this build reads, for error messages.
+fn supported_formats() -> String {
+    let mut formats = vec!["PNG", "JPEG", "OpenEXR"];
+    if cfg!(feature = "heif") {
+        formats.push("HEIC/HEIF, AVIF");
+    }
+    if cfg!(feature = "raw") {
+        formats.push("DNG or camera RAW");
+    }
+    let last = formats.pop().unwrap_or_default();
+    format!("{} or {last}", formats.join(", "))
+}
+
+/// The gain a RAW photo's camera meant for its linear values, 2^BaselineExposure
+/// (DNG), so that they meet an 8-bit photo's at a normal exposure; 1 for
+/// other files, and for builds without the `raw` feature (which read no RAW).
+pub fn raw_baseline_gain(path: &Path) -> f64 {
+    #[cfg(feature = "raw")]
+    {
+        let Ok(bytes) = read_input(path) else { return 1.0 };
+        if !is_tiff(&bytes) {
+            return 1.0;
+        }
+        let stops = std::panic::catch_unwind(|| raw::baseline_exposure(&bytes)).ok().flatten().unwrap_or(0.0);
+        2f64.powf(stops.clamp(-8.0, 8.0))
+    }
+    #[cfg(not(feature = "raw"))]
+    {
+        let _ = path;
+        1.0
+    }
 }
 
 /// The EXIF block of a HEIF (HEIC, AVIF) file as TIFF bytes, read by
@@ -1032,6 +1096,16 @@ mod tests {
         write_png(&p, &ga, BitDepth::Eight).unwrap();
         assert_eq!(read_image(&p).unwrap().channels, 2);
         assert_eq!(read_rgb(&p).unwrap().plane(1), read_gray(&p).unwrap().plane(0));
+    }
+
+    #[cfg(not(feature = "raw"))]
+    #[test]
+    fn a_raw_photo_without_the_raw_feature_says_how_to_read_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("IMG_0001.dng");
+        dng::write_dng(&path, &Image::filled(3, 8, 8, 0.5), &dng::DngOptions::default()).unwrap();
+        let e = format!("{:#}", read_image(&path).unwrap_err());
+        assert!(!e.contains('\n') && e.contains("IMG_0001.dng") && e.contains("--features raw") && e.contains("JPEG"), "{e}");
     }
 
     #[test]

@@ -74,10 +74,22 @@ pub const FOCAL_RANGE: std::ops::RangeInclusive<f64> = 0.3..=3.0;
 /// Smallest rectified side, pixels.
 const MIN_SIDE: usize = 64;
 
+/// A RAW photo of the frame as read (`io::raw`).
+pub struct RawPixels {
+    /// Linear sRGB `[3, H, W]`, upright, 1 at the sensor's white level.
+    pub linear: crate::image::Image,
+    /// 2^BaselineExposure of the file (`io::raw_baseline_gain`).
+    pub baseline_gain: f64,
+}
+
 /// A photo of the frame, decoded and turned upright by its EXIF.
 pub struct FramePhoto {
     pub path: PathBuf,
+    /// The photo's codes (a RAW photo's linear values sRGB-encoded): what
+    /// the tag detector and the pictures see.
     pub rgb: Rgb8,
+    /// A RAW photo's linear pixels, rectified instead of the codes.
+    pub raw: Option<RawPixels>,
     /// The focal length in pixels from the EXIF, if it says.
     pub exif_focal: Option<f64>,
     pub orientation: u16,
@@ -88,13 +100,18 @@ pub struct FramePhoto {
 /// Reads a photo of the frame (JPEG, PNG, HEIC with the `heif` feature).
 pub fn load_frame_photo(path: &Path) -> Result<FramePhoto> {
     let (image, format) = crate::io::read_image_with_format(path)?;
-    ensure!(!format.is_float(), "{}: a photo of the frame must be an 8-bit photo (JPEG, PNG, HEIC), not HDR", path.display());
+    let raw = format == crate::io::FileFormat::Raw;
+    ensure!(raw || !format.is_float(), "{}: a photo of the frame must be an 8-bit photo (JPEG, PNG, HEIC) or a RAW photo (DNG), not HDR", path.display());
     let info = crate::infer::camera::read_camera(path, format, image.width, image.height)?;
     let rgb = crate::io::to_rgb(&image).oriented(info.orientation);
     let (w, h) = (rgb.width, rgb.height);
-    let data = (0..h).flat_map(|y| (0..w).flat_map(move |x| (0..3).map(move |c| (y, x, c)))).map(|(y, x, c)| crate::spaces::quantize_u8(rgb.get(c, y, x))).collect();
+    // A RAW photo's codes (for the tag detector and the pictures) are its
+    // linear values sRGB-encoded; it is rectified from the linear values.
+    let code = |v: f32| if raw { crate::spaces::quantize_u8(crate::spaces::photo_encode(v.clamp(0.0, 1.0))) } else { crate::spaces::quantize_u8(v) };
+    let data = (0..h).flat_map(|y| (0..w).flat_map(move |x| (0..3).map(move |c| (y, x, c)))).map(|(y, x, c)| code(rgb.get(c, y, x))).collect();
     let exif_focal = info.fov.map(|(fov, _)| w.min(h) as f64 / 2.0 / (fov.to_radians() / 2.0).tan());
-    Ok(FramePhoto { path: path.to_path_buf(), rgb: Rgb8 { width: w, height: h, data }, exif_focal, orientation: info.orientation, exposure: info.exposure })
+    let baseline_gain = crate::io::raw_baseline_gain(path);
+    Ok(FramePhoto { path: path.to_path_buf(), rgb: Rgb8 { width: w, height: h, data }, exif_focal, orientation: info.orientation, exposure: info.exposure, raw: raw.then_some(RawPixels { linear: rgb, baseline_gain }) })
 }
 
 /// Each photo's exposure relative to the first's (EXIF time x ISO /
@@ -253,6 +270,11 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
     for photo in photos {
         check_exif_exposure(photo)?;
     }
+    // RAW and 8-bit photos are on different scales (a RAW photo's white
+    // level against a JPEG's tone curve): one capture takes one kind.
+    if let (Some(raw), Some(coded)) = (photos.iter().find(|p| p.raw.is_some()), photos.iter().find(|p| p.raw.is_none())) {
+        bail!("{} is a RAW photo and {} is not: a capture's photos are all RAW (DNG) or all JPEG/PNG/HEIC; take them in one format", name(&raw.path), name(&coded.path));
+    }
     let mut found = Vec::new();
     for (i, photo) in photos.iter().enumerate() {
         on_progress(0, i, photos.len());
@@ -296,7 +318,11 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
     let mut rectified = Vec::new();
     for (n, &i) in order.iter().enumerate() {
         on_progress(2, n, order.len());
-        rectified.push(rectify::rectify(&photos[i].rgb, &results[i].intrinsics, &results[i].pose, half, side, &decode));
+        let pixels = match &photos[i].raw {
+            Some(raw) => rectify::Pixels::Linear(&raw.linear),
+            None => rectify::Pixels::Coded(&photos[i].rgb),
+        };
+        rectified.push(rectify::rectify(pixels, &results[i].intrinsics, &results[i].pose, half, side, &decode));
     }
     on_progress(2, order.len(), order.len());
     let photos_out = order.iter().map(|&i| results[i].clone()).collect();
@@ -390,7 +416,7 @@ fn calibrate_photos(photos: &[FramePhoto], obs: &[Correspondences]) -> Result<Ca
 }
 
 /// Writes the capture folder (`NN.png` rectified photos, ^2.2-encoded as
-/// capture folders are; `camera_pos.txt`, `light_pos.txt` in mm;
+/// capture folders are, or `NN.dng`, 16-bit linear, from RAW photos; `camera_pos.txt`, `light_pos.txt` in mm;
 /// `image_size.txt`: the opening in mm) and its picture `capture.jpg`, all
 /// at once: into a temporary folder beside `dir`, renamed at the end, so
 /// nothing is left half-written. `dir` must not exist, or be empty.
@@ -407,8 +433,16 @@ pub fn write_folder(capture: &Capture, dir: &Path, photos: &[FramePhoto]) -> Res
     let written = (|| -> Result<()> {
         let side = capture.side;
         for (i, linear) in capture.rectified.iter().enumerate() {
-            let image = crate::image::Image::from_data(3, side, side, linear.iter().map(|&v| crate::spaces::gamma_encode(v.clamp(0.0, 1.0))).collect())?;
-            crate::io::write_png(&tmp.join(format!("{i:02}.png")), &image, crate::io::BitDepth::Eight)?;
+            let source = photos.iter().find(|f| f.path == capture.photos[i].source).context("a capture's photo is missing from its inputs")?;
+            if let Some(raw) = &source.raw {
+                // RAW in, RAW out: 16-bit linear, its BaselineExposure kept.
+                let image = crate::image::Image::from_data(3, side, side, linear.clone())?;
+                let opts = crate::io::dng::DngOptions { bits: 16, black: 0, neutral: [1.0; 3], baseline_exposure: raw.baseline_gain.log2(), ..Default::default() };
+                crate::io::dng::write_dng(&tmp.join(format!("{i:02}.dng")), &image, &opts)?;
+            } else {
+                let image = crate::image::Image::from_data(3, side, side, linear.iter().map(|&v| crate::spaces::gamma_encode(v.clamp(0.0, 1.0))).collect())?;
+                crate::io::write_png(&tmp.join(format!("{i:02}.png")), &image, crate::io::BitDepth::Eight)?;
+            }
         }
         let lines = |pick: fn(&PhotoResult) -> Vec3| -> String { capture.photos.iter().map(pick).map(|p| format!("{:.3},{:.3},{:.3}\n", p[0], p[1], p[2])).collect() };
         std::fs::write(tmp.join("camera_pos.txt"), lines(|p| p.camera))?;

@@ -24,12 +24,20 @@ impl Rgb8 {
     }
 }
 
+/// A photo's pixels as [`rectify`] reads them.
+pub enum Pixels<'a> {
+    /// 8-bit codes, turned to linear light by the `decode` given to [`rectify`].
+    Coded(&'a Rgb8),
+    /// Linear light `[3, H, W]` (a RAW photo's).
+    Linear(&'a crate::image::Image),
+}
+
 /// The square `[-half, half]^2` (mm, the frame's axes) as `side x side`
 /// linear pixels `[3, side, side]` row-major: row 0 at +y (the top of the
 /// page), column 0 at -x. `decode` maps an 8-bit code to linear light.
 /// Where one output pixel covers more than a photo pixel, it averages
 /// `n x n` samples (n from the photo's own scale), so nothing aliases.
-pub fn rectify(photo: &Rgb8, k: &Intrinsics, pose: &Pose, half: f64, side: usize, decode: &(dyn Fn(u8) -> f32 + Sync)) -> Vec<f32> {
+pub fn rectify(photo: Pixels, k: &Intrinsics, pose: &Pose, half: f64, side: usize, decode: &(dyn Fn(u8) -> f32 + Sync)) -> Vec<f32> {
     let lut: Vec<f32> = (0..=255u8).map(decode).collect();
     let step = 2.0 * half / side as f64;
     // Photo pixels per output pixel, at the opening's centre.
@@ -54,7 +62,7 @@ pub fn rectify(photo: &Rgb8, k: &Intrinsics, pose: &Pose, half: f64, side: usize
                         let x = -half + (col as f64 + (sx as f64 + 0.5) / n as f64) * step;
                         let y = half - (row as f64 + (sy as f64 + 0.5) / n as f64) * step;
                         if let Some(px) = pose.project(k, [x, y, 0.0]) {
-                            let v = bilinear(photo, &lut, px);
+                            let v = bilinear(&photo, &lut, px);
                             for c in 0..3 {
                                 acc[c] += v[c];
                             }
@@ -72,15 +80,23 @@ pub fn rectify(photo: &Rgb8, k: &Intrinsics, pose: &Pose, half: f64, side: usize
 
 /// The photo at a pixel position (centres at +0.5), bilinear in linear
 /// light; positions off the photo take the nearest edge pixel.
-fn bilinear(photo: &Rgb8, lut: &[f32], p: [f64; 2]) -> [f32; 3] {
-    let (w, h) = (photo.width as isize, photo.height as isize);
+fn bilinear(photo: &Pixels, lut: &[f32], p: [f64; 2]) -> [f32; 3] {
+    let (w, h) = match photo {
+        Pixels::Coded(p) => (p.width as isize, p.height as isize),
+        Pixels::Linear(i) => (i.width as isize, i.height as isize),
+    };
     let (x, y) = (p[0] - 0.5, p[1] - 0.5);
     let (x0, y0) = (x.floor(), y.floor());
     let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
     let at = |xi: isize, yi: isize| {
         let (xi, yi) = (xi.clamp(0, w - 1) as usize, yi.clamp(0, h - 1) as usize);
-        let o = (yi * photo.width + xi) * 3;
-        [lut[photo.data[o] as usize], lut[photo.data[o + 1] as usize], lut[photo.data[o + 2] as usize]]
+        match photo {
+            Pixels::Coded(photo) => {
+                let o = (yi * photo.width + xi) * 3;
+                [lut[photo.data[o] as usize], lut[photo.data[o + 1] as usize], lut[photo.data[o + 2] as usize]]
+            }
+            Pixels::Linear(image) => [image.get(0, yi, xi), image.get(1, yi, xi), image.get(2, yi, xi)],
+        }
     };
     let (x0, y0) = (x0 as isize, y0 as isize);
     let (a, b, c, d) = (at(x0, y0), at(x0 + 1, y0), at(x0, y0 + 1), at(x0 + 1, y0 + 1));

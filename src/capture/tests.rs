@@ -23,7 +23,7 @@ fn shoot(views: &[PhoneView], offset: [f64; 2], fx: PhoneEffects, dir: &Path) ->
     shots
         .into_iter()
         .enumerate()
-        .map(|(i, s)| (FramePhoto { path: dir.join(format!("IMG_{i}.jpg")), rgb: s.rgb, exif_focal: Some(FOCAL), orientation: 1, exposure: None }, s.truth))
+        .map(|(i, s)| (FramePhoto { path: dir.join(format!("IMG_{i}.jpg")), rgb: s.rgb, exif_focal: Some(FOCAL), orientation: 1, exposure: None, raw: None }, s.truth))
         .unzip()
 }
 
@@ -133,7 +133,7 @@ fn bad_photos_are_named_and_leave_no_folder() {
     assert!(err(&photos[..1]).contains("at least 2 photos"));
 
     // Most of the frame covered: too few tags.
-    let mut covered = FramePhoto { path: dir.path().join("covered.jpg"), rgb: Rgb8 { width: W, height: H, data: photos[1].rgb.data.clone() }, exif_focal: Some(FOCAL), orientation: 1, exposure: None };
+    let mut covered = FramePhoto { path: dir.path().join("covered.jpg"), rgb: Rgb8 { width: W, height: H, data: photos[1].rgb.data.clone() }, exif_focal: Some(FOCAL), orientation: 1, exposure: None, raw: None };
     for y in 0..H {
         for x in (W / 3)..W {
             covered.rgb.data[3 * (y * W + x)..3 * (y * W + x) + 3].fill(128);
@@ -168,8 +168,14 @@ fn bad_photos_are_named_and_leave_no_folder() {
 }
 
 impl FramePhoto {
+    #[cfg(feature = "raw")]
+    fn clone_photo_with_raw(&self) -> FramePhoto {
+        let raw = self.raw.as_ref().map(|r| RawPixels { linear: r.linear.clone(), baseline_gain: r.baseline_gain });
+        FramePhoto { raw, ..self.clone_photo() }
+    }
+
     fn clone_photo(&self) -> FramePhoto {
-        FramePhoto { path: self.path.clone(), rgb: Rgb8 { width: self.rgb.width, height: self.rgb.height, data: self.rgb.data.clone() }, exif_focal: self.exif_focal, orientation: self.orientation, exposure: self.exposure.clone() }
+        FramePhoto { path: self.path.clone(), rgb: Rgb8 { width: self.rgb.width, height: self.rgb.height, data: self.rgb.data.clone() }, exif_focal: self.exif_focal, orientation: self.orientation, exposure: self.exposure.clone(), raw: None }
     }
 }
 
@@ -213,7 +219,7 @@ fn the_frame_picture_has_its_tags_and_caption_room() {
     assert!(caption.iter().all(|(_, [x, y])| *x > 0.0 && *y < image.height as f64 && *y > image.height as f64 / 2.0));
     // The detector finds every tag of the printed page.
     let rgb = Rgb8 { width: image.width, height: image.height, data: image.data.iter().flat_map(|&v| [crate::spaces::quantize_u8(v); 3]).collect() };
-    let photo = FramePhoto { path: "frame.png".into(), rgb, exif_focal: None, orientation: 1, exposure: None };
+    let photo = FramePhoto { path: "frame.png".into(), rgb, exif_focal: None, orientation: 1, exposure: None, raw: None };
     let (found_layout, found) = find_frame(&photo, 2).unwrap();
     assert_eq!(found_layout, layout);
     assert_eq!(found.len(), layout.tags.len());
@@ -263,7 +269,7 @@ fn tags_of_another_family_are_named() {
         apriltag_sys::tag25h9_destroy(family);
     }
     let rgb = Rgb8 { width: w, height: h, data: gray.iter().flat_map(|&v| [v; 3]).collect() };
-    let photo = FramePhoto { path: "other.png".into(), rgb, exif_focal: None, orientation: 1, exposure: None };
+    let photo = FramePhoto { path: "other.png".into(), rgb, exif_focal: None, orientation: 1, exposure: None, raw: None };
     let e = format!("{:#}", find_frame(&photo, 2).err().expect("an error"));
     assert!(e.starts_with("other.png: its tags are tag25h9, not the frame's tag36h11"), "{e}");
 }
@@ -271,7 +277,7 @@ fn tags_of_another_family_are_named() {
 #[test]
 fn differing_exposures_are_brought_to_one_or_named() {
     use crate::infer::camera::Exposure;
-    let photo = |name: &str, exposure: Option<Exposure>| FramePhoto { path: name.into(), rgb: Rgb8 { width: 1, height: 1, data: vec![0; 3] }, exif_focal: None, orientation: 1, exposure };
+    let photo = |name: &str, exposure: Option<Exposure>| FramePhoto { path: name.into(), rgb: Rgb8 { width: 1, height: 1, data: vec![0; 3] }, exif_focal: None, orientation: 1, exposure, raw: None };
     let stated = |t: f64, n: f64, iso: u32| Some(Exposure { time_s: Some(t), f_number: Some(n), iso: Some(iso) });
     let same = [photo("a.jpg", stated(1.0 / 60.0, 1.8, 100)), photo("b.jpg", stated(1.0 / 60.0, 1.8, 100))];
     assert_eq!(exposure_warning(&same), None);
@@ -376,7 +382,7 @@ fn the_picture_of_many_photos_wraps_its_rows_and_says_how_many_it_shows() {
 
 #[test]
 fn an_exposure_no_phone_takes_is_named_before_any_work() {
-    let mut photo = FramePhoto { path: "IMG_7.jpg".into(), rgb: super::rectify::Rgb8 { width: 2, height: 2, data: vec![0; 12] }, exif_focal: None, orientation: 1, exposure: None };
+    let mut photo = FramePhoto { path: "IMG_7.jpg".into(), rgb: super::rectify::Rgb8 { width: 2, height: 2, data: vec![0; 12] }, exif_focal: None, orientation: 1, exposure: None, raw: None };
     let exposure = |t: f64, iso: u32| Some(crate::infer::camera::Exposure { time_s: Some(t), f_number: Some(1.8), iso: Some(iso) });
     photo.exposure = exposure(1.0 / 60.0, 100);
     assert!(check_exif_exposure(&photo).is_ok());
@@ -389,4 +395,51 @@ fn an_exposure_no_phone_takes_is_named_before_any_work() {
     photo.exposure = exposure(4e9, 100);
     let e = format!("{:#}", capture(&[photo.clone_photo(), photo.clone_photo()], &CaptureConfig::default(), |_, _, _| {}).err().expect("an error"));
     assert!(e.contains("no phone takes"), "{e}");
+}
+
+#[cfg(feature = "raw")]
+#[test]
+fn raw_photos_of_the_frame_make_a_raw_capture_and_are_not_mixed_with_jpegs() {
+    // The four phone photos saved as linear 12-bit DNGs (26 mm equivalent,
+    // as FOCAL): found, fitted and rectified from their linear values, the
+    // folder's photos written as 16-bit linear DNGs that the fit reads.
+    let dir = tempfile::tempdir().unwrap();
+    let views = views(0.0);
+    let fx = PhoneEffects { jpeg_quality: None, ..Default::default() };
+    let (photos, truths) = shoot(&views, [8.0, -3.0], fx, dir.path());
+    let opts = crate::io::dng::DngOptions { focal_35mm: Some(26), baseline_exposure: 1.0, ..Default::default() };
+    let raws: Vec<FramePhoto> = photos
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let linear = p.rgb.to_image().map(crate::spaces::photo_decode);
+            let path = dir.path().join(format!("IMG_{i}.dng"));
+            crate::io::dng::write_dng(&path, &linear, &opts).unwrap();
+            load_frame_photo(&path).unwrap()
+        })
+        .collect();
+    assert!(raws.iter().all(|p| p.raw.as_ref().is_some_and(|r| (r.baseline_gain - 2.0).abs() < 1e-6)));
+    assert!((raws[0].exif_focal.unwrap() / FOCAL - 1.0).abs() < 0.01, "focal {:?}", raws[0].exif_focal);
+    let cfg = CaptureConfig { flash_offset_mm: [8.0, -3.0], ..Default::default() };
+    let cap = capture(&raws, &cfg, |_, _, _| {}).unwrap();
+    for (n, rect) in cap.rectified.iter().enumerate() {
+        let truth = truths[n].resize_bilinear(cap.side, cap.side);
+        let err = rect.iter().zip(&truth.data).map(|(a, b)| (a - b).abs() as f64).sum::<f64>() / rect.len() as f64;
+        let level = truth.data.iter().map(|&v| v as f64).sum::<f64>() / rect.len() as f64;
+        assert!(err < 0.12 * level, "photo {n}: mean error {err:.4} on a level of {level:.4}");
+    }
+    let out = dir.path().join("capture");
+    write_folder(&cap, &out, &raws).unwrap();
+    assert!(out.join("00.dng").is_file() && !out.join("00.png").exists());
+    let folder = crate::data::captures::Captures::open(&out).unwrap();
+    assert_eq!(folder.raw_gains, [2.0; 4]);
+    // The folder's photo reads back as what was rectified (16 bits).
+    let back = crate::data::captures::load_photo(&folder.photos[0], cap.side).unwrap();
+    let rect = tch::Tensor::from_slice(&cap.rectified[0]).view([3, cap.side as i64, cap.side as i64]);
+    let d = (back - rect).abs().max().double_value(&[]);
+    assert!(d < 1e-4, "the written DNG is {d} off the rectified photo");
+    // One RAW photo among JPEGs: refused, naming both.
+    let mixed = vec![raws[0].clone_photo_with_raw(), photos[1].clone_photo(), photos[2].clone_photo()];
+    let e = format!("{:#}", capture(&mixed, &cfg, |_, _, _| {}).err().expect("a mixed capture is refused"));
+    assert!(e.contains("IMG_0.dng") && e.contains("IMG_1.jpg") && e.contains("RAW"), "{e}");
 }

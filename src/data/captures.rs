@@ -47,6 +47,9 @@ pub struct Captures {
     pub sample_width: f64,
     /// Each photo's exposure ([`EXPOSURES_FILE`]; all 1 without the file).
     pub exposures: Vec<f64>,
+    /// Each photo's gain to a normal exposure: a RAW photo's
+    /// 2^BaselineExposure (`io::raw_baseline_gain`), 1 for 8-bit photos.
+    pub raw_gains: Vec<f64>,
 }
 
 /// Distances of a capture's lights and cameras from the sample's centre
@@ -102,7 +105,15 @@ impl Captures {
         } else {
             vec![1.0; photos.len()]
         };
-        Ok(Self { dir: dir.to_path_buf(), photos, cameras, lights, sample_width, exposures })
+        let raw_gains = photos.iter().map(|p| crate::io::raw_baseline_gain(p)).collect();
+        Ok(Self { dir: dir.to_path_buf(), photos, cameras, lights, sample_width, exposures, raw_gains })
+    }
+
+    /// The factor that brings photo `i`'s linear values to photo
+    /// `reference`'s exposure (its [`EXPOSURES_FILE`] line over `i`'s) and
+    /// to a normal exposure (`i`'s RAW gain).
+    pub fn exposure_factor(&self, i: usize, reference: usize) -> f64 {
+        self.exposures[reference] / self.exposures[i] * self.raw_gains[i]
     }
 
     /// Index of the photo taken closest to straight overhead: the camera
@@ -126,11 +137,9 @@ impl Captures {
     /// the 1/r^2 fall-off compensated (see the module docs) and brought to
     /// the overhead photo's exposure: `[3, S, S]` each.
     pub fn load_compensated(&self, size: usize) -> Result<Vec<Tensor>> {
-        let (r0, e0) = (self.reference_distance(), self.exposures[self.overhead()]);
-        self.photos
-            .iter()
-            .zip(self.lights.iter().zip(&self.exposures))
-            .map(|(path, (&light, &e))| Ok(compensated(&load_photo(path, size)?, light, r0, e0 / e)))
+        let r0 = self.reference_distance();
+        (0..self.photos.len())
+            .map(|i| Ok(compensated(&load_photo(&self.photos[i], size)?, self.lights[i], r0, self.exposure_factor(i, self.overhead()))))
             .collect()
     }
 }
@@ -167,8 +176,9 @@ pub fn compensated(photo: &Tensor, light: [f64; 3], r0: f64, exposure_ratio: f64
 }
 
 /// One capture photo, linear `[3, S, S]`: gamma-decoded (^2.2, as every
-/// 8-bit photo flashmat reads) and resized to `size` (area when shrinking,
-/// bilinear when enlarging). Refuses photos that are not square (they
+/// 8-bit photo flashmat reads; a RAW photo is linear already, 1 at its
+/// white level) and resized to `size` (area when shrinking, bilinear when
+/// enlarging). Refuses photos that are not square (they
 /// should be rectified to the sample square) or smaller than 32 pixels.
 pub fn load_photo(path: &Path, size: usize) -> Result<Tensor> {
     Ok(load_photo_sized(path, size)?.0)
@@ -176,7 +186,9 @@ pub fn load_photo(path: &Path, size: usize) -> Result<Tensor> {
 
 /// [`load_photo`] and the photo's own (width, height) before resizing.
 pub fn load_photo_sized(path: &Path, size: usize) -> Result<(Tensor, (usize, usize))> {
-    let rgb = crate::io::read_rgb(path)?;
+    let (image, format) = crate::io::read_image_with_format(path)?;
+    ensure!(format.clips_at_one(), "{}: a capture photo is an 8-bit or RAW photo, not HDR", path.display());
+    let rgb = crate::io::to_rgb(&image);
     let (w, h) = (rgb.width, rgb.height);
     ensure!(
         w.min(h) >= MIN_PHOTO_SIDE,
@@ -188,7 +200,7 @@ pub fn load_photo_sized(path: &Path, size: usize) -> Result<(Tensor, (usize, usi
         "{}: the photo is {w}x{h} pixels, not square; capture photos must be rectified to the sample square",
         path.display()
     );
-    let linear = rgb.map(crate::spaces::gamma_decode);
+    let linear = if format.is_float() { rgb } else { rgb.map(crate::spaces::gamma_decode) };
     Ok((linear.resize_to(size, size).to_tensor(), (w, h)))
 }
 
@@ -196,8 +208,9 @@ fn read_text(path: &Path) -> Result<String> {
     std::fs::read_to_string(path).map_err(|e| anyhow!("cannot read {}: {e}", path.display()))
 }
 
-/// Extensions of capture photos: 8-bit, ^2.2-encoded files (a phone's JPEGs, or PNGs).
-const PHOTO_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
+/// Extensions of capture photos: 8-bit, ^2.2-encoded files (a phone's
+/// JPEGs, or PNGs), or linear DNGs (the `raw` feature).
+const PHOTO_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "dng"];
 
 /// `NN.png` / `NN.jpg` files of `dir` sorted by number; errors when there are none.
 fn numbered_photos(dir: &Path) -> Result<(Vec<u64>, Vec<PathBuf>)> {
@@ -316,6 +329,22 @@ pub fn write_synthetic(dir: &Path, material: &Svbrdf, configs: &[LightView], sam
 /// exposure (one per config) before the 8-bit encoding, and
 /// [`EXPOSURES_FILE`] written when they are not all 1: bracketed photos.
 pub fn write_synthetic_exposed(dir: &Path, material: &Svbrdf, configs: &[LightView], exposures: &[f64], sample_width: f64) -> Result<()> {
+    write_synthetic_as(dir, material, configs, exposures, sample_width, PhotoFiles::Png8)
+}
+
+/// How [`write_synthetic_as`] stores the photos.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PhotoFiles {
+    /// `NN.png`, 8-bit, ^2.2-encoded: highlights clip at 1.
+    Png8,
+    /// `NN.dng`, linear, `bits` bits a sample, as a phone's RAW with
+    /// headroom: the brightest value of all photos at 0.95 of the white
+    /// level (nothing clips), BaselineExposure bringing it back.
+    Dng { bits: u32 },
+}
+
+/// [`write_synthetic_exposed`] with the photos stored as `files` says.
+pub fn write_synthetic_as(dir: &Path, material: &Svbrdf, configs: &[LightView], exposures: &[f64], sample_width: f64, files: PhotoFiles) -> Result<()> {
     ensure!(!configs.is_empty(), "a capture needs at least one photo");
     ensure!(exposures.len() == configs.len() && exposures.iter().all(|e| e.is_finite() && *e > 0.0), "one exposure > 0 per photo");
     ensure!(sample_width.is_finite() && sample_width > 0.0, "the sample's width must be > 0, got {sample_width}");
@@ -327,12 +356,22 @@ pub fn write_synthetic_exposed(dir: &Path, material: &Svbrdf, configs: &[LightVi
     let cameras: Vec<[f64; 3]> = configs.iter().map(|c| c.view).collect();
     let r0 = length(configs[overhead_index(&cameras)].light);
     let renders = crate::svbrdf::cpu::render_tensor(material, configs);
-    for (i, c) in configs.iter().enumerate() {
-        let linear = renders.get(i as i64) * falloff(c.light, r0, h, w) * exposures[i];
-        // Capture folders are ^2.2-encoded (read with `gamma_decode`), unlike
-        // flashmat's other pictures.
-        let display = Image::from_tensor(&crate::spaces::linear_to_display(&linear))?;
-        crate::io::write_png(&dir.join(format!("{i:02}.png")), &display, crate::io::BitDepth::Eight)?;
+    let linear: Vec<Tensor> = configs.iter().enumerate().map(|(i, c)| renders.get(i as i64) * falloff(c.light, r0, h, w) * exposures[i]).collect();
+    let peak = linear.iter().map(|l| l.max().double_value(&[])).fold(1e-6, f64::max);
+    for (i, linear) in linear.iter().enumerate() {
+        match files {
+            PhotoFiles::Png8 => {
+                // Capture folders are ^2.2-encoded (read with `gamma_decode`),
+                // unlike flashmat's other pictures.
+                let display = Image::from_tensor(&crate::spaces::linear_to_display(linear))?;
+                crate::io::write_png(&dir.join(format!("{i:02}.png")), &display, crate::io::BitDepth::Eight)?;
+            }
+            PhotoFiles::Dng { bits } => {
+                let headroom = 0.95 / peak;
+                let opts = crate::io::dng::DngOptions { bits, baseline_exposure: -headroom.log2(), ..Default::default() };
+                crate::io::dng::write_dng(&dir.join(format!("{i:02}.dng")), &Image::from_tensor(&(linear * headroom))?, &opts)?;
+            }
+        }
     }
     let unit = sample_width / 2.0;
     let lines = |pick: fn(&LightView) -> [f64; 3]| -> String {

@@ -748,7 +748,6 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
     let overhead = crate::data::captures::overhead_index(&cameras);
     // Compensated relative to the overhead photo used, as `Captures::load_compensated` does.
     let r0 = crate::geometry::length(configs[overhead].light);
-    let e0 = captures.exposures[indices[overhead]];
     let mut photos = Vec::with_capacity(indices.len());
     let mut raw = Vec::with_capacity(indices.len());
     let mut names = Vec::with_capacity(indices.len());
@@ -794,7 +793,7 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
         }
         check_distinct(&decoded, &photo, i, captures, &configs[..decoded.len()], c)?;
         // Brought to the overhead photo's exposure; the clipped mask stays the photo's own.
-        photos.push(compensated(&photo, c.light, r0, e0 / captures.exposures[i]));
+        photos.push(compensated(&photo, c.light, r0, captures.exposure_factor(i, indices[overhead])));
         decoded.push((i, photo));
         raw.push(clipped);
         names.push(path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());

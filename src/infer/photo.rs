@@ -282,7 +282,14 @@ pub fn load_photo_with(path: &Path, opts: &PhotoOptions) -> Result<PreparedPhoto
     let rgb = crate::io::to_rgb(&image).oriented(camera.orientation);
     let alpha = (image.channels % 2 == 0).then(|| image.plane(image.channels - 1));
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    prepare_decoded(rgb, alpha, ldr, &camera, opts, &path.display().to_string(), &name)
+    let mut prepared = prepare_decoded(rgb, alpha, ldr, &camera, opts, &path.display().to_string(), &name)?;
+    // A RAW photo is linear (nothing to decode) but stops at its sensor's
+    // white level, 1, as an 8-bit photo does: LDR for the model.
+    prepared.ldr = format.clips_at_one();
+    if format == crate::io::FileFormat::Raw {
+        prepared.camera_note.push_str("; RAW: linear, the file's white balance and colour matrix");
+    }
+    Ok(prepared)
 }
 
 /// The part of [`load_photo_with`] after decoding, for photos that come as
