@@ -111,6 +111,13 @@ impl FrameLayout {
         self.opening_cm as f64 * 10.0
     }
 
+    /// Distance from the opening's centre to the middle of the white
+    /// margin between the opening and the tags' black squares, mm: where
+    /// the paper is read as a light meter (`capture::photometry`).
+    pub fn paper_margin_centre_mm(&self) -> f64 {
+        self.opening_mm() / 2.0 + OPENING_MARGIN_MM / 2.0
+    }
+
     /// Half the side of the square the tags' white rings cover, mm.
     pub fn outer_half_mm(&self) -> f64 {
         let d = self.tags.iter().map(|t| t.centre[0].abs().max(t.centre[1].abs())).fold(0.0, f64::max);

@@ -18,6 +18,7 @@
 pub mod camera;
 pub mod frame;
 pub mod markers;
+pub mod photometry;
 pub mod pictures;
 pub mod rectify;
 pub mod synthetic;
@@ -205,6 +206,25 @@ pub struct Capture {
     pub rectified: Vec<Vec<f32>>,
     pub side: usize,
     pub distortion: bool,
+    /// What each photo's paper says of its exposure and white balance
+    /// ([`photometry`]), in order.
+    pub paper: Vec<photometry::PaperReading>,
+}
+
+impl Capture {
+    /// Each photo's exposure per channel relative to the overhead photo's,
+    /// as the folder records it: the paper's reading when every photo has
+    /// one, else the EXIF's (one number for all channels), else None. None
+    /// too when they are one exposure.
+    pub fn folder_exposures(&self, photos: &[FramePhoto]) -> Result<Option<Vec<[f64; 3]>>> {
+        if let Some(levels) = photometry::relative_levels(&self.paper) {
+            return Ok(photometry::levels_differ(&levels).then_some(levels));
+        }
+        let Some(exposures) = relative_exposures(photos) else { return Ok(None) };
+        // In the folder's order, which is not the inputs'.
+        let by_source = |p: &PhotoResult| photos.iter().position(|f| f.path == p.source).map(|i| [exposures[i]; 3]).context("a capture's photo is missing from its inputs");
+        Ok(Some(self.photos.iter().map(by_source).collect::<Result<_>>()?))
+    }
 }
 
 fn name(path: &Path) -> String {
@@ -325,8 +345,9 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
         rectified.push(rectify::rectify(pixels, &results[i].intrinsics, &results[i].pose, half, side, &decode));
     }
     on_progress(2, order.len(), order.len());
+    let paper = order.iter().map(|&i| photometry::read_paper(&photos[i], &results[i], layout.paper_margin_centre_mm())).collect();
     let photos_out = order.iter().map(|&i| results[i].clone()).collect();
-    Ok(Capture { layout, photos: photos_out, rectified, side, distortion: calibration.distortion })
+    Ok(Capture { layout, photos: photos_out, rectified, side, distortion: calibration.distortion, paper })
 }
 
 /// The opening's side in the photo's pixels (the mean of its four edges),
@@ -448,11 +469,9 @@ pub fn write_folder(capture: &Capture, dir: &Path, photos: &[FramePhoto]) -> Res
         std::fs::write(tmp.join("camera_pos.txt"), lines(|p| p.camera))?;
         std::fs::write(tmp.join("light_pos.txt"), lines(|p| p.light))?;
         std::fs::write(tmp.join("image_size.txt"), format!("{}\n", capture.layout.opening_mm()))?;
-        if let Some(exposures) = relative_exposures(photos) {
-            // In the folder's order, which is not the inputs'.
-            let by_source = |p: &PhotoResult| photos.iter().position(|f| f.path == p.source).map(|i| exposures[i]).context("a capture's photo is missing from its inputs");
-            let lines: Vec<String> = capture.photos.iter().map(|p| Ok(format!("{}\n", by_source(p)?))).collect::<Result<_>>()?;
-            std::fs::write(tmp.join(crate::data::captures::EXPOSURES_FILE), lines.concat())?;
+        if let Some(exposures) = capture.folder_exposures(photos)? {
+            let lines: String = exposures.iter().map(|[r, g, b]| format!("{r:.5},{g:.5},{b:.5}\n")).collect();
+            std::fs::write(tmp.join(crate::data::captures::EXPOSURES_FILE), lines)?;
         }
         let picture = pictures::capture_picture(capture, photos)?;
         crate::io::write_jpeg(&tmp.join("capture.jpg"), &picture, 85)?;

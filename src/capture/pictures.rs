@@ -52,6 +52,11 @@ pub fn capture_picture(capture: &Capture, photos: &[FramePhoto]) -> Result<Image
         let source = result.source.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
         let label = format!("{n:02} {source}: tilt {:.0} deg, {} tags, {:.2} px", tilt_deg(result.camera), result.markers.len(), result.rms);
         marks.push(Mark::Text { at: (4.0, 4.0), text: label, size: 13.0, color: [255, 230, 0] });
+        // What the frame's paper says of the photo's exposure and white balance.
+        if let Some(l) = super::photometry::relative_levels(&capture.paper).and_then(|levels| levels.get(n).copied()) {
+            let text = format!("paper: x{:.2}, R/G/B x{:.2}/{:.2}/{:.2}", (l[0] * l[1] * l[2]).cbrt(), l[0], l[1], l[2]);
+            marks.push(Mark::Text { at: (4.0, 22.0), text, size: 13.0, color: [255, 230, 0] });
+        }
         top.push(annotate(&thumb, &marks)?);
         let side = capture.side;
         let display = Image::from_data(3, side, side, capture.rectified[n].iter().map(|&v| crate::spaces::photo_encode(v.clamp(0.0, 1.0))).collect())?;

@@ -103,19 +103,35 @@ fn a_phone_capture_comes_back_within_2_mm_half_a_degree_and_a_pixel() {
     let c = cap.photos[1].camera;
     assert!((folder.cameras[1][0] - c[0] / 50.0).abs() < 1e-3 && (folder.cameras[1][2] - c[2] / 50.0).abs() < 1e-3);
     assert!(out.join("capture.jpg").is_file());
-    assert_eq!(folder.exposures, [1.0; 4]);
+    assert_eq!(folder.exposures, [[1.0; 3]; 4]);
     assert!(!out.join(crate::data::captures::EXPOSURES_FILE).exists(), "one exposure: no exposures.txt");
-    // Photo 2 taken a stop darker, as its EXIF says: the folder records it, in the folder's order.
+    // The frame's paper reads one exposure in every photo.
+    let levels = photometry::relative_levels(&cap.paper).expect("every photo's paper is read");
+    assert!(!photometry::levels_differ(&levels), "{levels:?}");
+    // Photo 2's EXIF says a stop darker but its pixels are the others':
+    // the paper's reading wins, and the folder has one exposure.
     let mut bracketed: Vec<FramePhoto> = photos.iter().map(FramePhoto::clone_photo).collect();
     for (i, p) in bracketed.iter_mut().enumerate() {
         p.exposure = Some(crate::infer::camera::Exposure { time_s: Some(if i == 2 { 1.0 / 120.0 } else { 1.0 / 60.0 }), f_number: Some(1.8), iso: Some(100) });
     }
     let out = dir.path().join("bracketed");
     write_folder(&cap, &out, &bracketed).unwrap();
+    assert!(!out.join(crate::data::captures::EXPOSURES_FILE).exists());
+    // Photo 2 really darker, with another white balance (auto exposure and
+    // auto white balance): the paper measures it, the folder records it.
+    let gains = [0.5, 0.42, 0.6];
+    bracketed[2].rgb.data.iter_mut().enumerate().for_each(|(i, code)| {
+        *code = crate::spaces::quantize_u8(crate::spaces::photo_encode(crate::spaces::photo_decode(*code as f32 / 255.0) * gains[i % 3]));
+    });
+    let cap = capture(&bracketed, &cfg, |_, _, _| {}).unwrap();
+    let out = dir.path().join("auto-exposed");
+    write_folder(&cap, &out, &bracketed).unwrap();
     let folder = crate::data::captures::Captures::open(&out).unwrap();
-    for (result, &e) in cap.photos.iter().zip(&folder.exposures) {
-        let want = if result.source == photos[2].path { 0.5 } else { 1.0 };
-        assert!((e - want).abs() < 1e-9, "{}: exposure {e}, want {want}", result.source.display());
+    for (result, e) in cap.photos.iter().zip(&folder.exposures) {
+        let want = if result.source == photos[2].path { gains } else { [1.0; 3] };
+        for c in 0..3 {
+            assert!((e[c] / want[c] as f64 - 1.0).abs() < 0.02, "{}: exposure {e:?}, want {want:?}", result.source.display());
+        }
     }
 }
 
@@ -374,6 +390,7 @@ fn the_picture_of_many_photos_wraps_its_rows_and_says_how_many_it_shows() {
     let n = cap.photos.len();
     cap.photos = (0..50).map(|i| cap.photos[i % n].clone()).collect();
     cap.rectified = (0..50).map(|i| cap.rectified[i % n].clone()).collect();
+    cap.paper = (0..50).map(|i| cap.paper[i % n].clone()).collect();
     let picture = super::pictures::capture_picture(&cap, &photos).unwrap();
     // Cells of 360 pixels (the thumbnails' longer side and the top view) and 4-pixel gaps.
     let cell = 360 + 4;
@@ -442,4 +459,30 @@ fn raw_photos_of_the_frame_make_a_raw_capture_and_are_not_mixed_with_jpegs() {
     let mixed = vec![raws[0].clone_photo_with_raw(), photos[1].clone_photo(), photos[2].clone_photo()];
     let e = format!("{:#}", capture(&mixed, &cfg, |_, _, _| {}).err().expect("a mixed capture is refused"));
     assert!(e.contains("IMG_0.dng") && e.contains("IMG_1.jpg") && e.contains("RAW"), "{e}");
+}
+
+#[test]
+fn a_tone_mapped_photo_is_named_by_its_paper() {
+    // Photo 3 (the most tilted, its paper lit from 1 to 1.3) through a
+    // curve that flattens its contrast (linear^0.5, as local tone mapping
+    // does to a gradient): its paper no longer follows the flash.
+    let dir = tempfile::tempdir().unwrap();
+    let views = views(0.0);
+    let (mut photos, _) = shoot(&views, [8.0, -3.0], PhoneEffects::default(), dir.path());
+    photos[3].rgb.data.iter_mut().for_each(|code| {
+        *code = crate::spaces::quantize_u8(crate::spaces::photo_encode(0.6 * crate::spaces::photo_decode(*code as f32 / 255.0).sqrt()));
+    });
+    let cfg = CaptureConfig { flash_offset_mm: [8.0, -3.0], ..Default::default() };
+    let cap = capture(&photos, &cfg, |_, _, _| {}).unwrap();
+    let slopes: Vec<Option<f64>> = cap.paper.iter().map(|r| r.response_slope).collect();
+    eprintln!("response slopes {slopes:?}");
+    let warnings = photometry::warnings(&cap.photos, &cap.paper);
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert!(warnings[0].starts_with("IMG_3.jpg: the frame's paper does not brighten"), "{warnings:?}");
+    // The others' slopes, where stated, near 1.
+    for (p, s) in cap.photos.iter().zip(&slopes) {
+        if p.source != photos[3].path {
+            assert!(s.is_none_or(|s| (s - 1.0).abs() < 0.2), "{}: slope {s:?}", p.source.display());
+        }
+    }
 }

@@ -128,7 +128,6 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         bar.set_position(i as u64 + 1);
     }
     let exposures_differ = flashmat::capture::exposure_warning(&photos);
-    let exposures = flashmat::capture::relative_exposures(&photos);
     let messages = ["finding the frame's tags", "fitting the camera", "rectifying the opening"];
     let capture = flashmat::capture::capture(&photos, &cfg, |stage, done, total| {
         bar.set_message(messages[stage]);
@@ -149,10 +148,15 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         k.focal,
         if capture.distortion { format!(", distortion k1 {:.3} k2 {:.3}", k.k1, k.k2) } else { String::new() }
     );
+    let levels = flashmat::capture::photometry::relative_levels(&capture.paper);
     for (n, p) in capture.photos.iter().enumerate() {
         let source = p.source.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default();
+        let paper = match &levels {
+            Some(l) => format!("; paper: exposure x{:.3}, R/G/B x{:.3}/{:.3}/{:.3} of the first's", (l[n][0] * l[n][1] * l[n][2]).cbrt(), l[n][0], l[n][1], l[n][2]),
+            None => String::new(),
+        };
         eprintln!(
-            "  {n:02} {source}: lens at ({}, {}, {}) mm, tilt {:.0} deg, {} tags, {:.2} px reprojection",
+            "  {n:02} {source}: lens at ({}, {}, {}) mm, tilt {:.0} deg, {} tags, {:.2} px reprojection{paper}",
             mm(p.camera[0]),
             mm(p.camera[1]),
             mm(p.camera[2]),
@@ -161,19 +165,29 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
             p.rms
         );
     }
-    if let Some(e) = &exposures {
-        let list = e.iter().map(|v| format!("{v:.3}")).collect::<Vec<_>>().join(", ");
-        eprintln!("the photos' exposures differ ({list} of the first's, from their EXIF): {} records them and the fit brings the photos to one", flashmat::data::captures::EXPOSURES_FILE);
+    match (&levels, capture.folder_exposures(&photos)?) {
+        (Some(_), Some(_)) => eprintln!(
+            "the photos' exposure or white balance differ, as the frame's paper shows: {} records them and the fit brings the photos to the first's",
+            flashmat::data::captures::EXPOSURES_FILE
+        ),
+        (None, Some(_)) => eprintln!(
+            "the photos' exposures differ (from their EXIF; the frame's paper could not be read in every photo): {} records them and the fit brings the photos to one",
+            flashmat::data::captures::EXPOSURES_FILE
+        ),
+        _ => {}
     }
     eprintln!("look at {}", folder.join("capture.jpg").display());
-    if let Some(w) = &exposures_differ {
+    for w in flashmat::capture::photometry::warnings(&capture.photos, &capture.paper) {
+        eprintln!("warning: {w}");
+    }
+    if let (Some(w), None) = (&exposures_differ, &levels) {
         eprintln!("warning: {w}{}", if a.estimate { "; --estimate fits them" } else { "" });
     }
     if let Some(material) = material {
         let mut opts = default_estimate_options()?;
         opts.size = a.size;
         opts.device = a.device.clone();
-        let args = CaptureArgs { capture: Some(folder.clone()), photos: None, steps: a.steps, photo_gains: exposures_differ.is_some(), pbr: None };
+        let args = CaptureArgs { capture: Some(folder.clone()), photos: None, steps: a.steps, photo_gains: exposures_differ.is_some() && levels.is_none(), pbr: None };
         // The folder and the material together, or neither: a failed estimate takes the folder with it.
         if let Err(e) = super::estimate_capture::estimate_capture(&folder, &material, &args, &opts) {
             let _ = std::fs::remove_dir_all(&folder);

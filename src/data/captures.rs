@@ -3,7 +3,8 @@
 //! line, one line per photo, in photo order) and `image_size.txt` (the
 //! sample's width: the unit of the positions), and optionally
 //! `exposures.txt` (one number per line, per photo: the light each photo's
-//! sensor gathered, in any unit, e.g. exposure time x ISO / f-number^2;
+//! sensor gathered, in any unit, e.g. exposure time x ISO / f-number^2; or
+//! three, R,G,B, when the white balance changed too;
 //! bracketed photos of one position record a highlight's peak that the
 //! longer exposure clips). The origin is the sample
 //! centre, x points right and y up in the photos, z out of the sample;
@@ -45,8 +46,9 @@ pub struct Captures {
     pub lights: Vec<[f64; 3]>,
     /// The sample's width in the files' unit.
     pub sample_width: f64,
-    /// Each photo's exposure ([`EXPOSURES_FILE`]; all 1 without the file).
-    pub exposures: Vec<f64>,
+    /// Each photo's exposure per channel, R, G, B ([`EXPOSURES_FILE`]: one
+    /// number a line for all three, or three; all 1 without the file).
+    pub exposures: Vec<[f64; 3]>,
     /// Each photo's gain to a normal exposure: a RAW photo's
     /// 2^BaselineExposure (`io::raw_baseline_gain`), 1 for 8-bit photos.
     pub raw_gains: Vec<f64>,
@@ -103,17 +105,17 @@ impl Captures {
             let all = read_exposures(&exposures_path, lines, &needs).map_err(with_gaps)?;
             numbers.iter().map(|&n| all[n as usize]).collect()
         } else {
-            vec![1.0; photos.len()]
+            vec![[1.0; 3]; photos.len()]
         };
         let raw_gains = photos.iter().map(|p| crate::io::raw_baseline_gain(p)).collect();
         Ok(Self { dir: dir.to_path_buf(), photos, cameras, lights, sample_width, exposures, raw_gains })
     }
 
-    /// The factor that brings photo `i`'s linear values to photo
-    /// `reference`'s exposure (its [`EXPOSURES_FILE`] line over `i`'s) and
-    /// to a normal exposure (`i`'s RAW gain).
-    pub fn exposure_factor(&self, i: usize, reference: usize) -> f64 {
-        self.exposures[reference] / self.exposures[i] * self.raw_gains[i]
+    /// The factors, R, G, B, that bring photo `i`'s linear values to photo
+    /// `reference`'s exposure and white balance (its [`EXPOSURES_FILE`] line
+    /// over `i`'s) and to a normal exposure (`i`'s RAW gain).
+    pub fn exposure_factor(&self, i: usize, reference: usize) -> [f64; 3] {
+        std::array::from_fn(|c| self.exposures[reference][c] / self.exposures[i][c] * self.raw_gains[i])
     }
 
     /// Index of the photo taken closest to straight overhead: the camera
@@ -168,11 +170,12 @@ pub fn falloff(light: [f64; 3], r0: f64, h: usize, w: usize) -> Tensor {
 
 /// A photo as the fit sees it: divided by its flash's fall-off relative to
 /// distance r0 ([`falloff`]) and brought to the reference exposure
-/// (`exposure_ratio`: the reference's exposure over the photo's).
+/// (`exposure_ratio`: the reference's exposure over the photo's, per channel).
 /// photo: linear `[3, H, W]` (CPU) -> `[3, H, W]`.
-pub fn compensated(photo: &Tensor, light: [f64; 3], r0: f64, exposure_ratio: f64) -> Tensor {
+pub fn compensated(photo: &Tensor, light: [f64; 3], r0: f64, exposure_ratio: [f64; 3]) -> Tensor {
     let s = photo.size();
-    photo / falloff(light, r0, s[1] as usize, s[2] as usize) * exposure_ratio
+    let ratio = Tensor::from_slice(&exposure_ratio.map(|v| v as f32)).view([3, 1, 1]).to_device(photo.device());
+    photo / falloff(light, r0, s[1] as usize, s[2] as usize) * ratio
 }
 
 /// One capture photo, linear `[3, S, S]`: gamma-decoded (^2.2, as every
@@ -269,16 +272,22 @@ fn read_positions(path: &Path, scale: f64, expected: usize, needs: &str) -> Resu
 }
 
 /// Parses one exposure per non-empty line: `expected` finite numbers > 0.
-fn read_exposures(path: &Path, expected: usize, needs: &str) -> Result<Vec<f64>> {
+fn read_exposures(path: &Path, expected: usize, needs: &str) -> Result<Vec<[f64; 3]>> {
     let text = read_text(path)?;
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
-        let v: f64 = line.trim().parse().map_err(|_| anyhow!("{} line {}: expected one number (the photo's exposure), got '{}'", path.display(), i + 1, line.trim()))?;
-        ensure!(v.is_finite() && v > 0.0, "{} line {}: an exposure must be a finite number > 0, got '{}'", path.display(), i + 1, line.trim());
+        let bad = || anyhow!("{} line {}: expected one number (the photo's exposure) or three (R,G,B), got '{}'", path.display(), i + 1, line.trim());
+        let values: Vec<f64> = line.split([',', ' ', '\t']).filter(|v| !v.is_empty()).map(|v| v.parse::<f64>().map_err(|_| bad())).collect::<Result<_>>()?;
+        let v: [f64; 3] = match values[..] {
+            [v] => [v; 3],
+            [r, g, b] => [r, g, b],
+            _ => return Err(bad()),
+        };
+        ensure!(v.iter().all(|v| v.is_finite() && *v > 0.0), "{} line {}: an exposure must be a finite number > 0, got '{}'", path.display(), i + 1, line.trim());
         out.push(v);
     }
     ensure!(out.len() == expected, "{} has {} exposures but {needs} (one line per photo)", path.display(), out.len());
-    let (low, high) = out.iter().fold((f64::INFINITY, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));
+    let (low, high) = out.iter().flatten().fold((f64::INFINITY, 0.0f64), |(l, h), &v| (l.min(v), h.max(v)));
     ensure!(
         high / low <= MAX_EXPOSURE_RATIO,
         "{}: its exposures span {:.1e}x ({low:?} to {high:?}), more than the {MAX_EXPOSURE_RATIO}x (10 stops) one capture's photos can differ by and still show one material; correct the file",
@@ -498,7 +507,7 @@ mod tests {
         let overhead = LightView::colocated(MODEL_FOV_DEG);
         write_synthetic_exposed(t.path(), &material, &[overhead, overhead], &[1.0, 0.0625], 8.0).unwrap();
         let c = Captures::open(t.path()).unwrap();
-        assert_eq!(c.exposures, [1.0, 0.0625]);
+        assert_eq!(c.exposures, [[1.0; 3], [0.0625; 3]]);
         let photos = c.load_compensated(32).unwrap();
         let truth = crate::eval::reference_renders(&material, &[overhead]).get(0);
         let peak = truth.max().double_value(&[]);
@@ -516,13 +525,18 @@ mod tests {
         assert!(err(t.path()).contains("exposures.txt line 2: an exposure must be a finite number > 0"));
         std::fs::write(t.path().join(EXPOSURES_FILE), "1\nbright\n").unwrap();
         assert!(err(t.path()).contains("exposures.txt line 2: expected one number"));
+        std::fs::write(t.path().join(EXPOSURES_FILE), "1\n0.5,1\n").unwrap();
+        assert!(err(t.path()).contains("exposures.txt line 2: expected one number (the photo's exposure) or three (R,G,B)"));
+        // Three numbers a line: a white balance too (`flashmat capture`'s light meter).
+        std::fs::write(t.path().join(EXPOSURES_FILE), "1\n0.5,1,2\n").unwrap();
+        assert_eq!(Captures::open(t.path()).unwrap().exposures, [[1.0; 3], [0.5, 1.0, 2.0]]);
         std::fs::write(t.path().join(EXPOSURES_FILE), "1\n1e300\n").unwrap();
         assert!(err(t.path()).contains("exposures.txt: its exposures span 1.0e300x"), "{}", err(t.path()));
         // 10 stops is still a capture.
         std::fs::write(t.path().join(EXPOSURES_FILE), "1\n0.0009765625\n").unwrap();
-        assert_eq!(Captures::open(t.path()).unwrap().exposures, [1.0, 1.0 / 1024.0]);
+        assert_eq!(Captures::open(t.path()).unwrap().exposures, [[1.0; 3], [1.0 / 1024.0; 3]]);
         std::fs::remove_file(t.path().join(EXPOSURES_FILE)).unwrap();
-        assert_eq!(Captures::open(t.path()).unwrap().exposures, [1.0, 1.0]);
+        assert_eq!(Captures::open(t.path()).unwrap().exposures, [[1.0; 3], [1.0; 3]]);
     }
 
     #[test]
@@ -566,7 +580,7 @@ mod tests {
         // Exposures follow the numbers too.
         std::fs::write(t.path().join("camera_pos.txt"), "0,0,4\n0,0,5\n0,0,6\n0,0,7\n").unwrap();
         std::fs::write(t.path().join(EXPOSURES_FILE), "1\n2\n3\n4\n").unwrap();
-        assert_eq!(Captures::open(t.path()).unwrap().exposures, [1.0, 2.0, 4.0]);
+        assert_eq!(Captures::open(t.path()).unwrap().exposures, [[1.0; 3], [2.0; 3], [4.0; 3]]);
         // The gaps' names: single numbers and runs.
         assert_eq!(missing_numbers(&[0, 1, 3, 4, 7]), "02, 05-06");
         assert_eq!(missing_numbers(&[2]), "00-01");
