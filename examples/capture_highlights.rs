@@ -24,6 +24,13 @@
 //! path (`capture::capture`: tags, camera fit, rectification), then fitted
 //! as above (counts of 2 or more).
 //!
+//! With PHOTOMETRY=1 (environment) as well, the phone locks neither
+//! exposure nor white balance and its tone curve is not sRGB: each frame
+//! photo at its own exposure (up to +-1 stop) and white balance (up to 10%
+//! a channel), through a pure 2.4 gamma; `flashmat capture`'s light meter
+//! (`capture::photometry`) is what brings them back to one (LIGHT_METER=0:
+//! the folder without its `exposures.txt`, the photos as taken).
+//!
 //! With BRACKET_STOPS > 0 (told positions only), each position is taken
 //! twice, as a phone's exposure bracketing does: at the exposure of the
 //! others and that many stops darker (`exposures.txt`). COUNTS are
@@ -111,6 +118,8 @@ fn main() -> Result<()> {
     // Phone photos: sensor noise, then JPEG at quality 90, instead of clean PNGs.
     let phone_jpeg: bool = args.get(12).filter(|a| *a != "-").map_or(Ok(false), |s| s.parse())?;
     let frame: bool = args.get(13).filter(|a| *a != "-").map_or(Ok(false), |s| s.parse())?;
+    let photometry = std::env::var("PHOTOMETRY").is_ok_and(|v| v == "1");
+    anyhow::ensure!(frame || !photometry, "PHOTOMETRY=1 needs FRAME true");
     let bracket_stops: f64 = args.get(14).filter(|a| *a != "-").map_or(Ok(0.0), |s| s.parse())?;
     let lobe_shift_regions: usize = args.get(15).filter(|a| *a != "-").map_or(Ok(defaults.lobe_shift_regions), |s| s.parse())?;
     let clipped_tail_weight: f64 = args.get(16).filter(|a| *a != "-").map_or(Ok(defaults.clipped_tail_weight), |s| s.parse())?;
@@ -195,7 +204,7 @@ fn main() -> Result<()> {
             let dir = tempfile::tempdir()?;
             if frame {
                 anyhow::ensure!(k >= 2, "a capture of the printed frame needs 2 or more photos");
-                frame_capture(&m, &cameras, dir.path(), i)?;
+                frame_capture(&m, &cameras, dir.path(), i, photometry)?;
             } else {
                 write_synthetic_exposed(dir.path(), &m, &truths, &exposures, 2.0)?;
                 if phone_jpeg {
@@ -374,7 +383,7 @@ fn main() -> Result<()> {
 /// spanning [-1, 1]: 50 mm a unit), the flash `FLASH_OFFSET` beside each
 /// lens along the camera's x, the material in the opening (its texels
 /// about 2.8 photo pixels across).
-fn frame_capture(m: &flashmat::svbrdf::Svbrdf, cameras: &[[f64; 3]], dir: &std::path::Path, seed: usize) -> Result<()> {
+fn frame_capture(m: &flashmat::svbrdf::Svbrdf, cameras: &[[f64; 3]], dir: &std::path::Path, seed: usize, photometry: bool) -> Result<()> {
     let size = m.width();
     use flashmat::capture::{frame::FrameLayout, synthetic, CaptureConfig, FramePhoto};
     let layout = FrameLayout::new(10)?;
@@ -386,7 +395,21 @@ fn frame_capture(m: &flashmat::svbrdf::Svbrdf, cameras: &[[f64; 3]], dir: &std::
     let photos: Vec<FramePhoto> = synthetic::shoot(m, &layout, &views, offset, synthetic::SUPERSAMPLE, &fx)?
         .into_iter()
         .enumerate()
-        .map(|(j, s)| FramePhoto { path: format!("IMG_{j}.jpg").into(), rgb: s.rgb, exif_focal: Some(901.3), orientation: 1, exposure: None })
+        .map(|(j, mut s)| {
+            if photometry {
+                // As a phone without exposure and white-balance lock: photo j
+                // at STOPS[j] and WHITE[j] (the overhead photo as shot), all
+                // through a pure 2.4 gamma where the reader assumes sRGB.
+                const STOPS: [f32; 5] = [0.0, -1.0, 0.6, 1.0, -0.5];
+                const WHITE: [[f32; 3]; 5] = [[1.0; 3], [1.1, 1.0, 0.9], [0.92, 1.0, 1.08], [1.05, 1.0, 0.95], [0.9, 1.0, 1.1]];
+                let gain: [f32; 3] = std::array::from_fn(|c| 2f32.powf(STOPS[j % 5]) * WHITE[j % 5][c]);
+                s.rgb.data.iter_mut().enumerate().for_each(|(i, code)| {
+                    let linear = flashmat::spaces::photo_decode(*code as f32 / 255.0) * gain[i % 3];
+                    *code = flashmat::spaces::quantize_u8(linear.clamp(0.0, 1.0).powf(1.0 / 2.4));
+                });
+            }
+            FramePhoto { path: format!("IMG_{j}.jpg").into(), rgb: s.rgb, exif_focal: Some(901.3), orientation: 1, exposure: None, raw: None }
+        })
         .collect();
     // Rectified at twice the material's side, so the fit's 2x2 shrink lines up with its texels.
     let cfg = CaptureConfig { flash_offset_mm: offset, max_side: 2 * size, ..Default::default() };
@@ -397,6 +420,10 @@ fn frame_capture(m: &flashmat::svbrdf::Svbrdf, cameras: &[[f64; 3]], dir: &std::
     }
     let folder = dir.join("capture");
     flashmat::capture::write_folder(&capture, &folder, &photos)?;
+    if std::env::var("LIGHT_METER").is_ok_and(|v| v == "0") {
+        // What the fit gets without the light meter: the photos as taken.
+        let _ = std::fs::remove_file(folder.join(flashmat::data::captures::EXPOSURES_FILE));
+    }
     for entry in std::fs::read_dir(&folder)? {
         let entry = entry?;
         std::fs::rename(entry.path(), dir.join(entry.file_name()))?;

@@ -746,7 +746,16 @@ pub fn remove_stale_temporaries(dir: &Path) -> usize {
     let mut removed = 0;
     for entry in entries.flatten() {
         let stale = entry.file_name().to_str().and_then(temporary_writer).is_some_and(|pid| !process_runs(pid));
-        if stale && entry.file_type().is_ok_and(|t| t.is_file()) && std::fs::remove_file(entry.path()).is_ok() {
+        if !stale {
+            continue;
+        }
+        // Files of atomic writes, and folders written whole (a capture folder).
+        let gone = match entry.file_type() {
+            Ok(t) if t.is_file() => std::fs::remove_file(entry.path()).is_ok(),
+            Ok(t) if t.is_dir() => std::fs::remove_dir_all(entry.path()).is_ok(),
+            _ => false,
+        };
+        if gone {
             removed += 1;
         }
     }
@@ -1363,6 +1372,12 @@ mod tests {
         std::fs::write(sub.join(format!(".out.png.tmp-{dead}-2")), b"x").unwrap();
         atomic_write_bytes(&sub.join("out.txt"), b"ok").unwrap();
         assert_eq!(std::fs::read_dir(&sub).unwrap().count(), 1);
+        // A folder an interrupted writer left half-written goes too.
+        let folder = d.join(format!(".capture.tmp-{dead}-0"));
+        std::fs::create_dir(&folder).unwrap();
+        std::fs::write(folder.join("00.png"), b"partial").unwrap();
+        assert_eq!(remove_stale_temporaries(d), 1);
+        assert!(!folder.exists());
     }
 
     #[test]

@@ -263,6 +263,9 @@ struct Problem<'a> {
     group_centre: Vec<([f64; 2], f64)>,
     base: Vec<Mat3>,
     distortion: bool,
+    /// The focal length, held (its parameter unused) where the photos'
+    /// perspective cannot measure it.
+    fixed_focal: Option<f64>,
 }
 
 /// Parameters: focal, k1, k2, then (cx, cy) per group, then (rotation
@@ -277,7 +280,7 @@ impl Problem<'_> {
         let o = 3 + 2 * self.groups() + 6 * photo;
         // One lens: the focal length scales with the photo's size.
         let scale = self.group_centre[self.group[photo]].1 / self.group_centre[0].1;
-        let k = Intrinsics { focal: p[0] * scale, centre: [p[g], p[g + 1]], k1: p[1], k2: p[2] };
+        let k = Intrinsics { focal: self.fixed_focal.unwrap_or(p[0]) * scale, centre: [p[g], p[g + 1]], k1: p[1], k2: p[2] };
         let w = [p[o], p[o + 1], p[o + 2]];
         let pose = Pose { rotation: mat_mul(&rotation_from_vector(w), &self.base[photo]), translation: [p[o + 3], p[o + 4], p[o + 5]] };
         (k, pose)
@@ -388,7 +391,7 @@ fn rebase(problem: &mut Problem, mut p: Vec<f64>) -> Vec<f64> {
 /// is the same lens scaled (a downscaled copy), its focal length in pixels
 /// scaled with its longer side; `focal`: the first guess (pixels of the
 /// first photo's size); `poses`: first guesses (from [`pose_from_homography`]).
-pub fn calibrate(obs: &[Correspondences], sizes: &[(usize, usize)], focal: f64, poses: &[Pose]) -> Result<Calibration> {
+pub fn calibrate(obs: &[Correspondences], sizes: &[(usize, usize)], focal: f64, poses: &[Pose], fix_focal: bool) -> Result<Calibration> {
     ensure!(obs.len() == sizes.len() && obs.len() == poses.len(), "one size and one pose per photo");
     let mut kinds: Vec<(usize, usize)> = Vec::new();
     let group = sizes
@@ -409,7 +412,7 @@ pub fn calibrate(obs: &[Correspondences], sizes: &[(usize, usize)], focal: f64, 
         p.extend_from_slice(&[0.0, 0.0, 0.0]);
         p.extend_from_slice(&pose.translation);
     }
-    let mut problem = Problem { obs, group, group_centre, base: poses.iter().map(|p| p.rotation).collect(), distortion: false };
+    let mut problem = Problem { obs, group, group_centre, base: poses.iter().map(|p| p.rotation).collect(), distortion: false, fixed_focal: fix_focal.then_some(focal) };
     p = levenberg_marquardt(&mut problem, p, 100)?;
     let points: usize = obs.iter().map(Vec::len).sum();
     let overall = (cost(&problem.residuals(&p)[..2 * points]) / points as f64).sqrt();
@@ -509,7 +512,7 @@ mod tests {
         // First guesses as `flashmat capture` makes them: a 10% wrong focal, no distortion.
         let k0 = Intrinsics::centred(1540.0, 1600, 1200);
         let poses: Vec<Pose> = obs.iter().map(|o| pose_from_homography(&homography(o).unwrap(), &k0).unwrap()).collect();
-        let cal = calibrate(&obs, &vec![(1600, 1200); 4], 1540.0, &poses).unwrap();
+        let cal = calibrate(&obs, &vec![(1600, 1200); 4], 1540.0, &poses, false).unwrap();
         assert!(cal.distortion, "a k1 of -0.08 shows in the residuals");
         assert!((cal.intrinsics[0].focal - 1400.0).abs() < 10.0, "{:?}", cal.intrinsics[0]);
         for (pose, truth) in cal.poses.iter().zip(&truths) {

@@ -243,6 +243,11 @@ pub fn find_frame(photo: &FramePhoto, threads: usize) -> Result<(FrameLayout, Ve
         if !others.is_empty() {
             bail!("{who}: its tags are {}, not the frame's tag36h11: print the frame of `flashmat capture frame`", others.join(", "));
         }
+        // A mirror image's tags read as no tags: flip it and look again.
+        let mirrored: Vec<u8> = values.chunks_exact(photo.rgb.width).flat_map(|row| row.iter().rev().copied()).collect();
+        if markers::detect(&Gray { width: photo.rgb.width, height: photo.rgb.height, values: &mirrored }, threads).len() >= MIN_TAGS {
+            bail!("{who}: the photo is mirrored (its tags read only flipped left to right: a front camera's mirror image, or flipped in an editor): take it with the back camera, or flip it back");
+        }
         let s = markers::sharpness(&gray);
         if s < BLURRED_BELOW {
             bail!("{who}: no frame tags found, and the photo is blurred (sharpness {s:.2}, a sharp photo's is {BLURRED_BELOW} or more): hold still, let it focus");
@@ -394,18 +399,18 @@ fn calibrate_photos(photos: &[FramePhoto], obs: &[Correspondences]) -> Result<Ca
         .zip(photos)
         .map(|((h, &(w, hh)), p)| camera::pose_from_homography(h, &Intrinsics::centred(focal / to_first((w, hh)), w, hh)).ok_or_else(|| anyhow!("{}: no camera pose fits its tags", name(&p.path))))
         .collect::<Result<_>>()?;
-    if exif.is_none() {
-        // The photos' perspective fixes the focal length only if one of them
-        // looks at the frame at a slant; photos facing it straight on (even
-        // from off to the side) give any value their noise makes.
-        let slant = |p: &Pose| (-p.to_world_dir([0.0, 0.0, 1.0])[2]).clamp(-1.0, 1.0).acos().to_degrees();
-        let most = poses.iter().map(slant).fold(0.0, f64::max);
-        ensure!(
-            most >= MIN_TILT_WITHOUT_EXIF_DEG,
-            "no focal length: the photos have no EXIF focal length, and none looks at the frame at a slant of {MIN_TILT_WITHOUT_EXIF_DEG} degrees or more (the most: {most:.0}); add a photo taken at a tilt"
-        );
-    }
-    let cal = camera::calibrate(obs, &sizes, focal, &poses)?;
+    // The photos' perspective fixes the focal length only if one of them
+    // looks at the frame at a slant; photos facing it straight on (even
+    // from off to the side) give any value their noise makes, traded
+    // against the distance.
+    let slant = |p: &Pose| (-p.to_world_dir([0.0, 0.0, 1.0])[2]).clamp(-1.0, 1.0).acos().to_degrees();
+    let most = poses.iter().map(slant).fold(0.0, f64::max);
+    ensure!(
+        exif.is_some() || most >= MIN_TILT_WITHOUT_EXIF_DEG,
+        "no focal length: the photos have no EXIF focal length, and none looks at the frame at a slant of {MIN_TILT_WITHOUT_EXIF_DEG} degrees or more (the most: {most:.0}); add a photo taken at a tilt"
+    );
+    // Straight on with an EXIF focal length: that one, held.
+    let cal = camera::calibrate(obs, &sizes, focal, &poses, most < MIN_TILT_WITHOUT_EXIF_DEG)?;
     let fitted = cal.intrinsics[0].focal / w0.max(h0) as f64;
     ensure!(
         FOCAL_RANGE.contains(&fitted),
@@ -448,7 +453,10 @@ pub fn write_folder(capture: &Capture, dir: &Path, photos: &[FramePhoto]) -> Res
     }
     let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::create_dir_all(parent).map_err(|e| anyhow!("cannot create {}: {e}", parent.display()))?;
-    let tmp = parent.join(format!(".{}.tmp-{}", name(dir), std::process::id()));
+    // Named as io's temporaries are, so that a folder an interrupted run
+    // left half-written is removed by the next one.
+    crate::io::remove_stale_temporaries(parent);
+    let tmp = parent.join(format!(".{}.tmp-{}-0", name(dir), std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);
     std::fs::create_dir(&tmp).map_err(|e| anyhow!("cannot create {}: {e}", tmp.display()))?;
     let written = (|| -> Result<()> {
