@@ -398,10 +398,12 @@ fn load(path: PathBuf, device: Option<&Bound<'_, PyAny>>) -> PyResult<Material> 
 /// One material from several photos of a capture folder, as
 /// `flashmat estimate --capture DIR` makes it: GGX maps fitted to all
 /// photos, then a neural material of them. photos: use the first K.
+/// max_memory: refused before any work when the fit would need more
+/// (as `--max-memory`).
 #[pyfunction]
-#[pyo3(signature = (folder, *, photos=None, size=256, steps=None, photo_gains=false, model=None, device=None))]
+#[pyo3(signature = (folder, *, photos=None, size=256, steps=None, photo_gains=false, model=None, device=None, max_memory="8G"))]
 #[allow(clippy::too_many_arguments)]
-fn capture(py: Python<'_>, folder: PathBuf, photos: Option<usize>, size: usize, steps: Option<usize>, photo_gains: bool, model: Option<PathBuf>, device: Option<&Bound<'_, PyAny>>) -> PyResult<Material> {
+fn capture(py: Python<'_>, folder: PathBuf, photos: Option<usize>, size: usize, steps: Option<usize>, photo_gains: bool, model: Option<PathBuf>, device: Option<&Bound<'_, PyAny>>, max_memory: &str) -> PyResult<Material> {
     use flashmat::fit::photos as fp;
     let device = parse_device(device)?;
     let defaults = fp::PhotoFitConfig::default();
@@ -409,6 +411,13 @@ fn capture(py: Python<'_>, folder: PathBuf, photos: Option<usize>, size: usize, 
     let (material, warnings) = guarded(|| {
         let captures = flashmat::data::captures::Captures::open(&folder)?;
         let count = photos.unwrap_or(captures.photos.len());
+        let limit = flashmat::infer::tiles::parse_memory(max_memory)?;
+        let need = fp::capture_fit_memory(size, count);
+        anyhow::ensure!(
+            need <= limit as f64,
+            "a capture fit at size={size} with {count} photos needs about {:.1} GiB, more than max_memory={max_memory:?}: lower size, or raise max_memory",
+            need / (1u64 << 30) as f64
+        );
         let mut warnings = Vec::new();
         let made = errors::without_gil(py, || fp::capture_material(&captures, count, &cfg, model.as_deref(), device, |w| warnings.push(w.to_string()), |_, _, _| ()))?;
         Ok((made.material, warnings))
