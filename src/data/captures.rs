@@ -215,7 +215,7 @@ fn read_text(path: &Path) -> Result<String> {
 /// JPEGs, or PNGs), or linear DNGs (the `raw` feature).
 const PHOTO_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "dng"];
 
-/// `NN.png` / `NN.jpg` files of `dir` sorted by number; errors when there are none.
+/// `NN.png` / `NN.jpg` / `NN.dng` files of `dir` sorted by number; errors when there are none.
 fn numbered_photos(dir: &Path) -> Result<(Vec<u64>, Vec<PathBuf>)> {
     let mut found: Vec<(u64, PathBuf)> = Vec::new();
     for p in crate::io::sorted_entries(dir)? {
@@ -271,7 +271,7 @@ fn read_positions(path: &Path, scale: f64, expected: usize, needs: &str) -> Resu
     Ok(out)
 }
 
-/// Parses one exposure per non-empty line: `expected` finite numbers > 0.
+/// Parses one exposure per non-empty line (one number, or three: R,G,B): `expected` of them, finite and > 0.
 fn read_exposures(path: &Path, expected: usize, needs: &str) -> Result<Vec<[f64; 3]>> {
     let text = read_text(path)?;
     let mut out = Vec::new();
