@@ -248,7 +248,7 @@ def test_capture_folders_make_a_material(tmp_path):
     with torch.no_grad():
         assert m.render(LIGHT).mean() > 0
     # A size the memory allowed cannot reach: refused before any work, as the CLI refuses it.
-    with pytest.raises(Exception, match="needs about .* GiB, more than max_memory='1G'"):
+    with pytest.raises(Exception, match='needs about .* GiB, more than max_memory="1G"'):
         flashmat.capture(folder, photos=3, size=4096, max_memory="1G")
 
 
