@@ -798,7 +798,10 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
         raw.push(clipped);
         names.push(path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());
     }
-    check_colour(&decoded, captures)?;
+    // On the photos brought to one exposure and white balance: a grey
+    // material shot with a white-balance cast in one photo is still grey.
+    let balanced: Vec<(usize, Tensor)> = decoded.iter().zip(&photos).map(|((i, _), p)| (*i, p.shallow_clone())).collect();
+    check_colour(&balanced, captures)?;
     Ok(CapturePhotos { photos: Tensor::stack(&photos, 0), clipped: Tensor::cat(&raw, 0), configs, overhead, names, warnings })
 }
 

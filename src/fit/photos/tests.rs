@@ -573,3 +573,27 @@ fn the_capture_fits_memory_model_matches_its_measurements() {
     assert_eq!(capture_fit_memory(256, 1), capture_fit_memory(256, 3));
     assert!((capture_fit_memory(256, 6) / capture_fit_memory(256, 3) - 2.0).abs() < 1e-12);
 }
+
+#[test]
+fn a_grey_material_with_a_white_balance_cast_in_one_photo_is_not_called_grey_among_colour() {
+    // A grey material (kd and ks grey), photo 01 taken with a warm cast
+    // (R x1.3, B x0.7, as auto white balance does). Recorded in
+    // exposures.txt (`flashmat capture`'s light meter writes it), the cast
+    // is taken out before the grey-photo check; without it, photo 01 looks
+    // coloured and the grey overhead photo is refused as a black-and-white
+    // photo among colour ones.
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let maps = truth_maps();
+    let grey = Tensor::cat(&[Tensor::full([3, SIDE, SIDE], 0.15, (Kind::Float, Device::Cpu)), maps.narrow(0, 3, 7)], 0);
+    let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&grey).unwrap()).unwrap();
+    write_synthetic(d, &material, &synthetic_configs(3), 10.0).unwrap();
+    let photo = crate::io::read_rgb(&d.join("01.png")).unwrap();
+    let cast = [1.3f32, 1.0, 0.7];
+    let warm = crate::image::Image::from_fn(3, photo.height, photo.width, |c, y, x| crate::spaces::gamma_encode(crate::spaces::gamma_decode(photo.get(c, y, x)) * cast[c]));
+    crate::io::write_png(&d.join("01.png"), &warm, crate::io::BitDepth::Eight).unwrap();
+    let e = one_line(load_capture(&Captures::open(d).unwrap(), 3, 32).err().expect("the cast alone is refused"));
+    assert!(e.contains("00.png: the photo is grey"), "{e}");
+    std::fs::write(d.join(crate::data::captures::EXPOSURES_FILE), "1\n1.3,1,0.7\n1\n").unwrap();
+    assert!(load_capture(&Captures::open(d).unwrap(), 3, 32).is_ok());
+}
