@@ -277,10 +277,14 @@ fn supported_formats() -> String {
 pub fn raw_baseline_gain(path: &Path) -> f64 {
     #[cfg(feature = "raw")]
     {
-        let Ok(bytes) = read_input(path) else { return 1.0 };
-        if !is_tiff(&bytes) {
+        // Most photos of a capture are JPEG or PNG: their first 4 bytes say so
+        // without reading the file a second time.
+        let mut magic = [0u8; 4];
+        let head = std::fs::File::open(path).and_then(|mut f| std::io::Read::read_exact(&mut f, &mut magic));
+        if head.is_err() || !is_tiff(&magic) {
             return 1.0;
         }
+        let Ok(bytes) = read_input(path) else { return 1.0 };
         let stops = std::panic::catch_unwind(|| raw::baseline_exposure(&bytes)).ok().flatten().unwrap_or(0.0);
         2f64.powf(stops.clamp(-8.0, 8.0))
     }

@@ -117,7 +117,14 @@ fn main() {
         let first = msg.lines().next().unwrap_or("").to_string();
         eprintln!("error: internal error: {first}");
     }));
-    let cli = cli::Cli::parse();
+    let cli = match cli::Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) if !e.use_stderr() => e.exit(), // --help, --version: their text, exit 0
+        Err(e) => {
+            eprintln!("error: {}", argument_error_line(&e, &std::env::args().collect::<Vec<_>>()));
+            std::process::exit(2);
+        }
+    };
     let _ = MEMORY_HINT.set(cli::memory_hint(&cli.command));
     match std::panic::catch_unwind(|| cli::run(cli)) {
         Ok(Ok(())) => {}
@@ -130,9 +137,31 @@ fn main() {
     }
 }
 
+/// A refused command line (`args`, the program first) as one line: clap's
+/// error, then its tip if it has one (the usage block and "For more
+/// information" left out: `--help` says it).
+fn argument_error_line(e: &clap::Error, args: &[String]) -> String {
+    let text = e.render().to_string();
+    // Paragraphs: the error (with what it lists, indented), tips, the usage, the pointer to --help.
+    let paragraphs: Vec<String> = text.split("\n\n").map(|p| p.lines().map(str::trim).filter(|l| !l.is_empty()).collect::<Vec<_>>().join(" ")).filter(|p| !p.is_empty()).collect();
+    let first = paragraphs.first().map_or("the command line was refused", |p| p.trim_start_matches("error:").trim());
+    // clap takes a negative number for an option's value as an unknown
+    // option and tips '-- -8', which no option of ours reads: say what it is.
+    if let Some(value) = e.get(clap::error::ContextKind::InvalidArg).map(|v| v.to_string()).filter(|v| v.parse::<f64>().is_ok_and(|x| x < 0.0)) {
+        let option = args.iter().position(|a| *a == value).and_then(|i| args[..i].last()).filter(|a| a.starts_with('-')).map_or("the option before it".to_string(), |a| a.clone());
+        return format!("{option} {value}: {option} takes no negative numbers (--help lists the options)");
+    }
+    let tips: Vec<&str> = paragraphs.iter().filter_map(|p| p.strip_prefix("tip:")).map(str::trim).collect();
+    match tips.is_empty() {
+        true => format!("{first} (--help lists the options)"),
+        false => format!("{first} ({}; --help lists the options)", tips.join("; ")),
+    }
+}
+
 #[cfg(test)]
 mod tests {
-    use super::{error_line, openmp_settings_to_add};
+    use super::{argument_error_line, error_line, openmp_settings_to_add};
+    use clap::Parser;
     use std::ffi::OsStr;
 
     /// An out-of-memory deep in an error's chain (libtorch's message, C++
@@ -148,6 +177,23 @@ mod tests {
         );
         let e = anyhow::anyhow!("no such file").context("cannot read p.png");
         assert_eq!(error_line(&e), "cannot read p.png: no such file");
+    }
+
+    /// A refused command line is one line that names the option and the value.
+    #[test]
+    fn argument_errors_are_one_line() {
+        let line_of = |args: &[&str]| {
+            let e = crate::cli::Cli::try_parse_from(args).err().expect("refused");
+            argument_error_line(&e, &args.iter().map(|a| a.to_string()).collect::<Vec<_>>())
+        };
+        let line = line_of(&["flashmat", "estimate", "p.png", "-o", "m.nmat", "--size", "abc"]);
+        assert!(!line.contains('\n') && line.contains("'abc'") && line.contains("--size"), "{line}");
+        let line = line_of(&["flashmat", "estimate", "p.png", "-o", "m.nmat", "--sise", "64"]);
+        assert!(!line.contains('\n') && line.contains("--sise") && line.contains("similar argument exists: '--size'"), "{line}");
+        let line = line_of(&["flashmat", "estimate", "p.png", "-o", "m.nmat", "--size", "-8"]);
+        assert_eq!(line, "--size -8: --size takes no negative numbers (--help lists the options)");
+        let line = line_of(&["flashmat", "capture", "a.jpg"]);
+        assert!(!line.contains('\n') && line.contains("not provided: --output <OUTPUT>"), "{line}");
     }
 
     #[test]

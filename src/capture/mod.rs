@@ -300,6 +300,14 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
     if let (Some(raw), Some(coded)) = (photos.iter().find(|p| p.raw.is_some()), photos.iter().find(|p| p.raw.is_none())) {
         bail!("{} is a RAW photo and {} is not: a capture's photos are all RAW (DNG) or all JPEG/PNG/HEIC; take them in one format", name(&raw.path), name(&coded.path));
     }
+    // The same photo twice (given twice, or a copy under another name)
+    // would be a second position the frame's tags cannot tell apart.
+    for (j, b) in photos.iter().enumerate() {
+        if let Some(a) = photos[..j].iter().find(|a| (a.rgb.width, a.rgb.height) == (b.rgb.width, b.rgb.height) && a.rgb.data == b.rgb.data) {
+            let how = if a.path == b.path { "given twice".to_string() } else { format!("the same pixels as {}", name(&a.path)) };
+            bail!("{}: {how}: give each photo once, each from its own position", name(&b.path));
+        }
+    }
     let mut found = Vec::new();
     for (i, photo) in photos.iter().enumerate() {
         on_progress(0, i, photos.len());
@@ -350,6 +358,11 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
         rectified.push(rectify::rectify(pixels, &results[i].intrinsics, &results[i].pose, half, side, &decode));
     }
     on_progress(2, order.len(), order.len());
+    // A grey photo among colour ones, named here while its file is the one the user gave.
+    let openings: Vec<tch::Tensor> = rectified.iter().map(|r| tch::Tensor::from_slice(r).view([3, side as i64, side as i64])).collect();
+    if let Some((k, colour, most)) = crate::fit::photos::grey_among_colour(&openings) {
+        return Err(crate::fit::photos::grey_photo_error(Path::new(&name(&photos[order[k]].path)), colour, most));
+    }
     let paper = order.iter().map(|&i| photometry::read_paper(&photos[i], &results[i], layout.paper_margin_centre_mm())).collect();
     let photos_out = order.iter().map(|&i| results[i].clone()).collect();
     Ok(Capture { layout, photos: photos_out, rectified, side, distortion: calibration.distortion, paper })
@@ -372,12 +385,15 @@ fn calibrate_photos(photos: &[FramePhoto], obs: &[Correspondences]) -> Result<Ca
     // Photos of one phone at other sizes are downscaled copies (a photo
     // sent through a messenger loses its EXIF and half its pixels): the same
     // field of view, so focal lengths in pixels scale with the longer side.
-    // A photo of another aspect ratio was cropped, and its lens centre and
-    // field of view are unknown.
+    // A photo turned a quarter without its EXIF saying so (portrait among
+    // landscape) is the same lens too: the calibration gives each size its
+    // own principal point, and the distortion is radial. A photo of another
+    // aspect ratio was cropped, and its lens centre and field of view are
+    // unknown.
     for (p, &(w, h)) in photos.iter().zip(&sizes) {
         let (a, a0) = (w as f64 / h as f64, w0 as f64 / h0 as f64);
         ensure!(
-            (a / a0 - 1.0).abs() < MAX_ASPECT_DIFFERENCE,
+            (a / a0 - 1.0).abs() < MAX_ASPECT_DIFFERENCE || (a * a0 - 1.0).abs() < MAX_ASPECT_DIFFERENCE,
             "{}: the photo is {w}x{h} pixels, {} is {w0}x{h0}, another shape: it was cropped; give every photo uncropped, as the phone took it",
             name(&p.path),
             name(&photos[0].path)

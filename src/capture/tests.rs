@@ -358,7 +358,7 @@ fn halved(photo: &FramePhoto) -> FramePhoto {
 }
 
 #[test]
-fn a_downscaled_photo_without_exif_keeps_its_position_and_a_cropped_one_is_named() {
+fn a_downscaled_or_turned_photo_without_exif_keeps_its_position_and_a_cropped_or_repeated_one_is_named() {
     // Photo 0 (overhead) sent on at half size without its EXIF: one lens,
     // its focal length in pixels halved with the photo. Fitted with one
     // focal length in pixels for all, it put that lens 260 mm off.
@@ -383,6 +383,34 @@ fn a_downscaled_photo_without_exif_keeps_its_position_and_a_cropped_one_is_named
         let d = length(sub(result.camera, view.pose.centre()));
         assert!(d < 3.0, "without EXIF, {}: camera {d:.2} mm off", result.source.display());
     }
+    // A photo turned a quarter, its EXIF lost (portrait among landscape): the same lens.
+    let mut turned = photos.iter().map(|p| p.clone_photo()).collect::<Vec<_>>();
+    let t = &mut turned[2].rgb;
+    let (w, h) = (t.width, t.height);
+    // Clockwise: the new pixel (x, y) is the old (y, h - 1 - x).
+    let data = (0..w).flat_map(|y| (0..h).flat_map(move |x| (0..3).map(move |c| (y, x, c)))).map(|(y, x, c)| t.data[3 * ((h - 1 - x) * w + y) + c]).collect();
+    *t = super::rectify::Rgb8 { width: h, height: w, data };
+    let cap = capture(&turned, &CaptureConfig::default(), |_, _, _| {}).unwrap();
+    for (result, view) in cap.photos.iter().zip(&views) {
+        let d = length(sub(result.camera, view.pose.centre()));
+        assert!(d < 3.0, "with {} turned, {}: camera {d:.2} mm off", turned[2].path.display(), result.source.display());
+    }
+    // The same photo twice, or a copy under another name: named.
+    let mut twice = photos.iter().map(|p| p.clone_photo()).collect::<Vec<_>>();
+    twice.push(photos[1].clone_photo());
+    let e = format!("{:#}", capture(&twice, &CaptureConfig::default(), |_, _, _| {}).err().expect("an error"));
+    assert!(e.contains("IMG_1.jpg: given twice"), "{e}");
+    twice.last_mut().unwrap().path = dir.path().join("copy.jpg");
+    let e = format!("{:#}", capture(&twice, &CaptureConfig::default(), |_, _, _| {}).err().expect("an error"));
+    assert!(e.contains("copy.jpg: the same pixels as IMG_1.jpg"), "{e}");
+    // A grey photo among colour ones (a black-and-white mode): named by the file given.
+    let mut grey = photos.iter().map(|p| p.clone_photo()).collect::<Vec<_>>();
+    for px in grey[1].rgb.data.chunks_mut(3) {
+        let mean = ((px[0] as u32 + px[1] as u32 + px[2] as u32) / 3) as u8;
+        px.fill(mean);
+    }
+    let e = format!("{:#}", capture(&grey, &CaptureConfig::default(), |_, _, _| {}).err().expect("an error"));
+    assert!(e.starts_with("IMG_1.jpg: the photo is grey"), "{e}");
     // A photo cropped to another shape: named.
     let mut cropped = photos[1].clone_photo();
     let (w, h) = (cropped.rgb.width, cropped.rgb.height);

@@ -856,23 +856,32 @@ fn colourfulness(photo: &Tensor) -> f64 {
 /// Below this colourfulness ([`colourfulness`]) a photo is grey.
 const GREY_PHOTO: f64 = 0.01;
 
-/// Refuses a grey photo among colour ones (a black-and-white filter, a
-/// monochrome mode): the fit would take the material as grey in that
-/// view. `photos`: (capture index, `[3, S, S]` as decoded).
-fn check_colour(photos: &[(usize, Tensor)], captures: &Captures) -> Result<()> {
-    let colour: Vec<f64> = photos.iter().map(|(_, p)| colourfulness(p)).collect();
+/// The first grey photo among colour ones (a black-and-white filter, a
+/// monochrome mode), as (its index, its colourfulness, the most colourful
+/// photo's); None when none is, or when all are grey (a grey material).
+/// photos: `[3, H, W]` linear each.
+pub fn grey_among_colour(photos: &[Tensor]) -> Option<(usize, f64, f64)> {
+    let colour: Vec<f64> = photos.iter().map(colourfulness).collect();
     let most = colour.iter().cloned().fold(0.0, f64::max);
     if most < 5.0 * GREY_PHOTO {
-        return Ok(()); // a grey material: every photo grey
+        return None;
     }
-    for ((i, _), &c) in photos.iter().zip(&colour) {
-        ensure!(
-            c >= GREY_PHOTO,
-            "{}: the photo is grey (colour {c:.4}) where another shows colour ({most:.3}): a black-and-white photo or filter? take it again in colour",
-            captures.photos[*i].display()
-        );
+    colour.iter().position(|&c| c < GREY_PHOTO).map(|i| (i, colour[i], most))
+}
+
+/// The refusal of a grey photo among colour ones, naming it.
+pub fn grey_photo_error(photo: &std::path::Path, colour: f64, most: f64) -> anyhow::Error {
+    anyhow::anyhow!("{}: the photo is grey (colour {colour:.4}) where another shows colour ({most:.3}): a black-and-white photo or filter? take it again in colour", photo.display())
+}
+
+/// Refuses a grey photo among colour ones: the fit would take the material
+/// as grey in that view. `photos`: (capture index, `[3, S, S]` as decoded).
+fn check_colour(photos: &[(usize, Tensor)], captures: &Captures) -> Result<()> {
+    let tensors: Vec<Tensor> = photos.iter().map(|(_, p)| p.shallow_clone()).collect();
+    match grey_among_colour(&tensors) {
+        Some((k, colour, most)) => Err(grey_photo_error(&captures.photos[photos[k].0], colour, most)),
+        None => Ok(()),
     }
-    Ok(())
 }
 
 /// A photo whose mean error after the fit is above this many times the

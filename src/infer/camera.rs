@@ -88,6 +88,9 @@ fn rational(field: &exif::Field) -> Option<f64> {
     match &field.value {
         Value::Rational(v) => v.first().filter(|r| r.denom != 0).map(|r| r.to_f64()),
         Value::SRational(v) => v.first().filter(|r| r.denom != 0).map(|r| r.to_f64()),
+        // Phones write rationals; editing tools (Pillow among them) may write floats.
+        Value::Double(v) => v.first().copied(),
+        Value::Float(v) => v.first().map(|&f| f64::from(f)),
         other => other.get_uint(0).map(f64::from),
     }
     .filter(|v| v.is_finite() && *v > 0.0)
@@ -167,6 +170,19 @@ mod tests {
         assert_eq!(fov_from_35mm(26.0, 3024, 4032), fov_from_35mm(26.0, 4032, 3024));
         // 4.25 mm lens, 1.4 um pixels, 3024 px: side 4.2336 mm -> 2 atan(0.49807) = 52.95 deg.
         assert!((fov_from_focal_plane(4.25, 0.0014, 3024) - 52.953).abs() < 1e-2);
+    }
+
+    /// A number is read whatever type the writer chose; zero, negative and
+    /// non-finite values are none.
+    #[test]
+    fn exif_numbers_of_every_type_are_read() {
+        let field = |value: Value| exif::Field { tag: exif::Tag::ExposureTime, ifd_num: exif::In::PRIMARY, value };
+        assert_eq!(rational(&field(Value::Rational(vec![exif::Rational { num: 1, denom: 120 }]))), Some(1.0 / 120.0));
+        assert_eq!(rational(&field(Value::Double(vec![4e9]))), Some(4e9));
+        assert_eq!(rational(&field(Value::Float(vec![0.5]))), Some(0.5));
+        assert_eq!(rational(&field(Value::Short(vec![26]))), Some(26.0));
+        assert_eq!(rational(&field(Value::Double(vec![f64::NAN]))), None);
+        assert_eq!(rational(&field(Value::Rational(vec![exif::Rational { num: 1, denom: 0 }]))), None);
     }
 
     #[test]
