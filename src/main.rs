@@ -147,9 +147,13 @@ fn argument_error_line(e: &clap::Error, args: &[String]) -> String {
     let first = paragraphs.first().map_or("the command line was refused", |p| p.trim_start_matches("error:").trim());
     // clap takes a negative number for an option's value as an unknown
     // option and tips '-- -8', which no option of ours reads: say what it is.
-    if let Some(value) = e.get(clap::error::ContextKind::InvalidArg).map(|v| v.to_string()).filter(|v| v.parse::<f64>().is_ok_and(|x| x < 0.0)) {
-        let option = args.iter().position(|a| *a == value).and_then(|i| args[..i].last()).filter(|a| a.starts_with('-')).map_or("the option before it".to_string(), |a| a.clone());
-        return format!("{option} {value}: {option} takes no negative numbers (--help lists the options)");
+    let negative = |v: &str| v.strip_prefix('-').is_some_and(|rest| rest.starts_with(|c: char| c.is_ascii_digit() || c == '.'));
+    if let Some(value) = e.get(clap::error::ContextKind::InvalidArg).map(|v| v.to_string()).filter(|v| negative(v)) {
+        // clap names '-1' of '-1G' (a cluster of short options): the argument as given.
+        let at = args.iter().position(|a| a.starts_with(&value));
+        let given = at.map_or(value.clone(), |i| args[i].clone());
+        let option = at.and_then(|i| args[..i].last()).filter(|a| a.starts_with('-')).map_or("the option before it".to_string(), |a| a.clone());
+        return format!("{option} {given}: {option} takes no negative numbers (--help lists the options)");
     }
     let tips: Vec<&str> = paragraphs.iter().filter_map(|p| p.strip_prefix("tip:")).map(str::trim).collect();
     match tips.is_empty() {
@@ -192,6 +196,8 @@ mod tests {
         assert!(!line.contains('\n') && line.contains("--sise") && line.contains("similar argument exists: '--size'"), "{line}");
         let line = line_of(&["flashmat", "estimate", "p.png", "-o", "m.nmat", "--size", "-8"]);
         assert_eq!(line, "--size -8: --size takes no negative numbers (--help lists the options)");
+        let line = line_of(&["flashmat", "estimate", "p.png", "-o", "m.nmat", "--max-memory", "-1G"]);
+        assert_eq!(line, "--max-memory -1G: --max-memory takes no negative numbers (--help lists the options)");
         let line = line_of(&["flashmat", "capture", "a.jpg"]);
         assert!(!line.contains('\n') && line.contains("not provided: --output <OUTPUT>"), "{line}");
     }

@@ -231,6 +231,9 @@ fn name(path: &Path) -> String {
     path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| path.display().to_string())
 }
 
+/// A photo whose grey codes all lie within this many of each other shows nothing.
+const FLAT_PHOTO_CODES: u8 = 8;
+
 /// The frame's tags in one photo, with the frame they name. Errors are one
 /// line naming the photo: no tags (blurred, or another family), too few.
 pub fn find_frame(photo: &FramePhoto, threads: usize) -> Result<(FrameLayout, Vec<Marker>)> {
@@ -247,6 +250,13 @@ pub fn find_frame(photo: &FramePhoto, threads: usize) -> Result<(FrameLayout, Ve
         let mirrored: Vec<u8> = values.chunks_exact(photo.rgb.width).flat_map(|row| row.iter().rev().copied()).collect();
         if markers::detect(&Gray { width: photo.rgb.width, height: photo.rgb.height, values: &mirrored }, threads).len() >= MIN_TAGS {
             bail!("{who}: the photo is mirrored (its tags read only flipped left to right: a front camera's mirror image, or flipped in an editor): take it with the back camera, or flip it back");
+        }
+        // A photo of one level everywhere (white: over-exposed; black: the
+        // lens covered) shows nothing, blurred or not.
+        let (lo, hi) = values.iter().fold((u8::MAX, 0u8), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+        if hi - lo < FLAT_PHOTO_CODES {
+            let what = if lo >= 128 { "white: over-exposed, or of a lamp; lower the exposure" } else { "black: the lens covered, or the flash off in a dark room" };
+            bail!("{who}: the photo is one level everywhere (codes {lo}-{hi}), {what}");
         }
         let s = markers::sharpness(&gray);
         if s < BLURRED_BELOW {
@@ -400,7 +410,9 @@ fn calibrate_photos(photos: &[FramePhoto], obs: &[Correspondences]) -> Result<Ca
         );
     }
     let to_first = |(w, h): (usize, usize)| w0.max(h0) as f64 / w.max(h) as f64;
-    let exif = photos.iter().zip(&sizes).find_map(|(p, &s)| p.exif_focal.map(|f| f * to_first(s)));
+    // The first photo whose EXIF states a focal length, and that length in the first photo's pixels.
+    let exif_photo = photos.iter().zip(&sizes).find_map(|(p, &s)| p.exif_focal.map(|f| (f * to_first(s), name(&p.path))));
+    let exif = exif_photo.as_ref().map(|(f, _)| *f);
     // The homographies in the first photo's pixels, for the focal length they share.
     let in_first: Vec<camera::Mat3> = homographies.iter().zip(&sizes).map(|(h, &s)| [h[0].map(|v| v * to_first(s)), h[1].map(|v| v * to_first(s)), h[2]]).collect();
     let from_tags = camera::focal_from_homographies(&in_first, [w0 as f64 / 2.0, h0 as f64 / 2.0]);
@@ -446,11 +458,11 @@ fn calibrate_photos(photos: &[FramePhoto], obs: &[Correspondences]) -> Result<Ca
             );
         }
     }
-    if let Some(f) = exif {
-        let fitted = cal.intrinsics[0].focal;
+    if let Some((f, who)) = &exif_photo {
+        let (f, fitted) = (*f, cal.intrinsics[0].focal);
         if (fitted / f - 1.0).abs() > FOCAL_AGREEMENT {
             bail!(
-                "the tags say a focal length of {fitted:.0} px, the EXIF {f:.0} px: the photos are cropped or zoomed, or the frame is not flat"
+                "{who}: its EXIF says a focal length of {f:.0} px, the tags {fitted:.0} px: the photos are cropped or zoomed, the EXIF is of another lens, or the frame is not flat"
             );
         }
     }

@@ -172,6 +172,13 @@ fn bad_photos_are_named_and_leave_no_folder() {
     let e = err(&[photos[0].clone_photo(), blurred.into_iter().next().unwrap()]);
     assert!(e.contains("IMG_0.jpg: no frame tags found") && e.contains("blurred"), "{e}");
 
+    // A white (over-exposed) or black (covered lens) photo: said so, not "blurred".
+    for (level, what) in [(255u8, "white"), (3, "black")] {
+        let flat = FramePhoto { path: dir.path().join("flat.jpg"), rgb: Rgb8 { width: W, height: H, data: vec![level; 3 * W * H] }, exif_focal: Some(FOCAL), orientation: 1, exposure: None, raw: None };
+        let e = err(&[photos[0].clone_photo(), flat]);
+        assert!(e.starts_with("flat.jpg: the photo is one level everywhere") && e.contains(what), "{e}");
+    }
+
     // Tags of a layout they do not belong to: the 10 cm frame's tags
     // moved 4 mm outward (a frame scaled unevenly, or another layout).
     let mut moved = photos[2].clone_photo();
@@ -403,6 +410,11 @@ fn a_downscaled_or_turned_photo_without_exif_keeps_its_position_and_a_cropped_or
     twice.last_mut().unwrap().path = dir.path().join("copy.jpg");
     let e = format!("{:#}", capture(&twice, &CaptureConfig::default(), |_, _, _| {}).err().expect("an error"));
     assert!(e.contains("copy.jpg: the same pixels as IMG_1.jpg"), "{e}");
+    // An EXIF focal length the tags contradict (another lens's EXIF, or a zoomed photo): the photo named.
+    let mut zoomed = photos.iter().map(|p| p.clone_photo()).collect::<Vec<_>>();
+    zoomed[0].exif_focal = Some(FOCAL * 3.0);
+    let e = format!("{:#}", capture(&zoomed, &CaptureConfig::default(), |_, _, _| {}).err().expect("an error"));
+    assert!(e.starts_with("IMG_0.jpg: its EXIF says a focal length of"), "{e}");
     // A grey photo among colour ones (a black-and-white mode): named by the file given.
     let mut grey = photos.iter().map(|p| p.clone_photo()).collect::<Vec<_>>();
     for px in grey[1].rgb.data.chunks_mut(3) {
