@@ -119,7 +119,8 @@ fn main() {
     }));
     let cli = match cli::Cli::try_parse() {
         Ok(cli) => cli,
-        Err(e) if !e.use_stderr() => e.exit(), // --help, --version: their text, exit 0
+        // --help and --version (exit 0), and a bare `flashmat` (its help, exit 2): clap's own text.
+        Err(e) if !e.use_stderr() || e.kind() == clap::error::ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => e.exit(),
         Err(e) => {
             eprintln!("error: {}", argument_error_line(&e, &std::env::args().collect::<Vec<_>>()));
             std::process::exit(2);
@@ -156,9 +157,10 @@ fn argument_error_line(e: &clap::Error, args: &[String]) -> String {
         return format!("{option} {given}: {option} takes no negative numbers (--help lists the options)");
     }
     let tips: Vec<&str> = paragraphs.iter().filter_map(|p| p.strip_prefix("tip:")).map(str::trim).collect();
-    match tips.is_empty() {
-        true => format!("{first} (--help lists the options)"),
-        false => format!("{first} ({}; --help lists the options)", tips.join("; ")),
+    if tips.is_empty() {
+        format!("{first} (--help lists the options)")
+    } else {
+        format!("{first} ({}; --help lists the options)", tips.join("; "))
     }
 }
 
