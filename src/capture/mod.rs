@@ -368,12 +368,26 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
         rectified.push(rectify::rectify(pixels, &results[i].intrinsics, &results[i].pose, half, side, &decode));
     }
     on_progress(2, order.len(), order.len());
-    // A grey photo among colour ones, named here while its file is the one the user gave.
-    let openings: Vec<tch::Tensor> = rectified.iter().map(|r| tch::Tensor::from_slice(r).view([3, side as i64, side as i64])).collect();
+    let paper: Vec<photometry::PaperReading> = order.iter().map(|&i| photometry::read_paper(&photos[i], &results[i], layout.paper_margin_centre_mm())).collect();
+    // A grey photo among colour ones, named here while its file is the one
+    // the user gave; on the openings brought to one white balance by the
+    // paper, as the fit's check is, so a grey material with a cast in one
+    // photo is not refused.
+    let levels = photometry::relative_levels(&paper);
+    let openings: Vec<tch::Tensor> = rectified
+        .iter()
+        .enumerate()
+        .map(|(n, r)| {
+            let opening = tch::Tensor::from_slice(r).view([3, side as i64, side as i64]);
+            match &levels {
+                Some(l) => opening / tch::Tensor::from_slice(&l[n].map(|v| v as f32)).view([3, 1, 1]),
+                None => opening,
+            }
+        })
+        .collect();
     if let Some((k, colour, most)) = crate::fit::photos::grey_among_colour(&openings) {
         return Err(crate::fit::photos::grey_photo_error(Path::new(&name(&photos[order[k]].path)), colour, most));
     }
-    let paper = order.iter().map(|&i| photometry::read_paper(&photos[i], &results[i], layout.paper_margin_centre_mm())).collect();
     let photos_out = order.iter().map(|&i| results[i].clone()).collect();
     Ok(Capture { layout, photos: photos_out, rectified, side, distortion: calibration.distortion, paper })
 }

@@ -433,6 +433,37 @@ fn a_downscaled_or_turned_photo_without_exif_keeps_its_position_and_a_cropped_or
 }
 
 #[test]
+fn a_grey_material_with_a_white_balance_cast_in_one_photo_is_not_refused_as_grey() {
+    // Grey kd and ks; photo 1 taken with a warm cast (R x1.15, B x0.85, as
+    // auto white balance does). Unbalanced, photo 1 shows colour (0.1) and
+    // the others none, so the grey-photo check would refuse them; the
+    // paper's levels take the cast out first.
+    let dir = tempfile::tempdir().unwrap();
+    let mut maps = material().stacked();
+    for c in 0..6 {
+        let grey = if c < 3 { 0.2 } else { 0.05 };
+        for y in 0..maps.height {
+            for x in 0..maps.width {
+                maps.set(c, y, x, grey);
+            }
+        }
+    }
+    let grey = crate::svbrdf::Svbrdf::from_stacked(&maps).unwrap();
+    let layout = FrameLayout::new(10).unwrap();
+    let fx = PhoneEffects { jpeg_quality: None, ..Default::default() };
+    let views = views(0.0);
+    let shots = super::synthetic::shoot(&grey, &layout, &views[..3], [0.0, 0.0], super::synthetic::SUPERSAMPLE, &fx).unwrap();
+    let mut photos: Vec<FramePhoto> = shots.into_iter().enumerate().map(|(i, s)| FramePhoto { path: dir.path().join(format!("IMG_{i}.jpg")), rgb: s.rgb, exif_focal: Some(FOCAL), orientation: 1, exposure: None, raw: None }).collect();
+    let cast = [1.15f32, 1.0, 0.85];
+    for (k, v) in photos[1].rgb.data.iter_mut().enumerate() {
+        *v = crate::spaces::quantize_u8(crate::spaces::photo_encode((crate::spaces::photo_decode(*v as f32 / 255.0) * cast[k % 3]).min(1.0)));
+    }
+    let cap = capture(&photos, &CaptureConfig::default(), |_, _, _| {}).unwrap();
+    let levels = super::photometry::relative_levels(&cap.paper).unwrap();
+    assert!((levels[1][0] / levels[1][2] - 1.15 / 0.85).abs() < 0.1, "the cast read by the paper: {:?}", levels[1]);
+}
+
+#[test]
 fn the_picture_of_many_photos_wraps_its_rows_and_says_how_many_it_shows() {
     // 50 photos (the 4 of a capture, repeated): 8 to a row, the first 48
     // shown in 6 rows of photos over their openings; 180 in one row made a
