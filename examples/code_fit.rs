@@ -77,6 +77,17 @@ fn main() -> Result<()> {
         let before = neural_gap(&material, &maps, &configs, Some(&lpips))?;
         let fit = fit_codes(&mut material, &maps, &teacher.encoder, &photo_configs, &cfg)?;
         let after = neural_gap(&material, &maps, &configs, Some(&lpips))?;
+        // SAVE=DIR: the identity render, maps | neural material | 4x their difference, display sRGB.
+        if let Ok(dir) = std::env::var("SAVE") {
+            let config = flashmat::infer::nmat::NeuralMaterial::identity_config();
+            let neural = material.render(std::slice::from_ref(&config))?.get(0);
+            let (wi, wo) = material.direction_maps(std::slice::from_ref(&config));
+            let ggx = flashmat::svbrdf::render::render_directions(&flashmat::model::ggx_codes::valid_values(&maps.unsqueeze(0)), &wi, &wo).get(0).get(0).clamp_min(0.0);
+            let diff = (&neural - &ggx).abs() * 4.0;
+            let strip = Tensor::cat(&[ggx, neural, diff], 2);
+            std::fs::create_dir_all(&dir)?;
+            flashmat::io::write_png(&std::path::Path::new(&dir).join(format!("{name}-identity.png")), &flashmat::image::Image::from_tensor(&strip)?.to_display(), flashmat::io::BitDepth::Eight)?;
+        }
         println!("{name} | {} | {} | {:.1} (loss {:.4} -> {:.4})", show(&before), show(&after), fit.seconds, fit.loss_before, fit.loss_after);
         for (s, g) in sums.iter_mut().zip([&before, &after]) {
             for (v, x) in s.iter_mut().zip([g.log_l1, g.channel_log_ratio, g.chromaticity, g.mean_chromaticity, g.lpips.unwrap_or(0.0)]) {

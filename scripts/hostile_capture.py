@@ -335,6 +335,12 @@ def capture_case(name, cls, expect, edit=None, extra=(), must_name=None, check=N
         return args + list(extra)
 
 
+def after(*_effects, photos=None):
+    """A case's setup as one expression: its edits (the arguments, already
+    done when this runs) and then the photos to pass (None: the originals)."""
+    return photos
+
+
 def replace(i, fn, **save):
     def edit(ps):
         edit_image(ps[i], ps[i], fn, **save)
@@ -354,12 +360,12 @@ for est in [False, True]:
     ex = ["--size", "64", "--steps", "40"] if est else []
     capture_case("the four photos", "benign", "ok", extra=ex, out=o, estimate=est, check=lens_check(TRUE_LENSES[1]))
     capture_case("a photo of 0 bytes", "corrupt", "refuse", lambda ps: write(ps[1], ""), ex, "IMG_01", out=o, estimate=est)
-    capture_case("a truncated JPEG", "corrupt", "refuse", lambda ps: [ps[1].write_bytes(ps[1].read_bytes()[:20000])] and None, ex, "IMG_01", out=o, estimate=est)
+    capture_case("a truncated JPEG", "corrupt", "refuse", lambda ps: after(ps[1].write_bytes(ps[1].read_bytes()[:20000])), ex, "IMG_01", out=o, estimate=est)
     capture_case("a text file named .jpg", "corrupt", "refuse", lambda ps: write(ps[1], "hello"), ex, "IMG_01", out=o, estimate=est)
     capture_case("a photo that does not exist", "missing", "refuse", lambda ps: ps[1].unlink(), ex, "IMG_01", out=o, estimate=est)
-    capture_case("a folder given as a photo", "missing", "refuse", lambda ps: [ps[1].unlink(), ps[1].mkdir()] and None, ex, "IMG_01", out=o, estimate=est)
-    capture_case("a JPEG claiming 60000x60000 (a PNG bomb named .png)", "resources", "refuse", lambda ps: [ps[1].unlink(), png_bomb(ps[1].with_suffix(".png"))] and [ps[0], ps[1].with_suffix(".png"), *ps[2:]], ex, "IMG_01", out=o, estimate=est)
-    capture_case("a photo without the frame", "wrong input", "refuse", lambda ps: shutil.copy(next((ROOT / "examples/photos").glob("*.png")), ps[1]) and None, ex, "IMG_01", out=o, estimate=est)
+    capture_case("a folder given as a photo", "missing", "refuse", lambda ps: after(ps[1].unlink(), ps[1].mkdir()), ex, "IMG_01", out=o, estimate=est)
+    capture_case("a JPEG claiming 60000x60000 (a PNG bomb named .png)", "resources", "refuse", lambda ps: after(ps[1].unlink(), png_bomb(ps[1].with_suffix(".png")), photos=[ps[0], ps[1].with_suffix(".png"), *ps[2:]]), ex, "IMG_01", out=o, estimate=est)
+    capture_case("a photo without the frame", "wrong input", "refuse", lambda ps: after(shutil.copy(next((ROOT / "examples/photos").glob("*.png")), ps[1])), ex, "IMG_01", out=o, estimate=est)
     capture_case("a mirrored photo", "wrong input", "refuse", replace(1, lambda im: im.transpose(Image.Transpose.FLIP_LEFT_RIGHT), quality=92), ex, "mirrored", out=o, estimate=est)
     capture_case("a photo turned 90 degrees, no EXIF orientation", "benign", "ok", replace(1, lambda im: im.transpose(Image.Transpose.ROTATE_90), quality=92), ex, out=o, estimate=est, check=lens_check(TRUE_LENSES[1]))
     capture_case("a photo turned 180 degrees", "benign", "ok", replace(2, lambda im: im.transpose(Image.Transpose.ROTATE_180), quality=92), ex, out=o, estimate=est, check=lens_check(TRUE_LENSES[2], 2))
@@ -367,17 +373,17 @@ for est in [False, True]:
     capture_case("a photo cropped", "wrong result", "refuse", replace(1, lambda im: im.crop((100, 0, im.width - 100, im.height)), quality=92), ex, "IMG_01", out=o, estimate=est)
     capture_case("the same photo twice", "silent accept", "refuse", lambda ps: ps + [ps[1]], ex, "IMG_01", out=o, estimate=est)
     capture_case("the same photo thirty times", "silent accept", "refuse", lambda ps: ps + [ps[1]] * 29, ex, "IMG_01", out=o, estimate=est)
-    capture_case("a copy of a photo under another name", "silent accept", "refuse", lambda ps: shutil.copy(ps[1], ps[1].parent / "copy.jpg") and ps + [ps[1].parent / "copy.jpg"], ex, "copy", out=o, estimate=est)
+    capture_case("a copy of a photo under another name", "silent accept", "refuse", lambda ps: after(shutil.copy(ps[1], ps[1].parent / "copy.jpg"), photos=ps + [ps[1].parent / "copy.jpg"]), ex, "copy", out=o, estimate=est)
     capture_case("a white photo", "silent accept", "refuse", replace(1, lambda im: Image.new("RGB", im.size, (255, 255, 255)), quality=92), ex, "IMG_01", out=o, estimate=est)
     capture_case("a black photo", "silent accept", "refuse", replace(1, lambda im: Image.new("RGB", im.size, (0, 0, 0)), quality=92), ex, "IMG_01", out=o, estimate=est)
     capture_case("a grey photo among colour ones", "silent accept", "refuse", replace(1, lambda im: im.convert("L").convert("RGB"), quality=92), ex, "IMG_01", out=o, estimate=est)
     capture_case("a photo two stops darker (auto exposure)", "benign", "ok", replace(1, lambda im: im.point(lambda v: int(255 * ((v / 255) ** 2.2 / 4) ** (1 / 2.2))), quality=92), ex, out=o, estimate=est)
     capture_case("a tone-mapped photo (linear ^ 0.5)", "wrong input", "either", replace(1, lambda im: im.point(lambda v: int(255 * (((v / 255) ** 2.2) ** 0.5) ** (1 / 2.2))), quality=92), ex, out=o, estimate=est)
-    capture_case("the opening half covered in one photo", "silent accept", "either", replace(1, cover_half_the_opening, quality=92), ex, out=o, estimate=est)
-    capture_case("a PNG photo among JPEGs", "benign", "ok", lambda ps: [edit_image(ps[1], ps[1].with_suffix(".png"), lambda im: im), ps[1].unlink()] and [ps[0], ps[1].with_suffix(".png"), *ps[2:]], ex, out=o, estimate=est)
-    capture_case("a corrupt .dng", "corrupt", "refuse", lambda ps: [write(ps[1].with_suffix(".dng"), "II*\0garbage")] and [ps[0], ps[1].with_suffix(".dng"), *ps[2:]], ex, "IMG_01", out=o, estimate=est)
-    capture_case("a .heic that is a JPEG", "corrupt", "either", lambda ps: [shutil.copy(ps[1], ps[1].with_suffix(".heic"))] and [ps[0], ps[1].with_suffix(".heic"), *ps[2:]], ex, out=o, estimate=est)
-    capture_case("a .gif photo", "corrupt", "refuse", lambda ps: [edit_image(ps[1], ps[1].with_suffix(".gif"), lambda im: im)] and [ps[0], ps[1].with_suffix(".gif"), *ps[2:]], ex, "IMG_01", out=o, estimate=est)
+    capture_case("the opening half covered in one photo", "silent accept", "refuse", replace(1, cover_half_the_opening, quality=92), ex, "IMG_01", out=o, estimate=est)
+    capture_case("a PNG photo among JPEGs", "benign", "ok", lambda ps: after(edit_image(ps[1], ps[1].with_suffix(".png"), lambda im: im), ps[1].unlink(), photos=[ps[0], ps[1].with_suffix(".png"), *ps[2:]]), ex, out=o, estimate=est)
+    capture_case("a corrupt .dng", "corrupt", "refuse", lambda ps: after(write(ps[1].with_suffix(".dng"), "II*\0garbage"), photos=[ps[0], ps[1].with_suffix(".dng"), *ps[2:]]), ex, "IMG_01", out=o, estimate=est)
+    capture_case("a .heic that is a JPEG", "corrupt", "either", lambda ps: after(shutil.copy(ps[1], ps[1].with_suffix(".heic")), photos=[ps[0], ps[1].with_suffix(".heic"), *ps[2:]]), ex, out=o, estimate=est)
+    capture_case("a .gif photo", "corrupt", "refuse", lambda ps: after(edit_image(ps[1], ps[1].with_suffix(".gif"), lambda im: im), photos=[ps[0], ps[1].with_suffix(".gif"), *ps[2:]]), ex, "IMG_01", out=o, estimate=est)
     capture_case("one photo", "option", "refuse", lambda ps: ps[:1], ex, "2", out=o, estimate=est)
     capture_case("an EXIF exposure time of 4e9 s", "absurd", "refuse", lambda ps: with_exif(ps[1], ps[1], ExposureTime=4e9), ex, "IMG_01", out=o, estimate=est)
     capture_case("an EXIF ISO of 0", "absurd", "either", lambda ps: with_exif(ps[1], ps[1], ISO=0), ex, out=o, estimate=est)

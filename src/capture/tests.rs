@@ -192,6 +192,21 @@ fn bad_photos_are_named_and_leave_no_folder() {
     let e = err(&[photos[0].clone_photo(), photos[1].clone_photo(), moved]);
     assert!(e.contains("off the frame's layout") || e.contains("focal length"), "{e}");
 
+    // A grey card over the opening's left half in photo 1 (the box around
+    // that half's corners as the photo sees them): named, with its share.
+    let half = layout.opening_mm() / 2.0;
+    let corners: Vec<[f64; 2]> = [[-half, -half], [0.0, -half], [0.0, half], [-half, half]].iter().map(|&[x, y]| views[1].pose.project(&views[1].intrinsics, [x, y, 0.0]).unwrap()).collect();
+    let (x0, x1) = (corners.iter().map(|c| c[0]).fold(f64::MAX, f64::min) as usize, corners.iter().map(|c| c[0]).fold(0.0, f64::max) as usize);
+    let (y0, y1) = (corners.iter().map(|c| c[1]).fold(f64::MAX, f64::min) as usize, corners.iter().map(|c| c[1]).fold(0.0, f64::max) as usize);
+    let mut carded = photos[1].clone_photo();
+    carded.path = dir.path().join("carded.jpg");
+    for y in y0..y1 {
+        carded.rgb.data[3 * (y * W + x0)..3 * (y * W + x1)].fill(110);
+    }
+    let e = err(&[photos[0].clone_photo(), carded, photos[2].clone_photo()]);
+    let share: f64 = e.strip_prefix("carded.jpg: ").and_then(|r| r.split('%').next()).and_then(|p| p.parse().ok()).unwrap_or_else(|| panic!("{e}"));
+    assert!((40.0..=65.0).contains(&share) && e.contains("take it again"), "{e}");
+
     // Nothing was written by any of them, and a good capture still works.
     assert!(!out.exists());
     photos.truncate(2);
