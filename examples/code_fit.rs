@@ -7,8 +7,9 @@
 //! seconds.
 //!
 //! ```sh
-//! CONFIGS=moved|identity PHOTO_SHARE=.. THREADS=1 LOBE_SHARE=.. ROWS=.. LR=.. DARK_FLOOR=.. cargo run --release --example code_fit -- [TEACHER] [SIZE] [STEPS] [MATERIALS: metals,0-4]
+//! CONFIGS=moved|identity SAVE=DIR PHOTO_SHARE=.. THREADS=1 LOBE_SHARE=.. ROWS=.. LR=.. DARK_FLOOR=.. cargo run --release --example code_fit -- [TEACHER] [SIZE] [STEPS] [MATERIALS: metals,0-4]
 //! # defaults: the bundled teacher, 128, CodeFitConfig's steps, metals,0-3
+//! # SAVE=DIR writes each material's identity render: maps | neural material | 4x their difference
 //! ```
 
 use anyhow::Result;

@@ -5,11 +5,12 @@
 # over the left part of the opening in photo 1. Prints one line a material
 # (clean: refused or not; carded: the refusal) and the counts.
 #
-#   source scripts/env.sh && bash scripts/coverage_scan.sh [WORK=/tmp/flashmat-coverage] [PHOTOS=5] [MATERIALS="0..49"]
+#   bash scripts/coverage_scan.sh [WORK=/tmp/flashmat-coverage] [PHOTOS=5] [MATERIALS="0..49"]
 #
 # About 12 s a material to render the photos (once), 2 s a capture.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/env.sh
 WORK="${1:-/tmp/flashmat-coverage}"
 PHOTOS="${2:-5}"
 MATERIALS="${3:-$(seq -s ' ' 0 49)}"

@@ -16,7 +16,6 @@
 //! refused.
 
 pub mod camera;
-pub mod coverage;
 pub mod frame;
 pub mod markers;
 pub mod photometry;
@@ -389,8 +388,8 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
     if let Some((k, colour, most)) = crate::fit::photos::grey_among_colour(&openings) {
         return Err(crate::fit::photos::grey_photo_error(Path::new(&name(&photos[order[k]].path)), colour, most));
     }
-    if let Some(covered) = coverage::covered_photo(&rectified, side) {
-        return Err(coverage::covered_error(&name(&photos[order[covered.photo]].path), &covered));
+    if let Some(covered) = crate::fit::coverage::covered_photo(&rectified, side) {
+        return Err(crate::fit::coverage::covered_error(&name(&photos[order[covered.photo]].path), &covered));
     }
     let photos_out = order.iter().map(|&i| results[i].clone()).collect();
     Ok(Capture { layout, photos: photos_out, rectified, side, distortion: calibration.distortion, paper })

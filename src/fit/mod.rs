@@ -27,6 +27,7 @@
 //! near 1 where the material looks smooth and near 0 across its edges.
 
 pub mod codes;
+pub mod coverage;
 pub mod export;
 pub mod photos;
 pub mod relief;

@@ -738,7 +738,8 @@ pub fn load_capture(captures: &Captures, count: usize, size: usize) -> Result<Ca
 /// for the fall-off relative to the most overhead of them and brought to
 /// its exposure ([`Captures::exposures`]). Errors (one
 /// line, naming the photo): photos of different sizes, a black photo, one
-/// clipped everywhere. A photo whose highlight falls off the sample is a
+/// clipped everywhere, a grey one among colour ones, one with something
+/// over part of the sample ([`super::coverage`]). A photo whose highlight falls off the sample is a
 /// warning in [`CapturePhotos::warnings`].
 pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) -> Result<CapturePhotos> {
     ensure!(!indices.is_empty(), "a fit needs at least one photo");
@@ -802,6 +803,11 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
     // material shot with a white-balance cast in one photo is still grey.
     let balanced: Vec<(usize, Tensor)> = decoded.iter().zip(&photos).map(|((i, _), p)| (*i, p.shallow_clone())).collect();
     check_colour(&balanced, captures)?;
+    let openings: Vec<Vec<f32>> = decoded.iter().map(|(_, p)| Vec::<f32>::try_from(p.to_kind(Kind::Float).flatten(0, -1))).collect::<Result<_, _>>()?;
+    if let Some(covered) = super::coverage::covered_photo(&openings, size) {
+        let photo = &captures.photos[decoded[covered.photo].0];
+        return Err(super::coverage::covered_error(&photo.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(), &covered));
+    }
     Ok(CapturePhotos { photos: Tensor::stack(&photos, 0), clipped: Tensor::cat(&raw, 0), configs, overhead, names, warnings })
 }
 

@@ -597,3 +597,26 @@ fn a_grey_material_with_a_white_balance_cast_in_one_photo_is_not_called_grey_amo
     std::fs::write(d.join(crate::data::captures::EXPOSURES_FILE), "1\n1.3,1,0.7\n1\n").unwrap();
     assert!(load_capture(&Captures::open(d).unwrap(), 3, 32).is_ok());
 }
+
+#[test]
+fn a_capture_folder_photo_with_a_card_over_half_the_sample_is_refused_naming_it() {
+    // A textured held-out material (the scan's test03), three photos; then
+    // 01.png's left half painted one grey, as a card over the sample.
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    write_synthetic(d, &crate::data::procedural::test_material(3, 64), &synthetic_configs(3), 10.0).unwrap();
+    assert!(load_capture(&Captures::open(d).unwrap(), 3, 64).is_ok());
+    let mut photo = crate::io::read_rgb(&d.join("01.png")).unwrap();
+    let (h, w) = (photo.height, photo.width);
+    for c in 0..3 {
+        for y in 0..h {
+            for x in 0..w / 2 {
+                photo.data[(c * h + y) * w + x] = 0.35;
+            }
+        }
+    }
+    crate::io::write_png(&d.join("01.png"), &photo, crate::io::BitDepth::Eight).unwrap();
+    let m = one_line(load_capture(&Captures::open(d).unwrap(), 3, 64).unwrap_err());
+    let share: f64 = m.strip_prefix("01.png: ").and_then(|r| r.split('%').next()).and_then(|p| p.parse().ok()).unwrap_or_else(|| panic!("{m}"));
+    assert!((30.0..=60.0).contains(&share), "{m}");
+}
