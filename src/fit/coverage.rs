@@ -23,7 +23,7 @@ const TEXTURE_SIDE: usize = 96;
 /// read (an overhead highlight is flat for that reason).
 const CLIP: f32 = 0.98;
 /// A cell is flat in a photo when its texture is below this share of the
-/// other photos' median there.
+/// other photos' there (their lower median), linear and relative alike.
 pub const FLAT_RATIO: f64 = 0.1;
 /// Cells whose texture (the other photos' median) is below this share of
 /// the capture's median cell are left out: a plain region has none to lose.
@@ -154,7 +154,7 @@ fn lower_median(mut v: Vec<f64>) -> Option<f64> {
 /// photo's texture is over its own level). With one photo there is nothing
 /// to compare: None.
 pub fn covered_photo(openings: &[Vec<f32>], side: usize) -> Option<Covered> {
-    if openings.len() < 2 {
+    if openings.len() < 2 || openings.iter().any(|o| o.len() != 3 * side * side) {
         return None;
     }
     let textures: Vec<Vec<Option<Texture>>> = openings.iter().map(|o| cell_textures(o, side)).collect();
