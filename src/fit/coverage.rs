@@ -128,23 +128,24 @@ fn code_step(level: f64) -> f64 {
     2.2 / 255.0 * level.max(1e-4).powf(-1.0 / 2.2)
 }
 
-fn median(mut v: Vec<f64>) -> Option<f64> {
+/// The middle of `v`: of an even count, the upper of the two middle
+/// values, or with `lower` the lower one (with two values the smaller, so
+/// that a cell counts as textured only where most of the other photos show
+/// it: a highlight passing through one photo's cell is not texture).
+fn middle(mut v: Vec<f64>, lower: bool) -> Option<f64> {
     if v.is_empty() {
         return None;
     }
     v.sort_by(|a, b| a.total_cmp(b));
-    Some(v[v.len() / 2])
+    Some(v[if lower { (v.len() - 1) / 2 } else { v.len() / 2 }])
 }
 
-/// The lower median: with two values the smaller, so that a cell counts as
-/// textured only where most of the other photos show it (a highlight
-/// passing through one photo's cell is not texture).
-fn lower_median(mut v: Vec<f64>) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(|a, b| a.total_cmp(b));
-    Some(v[(v.len() - 1) / 2])
+fn median(v: Vec<f64>) -> Option<f64> {
+    middle(v, false)
+}
+
+fn lower_median(v: Vec<f64>) -> Option<f64> {
+    middle(v, true)
 }
 
 /// The photo (the first such) whose opening is flat where the others show
