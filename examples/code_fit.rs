@@ -7,7 +7,7 @@
 //! seconds.
 //!
 //! ```sh
-//! CONFIGS=moved|identity SAVE=DIR PHOTO_SHARE=.. THREADS=1 LOBE_SHARE=.. ROWS=.. LR=.. DARK_FLOOR=.. cargo run --release --example code_fit -- [TEACHER] [SIZE] [STEPS] [MATERIALS: metals,0-4]
+//! CONFIGS=moved|identity SAVE=DIR RENDERER_LR=.. PHOTO_SHARE=.. THREADS=1 LOBE_SHARE=.. ROWS=.. LR=.. DARK_FLOOR=.. cargo run --release --example code_fit -- [TEACHER] [SIZE] [STEPS] [MATERIALS: metals,0-4]
 //! # defaults: the bundled teacher, 128, CodeFitConfig's steps, metals,0-3
 //! # SAVE=DIR writes each material's identity render: maps | neural material | 4x their difference
 //! ```
@@ -40,6 +40,9 @@ fn main() -> Result<()> {
     }
     if let Some(v) = env("LR") {
         cfg.learning_rate = v;
+    }
+    if let Some(v) = env("RENDERER_LR") {
+        cfg.renderer_learning_rate = v;
     }
     if let Some(v) = env("PHOTO_SHARE") {
         cfg.photo_share = v;

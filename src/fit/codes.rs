@@ -4,16 +4,18 @@
 //! The teacher's encoder turns each pixel's GGX values into a code, but it
 //! was trained on a distribution of pixels and is only approximately
 //! right on any one material, most of all on the corners of GGX space a
-//! real capture lands in (a dark metal with a coloured specular). Here the
-//! encoder's weights are fine-tuned, the renderer frozen, on this
-//! material's own pixels, so that the renderer of the codes draws what the
-//! GGX maps draw:
+//! real capture lands in (a dark metal with a coloured specular), and its
+//! renderer's three channels disagree by a few percent on bright grey
+//! facets (a colour speckle in the overhead render). Here the encoder's
+//! weights and the material's own copy of the renderer (every `.nmat`
+//! carries one) are fine-tuned on this material's own pixels, so that the
+//! renderer of the codes draws what the GGX maps draw:
 //!
 //! ```text
 //! rows: random pixels of the maps x directions (cosine-random, half the lights in the
 //!       pixel's GGX lobe; a share under the photos' configurations, jittered)
 //! loss = L1 ln(1 + R_neural) - ln(1 + R_ggx)  +  L1 ln(F + R_neural) - ln(F + R_ggx)
-//! maps ─► fine-tuned encoder ─► codes ─► the material's neural map
+//! maps ─► fine-tuned encoder ─► codes ─► the material's neural map (its renderer fine-tuned too)
 //! ```
 //!
 //! The encoder is shared by all pixels, so every row teaches every pixel of
@@ -38,11 +40,20 @@ use tch::{Kind, Tensor};
 /// How the codes are fitted to their maps.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CodeFitConfig {
-    /// Adam steps on the encoder's weights (0: the teacher's codes as they are).
+    /// Adam steps on the encoder's weights (0: the teacher's codes as they
+    /// are), their rates decayed to 0 along a cosine. Many small steps beat
+    /// few large ones for the same rows (reports/capture.md, twelfth slice).
     pub steps: usize,
     /// Rows (pixel, light, view) per step.
     pub rows: usize,
     pub learning_rate: f64,
+    /// Adam's rate on the material's own copy of the renderer, fitted with
+    /// the encoder (0: the teacher's renderer as it is). Every `.nmat`
+    /// carries its renderer, so tuning it to one material costs no reader
+    /// anything; the rows cover all directions, so it is not tuned to the
+    /// photos alone.
+    #[serde(default)]
+    pub renderer_learning_rate: f64,
     /// Share of the rows whose light lies inside the pixel's GGX lobe.
     pub lobe_share: f64,
     /// Share of the rows under the photos' configurations (their lights
@@ -57,7 +68,7 @@ pub struct CodeFitConfig {
 
 impl Default for CodeFitConfig {
     fn default() -> Self {
-        Self { steps: 100, rows: 8192, learning_rate: 3e-4, lobe_share: 0.2, photo_share: 0.25, dark_floor: 0.01, seed: 1 }
+        Self { steps: 800, rows: 2048, learning_rate: 3e-4, renderer_learning_rate: 3e-4, lobe_share: 0.2, photo_share: 0.25, dark_floor: 0.01, seed: 1 }
     }
 }
 
@@ -71,6 +82,7 @@ impl CodeFitConfig {
         ensure!(self.rows >= 16, "the code fit needs at least 16 rows a step, got {}", self.rows);
         crate::limits::STEP_PIXELS.check("the code fit's rows", self.rows as u64)?;
         ensure!(self.learning_rate.is_finite() && self.learning_rate > 0.0, "the code fit's learning rate must be a positive number, got {}", self.learning_rate);
+        ensure!(self.renderer_learning_rate.is_finite() && self.renderer_learning_rate >= 0.0, "the code fit's renderer learning rate must be a number >= 0, got {}", self.renderer_learning_rate);
         for (name, v) in [("lobe share", self.lobe_share), ("photo share", self.photo_share)] {
             ensure!((0.0..=1.0).contains(&v), "the code fit's {name} must be from 0 to 1, got {v}");
         }
@@ -99,12 +111,14 @@ pub struct CodeFit {
 }
 
 /// Fits the codes of `maps` to what the maps render: the encoder's weights
+/// (and the material's renderer, at [`CodeFitConfig::renderer_learning_rate`])
 /// fine-tuned as the module says, then `material.neural_map` replaced by
-/// the fine-tuned encoder's codes of the maps. The material's renderer is
-/// frozen. The codes are replaced only where the fit lowered its loss on a
-/// fixed draw of rows ([`CodeFit::kept`]). maps: `[10, H, W]` (the
+/// the fine-tuned encoder's codes of the maps. Codes and renderer are
+/// replaced only where the fit lowered its loss on a fixed draw of rows
+/// ([`CodeFit::kept`]); otherwise the renderer's weights are put back. maps: `[10, H, W]` (the
 /// material's size); photo_configs: the capture's configurations (may be
-/// empty). A non-finite loss is an error and leaves the material as it was.
+/// empty). A non-finite loss is an error and leaves the material as it was
+/// (its renderer frozen again either way).
 pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEncoder, photo_configs: &[LightView], cfg: &CodeFitConfig) -> Result<CodeFit> {
     cfg.validate()?;
     let (h, w) = material.size();
@@ -116,6 +130,15 @@ pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEnco
     let photo = photo_positions(material, photo_configs, cfg.seed);
     let weights: Vec<Tensor> = encoder.weights().iter().map(|w| w.detach().copy().set_requires_grad(true)).collect();
     let mut adam = Adam::new(weights.iter().enumerate().map(|(i, w)| (format!("l{i}"), w.shallow_clone())).collect::<HashMap<_, _>>());
+    // The material's renderer, trained in place when asked; its weights as
+    // they were, to put back if the fit is not kept.
+    let tune_renderer = cfg.renderer_learning_rate > 0.0 && cfg.steps > 0;
+    let renderer_vars = material.renderer_vs.variables();
+    let renderer_before: HashMap<String, Tensor> = renderer_vars.iter().map(|(k, v)| (k.clone(), v.detach().copy())).collect();
+    if tune_renderer {
+        material.renderer_vs.unfreeze(); // before Adam, which keeps only what needs a gradient
+    }
+    let mut renderer_adam = tune_renderer.then(|| Adam::new(renderer_vars.iter().map(|(k, v)| (k.clone(), v.shallow_clone())).collect()));
     let rows = cfg.rows as i64;
     let draw = |step: u64| {
         tch::manual_seed((cfg.seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) as i64);
@@ -128,18 +151,47 @@ pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEnco
     // A fixed draw, never trained on, scores before and after.
     let check = draw(u64::MAX);
     let loss_before = tch::no_grad(|| loss_of(&weights, &check))?.double_value(&[]);
-    for step in 0..cfg.steps {
-        adam.zero_grad();
-        let loss = loss_of(&weights, &draw(step as u64))?;
-        let value = loss.double_value(&[]);
-        ensure!(value.is_finite(), "the code fit's loss became {value} at step {}", step + 1);
-        loss.backward();
-        adam.step(cfg.learning_rate, None);
-    }
-    let weights: Vec<Tensor> = weights.iter().map(Tensor::detach).collect();
-    let loss_after = tch::no_grad(|| loss_of(&weights, &check))?.double_value(&[]);
-    ensure!(loss_after.is_finite(), "the fitted codes render non-finite values");
+    let restore = || {
+        tch::no_grad(|| {
+            for (name, v) in &renderer_vars {
+                v.detach().copy_(&renderer_before[name]);
+            }
+        })
+    };
+    let trained = (|| -> Result<(Vec<Tensor>, f64)> {
+        for step in 0..cfg.steps {
+            adam.zero_grad();
+            if let Some(a) = renderer_adam.as_mut() {
+                a.zero_grad();
+            }
+            let loss = loss_of(&weights, &draw(step as u64))?;
+            let value = loss.double_value(&[]);
+            ensure!(value.is_finite(), "the code fit's loss became {value} at step {}", step + 1);
+            loss.backward();
+            // Cosine decay: the last steps settle rather than jump between draws.
+            let decay = 0.5 * (1.0 + (std::f64::consts::PI * step as f64 / cfg.steps as f64).cos());
+            adam.step(cfg.learning_rate * decay, None);
+            if let Some(a) = renderer_adam.as_mut() {
+                a.step(cfg.renderer_learning_rate * decay, None);
+            }
+        }
+        let weights: Vec<Tensor> = weights.iter().map(Tensor::detach).collect();
+        let loss_after = tch::no_grad(|| loss_of(&weights, &check))?.double_value(&[]);
+        ensure!(loss_after.is_finite(), "the fitted codes render non-finite values");
+        Ok((weights, loss_after))
+    })();
+    material.renderer_vs.freeze();
+    let (weights, loss_after) = match trained {
+        Ok(t) => t,
+        Err(e) => {
+            restore();
+            return Err(e);
+        }
+    };
     let kept = cfg.steps > 0 && loss_after < loss_before;
+    if !kept && tune_renderer {
+        restore();
+    }
     if kept {
         let codes = tch::no_grad(|| forward_rows_with(&weights, &values)).transpose(0, 1).reshape([-1, h as i64, w as i64]);
         material.neural_map = codes.contiguous();

@@ -815,10 +815,12 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
 /// tells the fit almost nothing but "brighter than white".
 const MOSTLY_CLIPPED: f64 = 0.9;
 
-/// Photos whose mean |difference| as decoded (linear) is below this are
-/// the same photo: about a quarter of an 8-bit step at mid-grey, what re-encoding
-/// a photo changes.
-const SAME_PHOTO: f64 = 1e-3;
+/// Photos whose mean |difference| display-encoded
+/// ([`crate::spaces::linear_to_display`]) is below this are the same photo: about 0.4 of an 8-bit step,
+/// what re-encoding a photo changes. Display-encoded, so that two dark
+/// photos of a dark metal from two places (linear values near 0.01,
+/// differing by 5e-4) are not taken for one.
+const SAME_PHOTO: f64 = 1.5e-3;
 
 /// Positions (flashmat units, light and camera) closer than this are the same.
 const SAME_POSITION: f64 = 1e-4;
@@ -834,7 +836,8 @@ fn check_distinct(earlier: &[(usize, Tensor)], photo: &Tensor, i: usize, capture
     let apart = |a: &LightView, b: &LightView| crate::geometry::length(crate::geometry::sub(a.light, b.light)).max(crate::geometry::length(crate::geometry::sub(a.view, b.view)));
     for ((j, other), other_config) in earlier.iter().zip(earlier_configs) {
         let same_position = apart(config, other_config) < SAME_POSITION;
-        let difference = (photo - other).abs().mean(Kind::Double).double_value(&[]);
+        let display = crate::spaces::linear_to_display;
+        let difference = (display(photo) - display(other)).abs().mean(Kind::Double).double_value(&[]);
         ensure!(
             !(difference < SAME_PHOTO && !same_position),
             "{}: the same photo as {} (mean difference {difference:.1e}) at another position; each position needs its own photo (a file copied, or positions listed in another order?)",

@@ -59,6 +59,68 @@ fn fitted_codes_bring_a_wrong_encoders_colour_back_to_the_maps() {
 }
 
 #[test]
+fn the_materials_renderer_is_tuned_with_its_codes_and_travels_in_its_file() {
+    // The teacher's renderer with its red output row scaled by 0.9: every
+    // red value drawn ~10% low in ln(1 + R), a colour no code fixes exactly
+    // everywhere. Tuning the material's own renderer with the encoder
+    // brings the red back closer than the codes alone, the tuned weights
+    // are what the saved `.nmat` holds, and they come back frozen.
+    let teacher = load_teacher(None, Device::Cpu).unwrap();
+    let side = 32;
+    let maps = metal_material(0, side).stacked().to_tensor();
+    let photo = Tensor::zeros([3, side as i64, side as i64], (Kind::Float, Device::Cpu));
+    let distorted = || {
+        let m = neural_material(&maps, &photo, &teacher, "metal").unwrap();
+        tch::no_grad(|| {
+            let _ = m.renderer.m_render.layers.last().unwrap().narrow(0, 0, 1).g_mul_scalar_(0.9);
+        });
+        m
+    };
+    let configs = held_out_configs(4);
+    let before = neural_gap(&distorted(), &maps, &configs, None).unwrap();
+    let fit_with = |renderer_learning_rate: f64| {
+        let mut m = distorted();
+        let cfg = CodeFitConfig { steps: 200, rows: 2048, renderer_learning_rate, ..Default::default() };
+        let fit = fit_codes(&mut m, &maps, &teacher.encoder, &[], &cfg).unwrap();
+        assert!(fit.kept, "{fit:?}");
+        let gap = neural_gap(&m, &maps, &configs, None).unwrap();
+        (m, gap)
+    };
+    let (_, codes_only) = fit_with(0.0);
+    let (tuned, both) = fit_with(3e-4);
+    eprintln!("before {before:?}\ncodes only {codes_only:?}\nrenderer too {both:?}");
+    assert!(both.log_l1 < codes_only.log_l1 && both.log_l1 < 0.6 * before.log_l1, "log L1 {} -> codes only {}, renderer too {}", before.log_l1, codes_only.log_l1, both.log_l1);
+    assert!(both.channel_log_ratio < 0.5 * before.channel_log_ratio, "channel log ratio {} -> {}", before.channel_log_ratio, both.channel_log_ratio);
+    let vars = tuned.renderer_vs.variables();
+    assert!(vars.values().all(|v| !v.requires_grad()), "the renderer is frozen again");
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("tuned.nmat");
+    tuned.save(&path).unwrap();
+    let back = NeuralMaterial::load(&path, Device::Cpu).unwrap();
+    let config = [NeuralMaterial::identity_config()];
+    assert!(back.render(&config).unwrap().allclose(&tuned.render(&config).unwrap(), 1e-5, 1e-6, false));
+}
+
+#[test]
+fn a_failed_fit_puts_the_renderer_back() {
+    // A rate of 1e6 throws the weights far off: the loss becomes non-finite
+    // (an error) or rises (not kept); either way the renderer is the one it was.
+    let teacher = load_teacher(None, Device::Cpu).unwrap();
+    let maps = metal_material(2, 16).stacked().to_tensor();
+    let photo = Tensor::zeros([3, 16, 16], (Kind::Float, Device::Cpu));
+    let mut material = neural_material(&maps, &photo, &teacher, "copper").unwrap();
+    let weights: Vec<(String, Tensor)> = material.renderer_vs.variables().into_iter().map(|(k, v)| (k, v.copy())).collect();
+    let cfg = CodeFitConfig { steps: 5, rows: 256, learning_rate: 1e6, renderer_learning_rate: 1e6, ..Default::default() };
+    if let Ok(fit) = fit_codes(&mut material, &maps, &teacher.encoder, &[], &cfg) {
+        assert!(!fit.kept, "{fit:?}");
+    }
+    let now = material.renderer_vs.variables();
+    for (name, w) in &weights {
+        assert!(now[name].equal(w) && !now[name].requires_grad(), "{name} changed");
+    }
+}
+
+#[test]
 fn a_fit_that_does_not_lower_the_loss_keeps_the_teachers_codes() {
     // No steps: the check loss cannot fall, and the codes stay the teacher's.
     let teacher = load_teacher(None, Device::Cpu).unwrap();

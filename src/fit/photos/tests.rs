@@ -486,13 +486,14 @@ fn a_raw_capture_fits_at_least_as_well_as_its_8_bit_twin() {
     let truth = clipped_checker();
     let side = CHECKER_SIDE as usize;
     let material = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&truth).unwrap()).unwrap();
-    let configs = synthetic_configs(3);
+    let count: usize = std::env::var("TWIN_PHOTOS").ok().and_then(|v| v.parse().ok()).unwrap_or(3);
+    let configs = synthetic_configs(count);
     let held_out = held_out_configs(4);
     let truth_renders = (crate::svbrdf::cpu::render_tensor(&material, &held_out) + 1.0).log();
     let fit = |files: crate::data::captures::PhotoFiles| {
         let dir = tempfile::tempdir().unwrap();
-        crate::data::captures::write_synthetic_as(dir.path(), &material, &configs, &[0.5; 3], 10.0, files).unwrap();
-        let loaded = load_capture(&Captures::open(dir.path()).unwrap(), 3, side).unwrap();
+        crate::data::captures::write_synthetic_as(dir.path(), &material, &configs, &vec![0.5; count], 10.0, files).unwrap();
+        let loaded = load_capture(&Captures::open(dir.path()).unwrap(), count, side).unwrap();
         let clipped = loaded.clipped.to_kind(Kind::Float).mean(Kind::Double).double_value(&[]);
         let cfg = PhotoFitConfig { size: side, ..PhotoFitConfig::default() };
         let start = flat_start(&loaded.photos.get(0), &loaded.configs[0]);
@@ -619,4 +620,32 @@ fn a_capture_folder_photo_with_a_card_over_half_the_sample_is_refused_naming_it(
     let m = one_line(load_capture(&Captures::open(d).unwrap(), 3, 64).unwrap_err());
     let share: f64 = m.strip_prefix("01.png: ").and_then(|r| r.split('%').next()).and_then(|p| p.parse().ok()).unwrap_or_else(|| panic!("{m}"));
     assert!((30.0..=60.0).contains(&share), "{m}");
+}
+
+#[test]
+fn two_dark_photos_from_two_places_are_not_taken_for_one() {
+    // A dark metal's oblique photos: linear 0.0100 and 0.0105 everywhere,
+    // 5e-4 apart (what the 5-photo DNG twin of the gold and teal checker
+    // showed, and what the linear bound of 1e-3 refused). Display-encoded
+    // they are 2.8e-3 apart (0.1233 and 0.1261): two photos. The same
+    // photo re-encoded (a third of an 8-bit step of noise) is one.
+    let captures = Captures {
+        dir: "c".into(),
+        photos: vec!["c/00.png".into(), "c/01.png".into()],
+        cameras: vec![[0.0, 0.0, 4.0], [1.0, 0.0, 4.0]],
+        lights: vec![[0.0, 0.0, 4.0], [1.0, 0.0, 4.0]],
+        sample_width: 2.0,
+        exposures: vec![[1.0; 3]; 2],
+        raw_gains: vec![1.0; 2],
+    };
+    let configs = [LightView { light: [0.0, 0.0, 4.0], view: [0.0, 0.0, 4.0] }, LightView { light: [1.0, 0.0, 4.0], view: [1.0, 0.0, 4.0] }];
+    let opts = (Kind::Float, tch::Device::Cpu);
+    let first = Tensor::full([3, 16, 16], 0.0100, opts);
+    let second = Tensor::full([3, 16, 16], 0.0105, opts);
+    check_distinct(&[(0, first.shallow_clone())], &second, 1, &captures, &configs[..1], &configs[1]).unwrap();
+    let display = crate::spaces::linear_to_display(&first);
+    let noise = (Tensor::rand([3, 16, 16], opts) - 0.5) * (0.66 / 255.0);
+    let reencoded = (display + noise).pow_tensor_scalar(crate::spaces::GAMMA);
+    let m = one_line(check_distinct(&[(0, first)], &reencoded, 1, &captures, &configs[..1], &configs[1]).unwrap_err());
+    assert!(m.contains("01.png") && m.contains("the same photo as 00.png"), "{m}");
 }
