@@ -40,8 +40,8 @@ use tch::{Kind, Tensor};
 /// How the codes are fitted to their maps.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CodeFitConfig {
-    /// Adam steps on the encoder's weights (0: the teacher's codes as they
-    /// are), their rates decayed to 0 along a cosine. Many small steps beat
+    /// Adam steps on the encoder's (and renderer's) weights (0: the
+    /// teacher's codes as they are), their rates decayed to 0 along a cosine. Many small steps beat
     /// few large ones for the same rows (reports/capture.md, twelfth slice).
     pub steps: usize,
     /// Rows (pixel, light, view) per step.
@@ -115,9 +115,9 @@ pub struct CodeFit {
 /// fine-tuned as the module says, then `material.neural_map` replaced by
 /// the fine-tuned encoder's codes of the maps. Codes and renderer are
 /// replaced only where the fit lowered its loss on a fixed draw of rows
-/// ([`CodeFit::kept`]); otherwise the renderer's weights are put back. maps: `[10, H, W]` (the
-/// material's size); photo_configs: the capture's configurations (may be
-/// empty). A non-finite loss is an error and leaves the material as it was
+/// ([`CodeFit::kept`]); otherwise the renderer's weights are put back.
+/// maps: `[10, H, W]` (the material's size); photo_configs: the capture's
+/// configurations (may be empty). A non-finite loss is an error and leaves the material as it was
 /// (its renderer frozen again either way).
 pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEncoder, photo_configs: &[LightView], cfg: &CodeFitConfig) -> Result<CodeFit> {
     cfg.validate()?;
