@@ -388,7 +388,18 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
     if let Some((k, colour, most)) = crate::fit::photos::grey_among_colour(&openings) {
         return Err(crate::fit::photos::grey_photo_error(Path::new(&name(&photos[order[k]].path)), colour, most));
     }
-    if let Some(covered) = crate::fit::coverage::covered_photo(&rectified, side) {
+    // Each photo's highlight point over the opening's half-width (mm are
+    // the frame's, centred on the opening, as the capture folder's are).
+    let half = layout.opening_mm() / 2.0;
+    let highlights: Vec<Option<[f64; 2]>> = order
+        .iter()
+        .map(|&i| {
+            let p = &results[i];
+            let config = crate::geometry::LightView { light: p.light.map(|v| v / half), view: p.camera.map(|v| v / half) };
+            Some(crate::fit::photos::highlight_point(&config))
+        })
+        .collect();
+    if let Some(covered) = crate::fit::coverage::covered_photo(&rectified, side, &highlights) {
         return Err(crate::fit::coverage::covered_error(&name(&photos[order[covered.photo]].path), &covered));
     }
     let photos_out = order.iter().map(|&i| results[i].clone()).collect();

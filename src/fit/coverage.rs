@@ -31,6 +31,12 @@ const TEXTURED_CELL: f64 = 0.3;
 /// Cells where the others' grain (relative) is under this many of the
 /// photo's own 8-bit code steps are left out ([`code_step`]).
 const RESOLVED_STEPS: f64 = 2.0;
+/// Cells whose centre is within this distance (units of half the opening)
+/// of a photo's own highlight point are not read in that photo: there a
+/// glossy material's specular can wash out its texture (a green glaze lit
+/// as bright as its white crackle), which a cover's flatness would be
+/// taken for. The coloured-metal set's glazed tile needs 0.43.
+pub const OWN_HIGHLIGHT_RADIUS: f64 = 0.5;
 /// A photo is refused when this share of the textured cells is flat in it...
 pub const MIN_COVERED_SHARE: f64 = 0.06;
 /// ...while its other cells keep at least this share of the others' texture
@@ -153,8 +159,11 @@ fn lower_median(v: Vec<f64>) -> Option<f64> {
 /// more, [`FLAT_RATIO`] both ways), or None. `openings`: each
 /// `[3, side, side]`, linear, as rectified (exposure does not matter: each
 /// photo's texture is over its own level). With one photo there is nothing
-/// to compare: None.
-pub fn covered_photo(openings: &[Vec<f32>], side: usize) -> Option<Covered> {
+/// to compare: None. `highlights`: each photo's highlight point
+/// ([`crate::fit::photos::highlight_point`], x right and y up over the
+/// opening's [-1, 1]; row 0 is y = 1) where known, or empty: cells within
+/// [`OWN_HIGHLIGHT_RADIUS`] of a photo's own are not read in it.
+pub fn covered_photo(openings: &[Vec<f32>], side: usize, highlights: &[Option<[f64; 2]>]) -> Option<Covered> {
     if openings.len() < 2 || openings.iter().any(|o| o.len() != 3 * side * side) {
         return None;
     }
@@ -169,6 +178,12 @@ pub fn covered_photo(openings: &[Vec<f32>], side: usize) -> Option<Covered> {
         let mut textured = 0usize;
         for (c, mine) in own.iter().enumerate() {
             let Some(mine) = mine else { continue };
+            let centre = [-1.0 + (2 * (c % GRID) + 1) as f64 / GRID as f64, 1.0 - (2 * (c / GRID) + 1) as f64 / GRID as f64];
+            if let Some(Some(h)) = highlights.get(i) {
+                if (centre[0] - h[0]).hypot(centre[1] - h[1]) < OWN_HIGHLIGHT_RADIUS {
+                    continue;
+                }
+            }
             let others: Vec<Texture> = textures.iter().enumerate().filter(|&(j, _)| j != i).filter_map(|(_, t)| t[c]).collect();
             let (Some(linear), Some(relative)) = (lower_median(others.iter().map(|t| t.linear).collect()), lower_median(others.iter().map(|t| t.relative).collect())) else { continue };
             // A dark cell of an 8-bit photo holds one code where the others
@@ -236,7 +251,7 @@ mod tests {
         let side = 192;
         let mut photos = vec![textured(side, |_, _| 1.0), textured(side, |x, _| 0.5 + x), textured(side, |_, y| 2.0 - y)];
         cover(&mut photos[1], side, 0, side / 2, 0, side, 0.1);
-        let c = covered_photo(&photos, side).expect("the covered photo");
+        let c = covered_photo(&photos, side, &[]).expect("the covered photo");
         assert_eq!(c.photo, 1);
         // Half the cells, less the column along the cover's edge, whose
         // cells hold the step from card to checker.
@@ -244,6 +259,24 @@ mod tests {
         assert!(c.ratio < 0.05, "{c:?}");
         let line = covered_error("IMG_01.jpg", &c).to_string();
         assert!(line.starts_with(&format!("IMG_01.jpg: {:.0}% of the opening is flat", 100.0 * c.share)) && !line.contains('\n'), "{line}");
+    }
+
+    #[test]
+    fn texture_washed_out_at_a_photos_own_highlight_is_not_a_cover() {
+        // Photo 1 flat over a 72-pixel square at the lower right (cell
+        // rows and columns 5-7: 9 of 64), around its own highlight point
+        // (0.75, -0.75): 8 of those cells are within the radius and not
+        // read, the ninth alone is not a cover. Told no highlight, the
+        // same square is one.
+        let side = 192;
+        let mut photos = vec![textured(side, |_, _| 1.0), textured(side, |x, _| 0.5 + x), textured(side, |_, y| 2.0 - y)];
+        cover(&mut photos[1], side, 120, 192, 120, 192, 0.3);
+        let highlights = [Some([0.0, 0.0]), Some([0.75, -0.75]), Some([-0.7, 0.8])];
+        assert_eq!(covered_photo(&photos, side, &highlights), None);
+        assert_eq!(covered_photo(&photos, side, &[]).map(|c| c.photo), Some(1));
+        // A square as large elsewhere in the same photo is still named.
+        cover(&mut photos[1], side, 0, 72, 0, 72, 0.3);
+        assert_eq!(covered_photo(&photos, side, &highlights).map(|c| c.photo), Some(1));
     }
 
     #[test]
@@ -255,12 +288,12 @@ mod tests {
         let mut photos = vec![textured(side, highlight), textured(side, |x, _| 0.25 * (0.5 + x)), textured(side, |_, y| 2.0 - y)];
         // The overhead highlight clipped over a sixth of the opening.
         cover(&mut photos[0], side, 64, 128, 64, 128, 1.0);
-        assert_eq!(covered_photo(&photos, side), None);
+        assert_eq!(covered_photo(&photos, side, &[]), None);
         // A plain material has no texture to lose: nothing is said.
         let plain = vec![vec![0.3f32; 3 * side * side]; 3];
-        assert_eq!(covered_photo(&plain, side), None);
+        assert_eq!(covered_photo(&plain, side, &[]), None);
         // One photo cannot be compared.
-        assert_eq!(covered_photo(&photos[..1], side), None);
+        assert_eq!(covered_photo(&photos[..1], side, &[]), None);
     }
 
     #[test]
@@ -269,10 +302,10 @@ mod tests {
         let side = 96;
         let mut photos = vec![textured(side, |_, _| 1.0), textured(side, |_, _| 1.0), textured(side, |_, _| 1.0)];
         photos[2] = vec![0.3 * 0.8; 3 * side * side];
-        assert_eq!(covered_photo(&photos, side), None);
+        assert_eq!(covered_photo(&photos, side, &[]), None);
         // A small cover (one cell in 64) is under the refusal's share.
         let mut small = vec![textured(side, |_, _| 1.0), textured(side, |_, _| 1.0)];
         cover(&mut small[1], side, 0, 12, 0, 12, 0.1);
-        assert_eq!(covered_photo(&small, side), None);
+        assert_eq!(covered_photo(&small, side, &[]), None);
     }
 }

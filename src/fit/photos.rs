@@ -804,7 +804,8 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
     let balanced: Vec<(usize, Tensor)> = decoded.iter().zip(&photos).map(|((i, _), p)| (*i, p.shallow_clone())).collect();
     check_colour(&balanced, captures)?;
     let openings: Vec<Vec<f32>> = decoded.iter().map(|(_, p)| Vec::<f32>::try_from(p.to_kind(Kind::Float).flatten(0, -1))).collect::<Result<_, _>>()?;
-    if let Some(covered) = super::coverage::covered_photo(&openings, size) {
+    let highlights: Vec<Option<[f64; 2]>> = decoded.iter().map(|(i, _)| Some(highlight_point(&captures.config(*i)))).collect();
+    if let Some(covered) = super::coverage::covered_photo(&openings, size, &highlights) {
         let photo = &captures.photos[decoded[covered.photo].0];
         return Err(super::coverage::covered_error(&photo.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(), &covered));
     }

@@ -649,3 +649,23 @@ fn two_dark_photos_from_two_places_are_not_taken_for_one() {
     let m = one_line(check_distinct(&[(0, first)], &reencoded, 1, &captures, &configs[..1], &configs[1]).unwrap_err());
     assert!(m.contains("01.png") && m.contains("the same photo as 00.png"), "{m}");
 }
+
+#[test]
+fn a_glossy_tile_dark_away_from_its_highlight_is_not_a_cover() {
+    // The coloured-metal set as `examples/capture_highlights.rs` takes it
+    // (overhead, then two tilted phones with their flash beside the lens):
+    // the glazed tile's relief shows only in its highlights, so a tilted
+    // photo is plain where the others' highlights show the bumps. That is
+    // the material, not a card over it (it was refused as one).
+    for index in 0..crate::data::procedural::METAL_MATERIALS.len() {
+        let dir = tempfile::tempdir().unwrap();
+        let overhead = LightView::colocated(crate::geometry::MODEL_FOV_DEG).view;
+        let cameras = [overhead, crate::data::captures::TILTED_PHONES[0], crate::data::captures::TILTED_PHONES[1]];
+        let positions: Vec<LightView> = cameras.iter().map(|&c| LightView { light: [c[0] + 0.12, c[1], c[2]], view: c }).collect();
+        let material = crate::data::procedural::metal_material(index, 128);
+        write_synthetic_exposed(dir.path(), &material, &positions, &[1.0; 3], 2.0).unwrap();
+        if let Err(e) = load_capture(&Captures::open(dir.path()).unwrap(), 3, 128) {
+            panic!("{}: {e:#}", crate::data::procedural::METAL_MATERIALS[index]);
+        }
+    }
+}
