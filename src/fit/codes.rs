@@ -134,7 +134,7 @@ pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEnco
     // they were, to put back if the fit is not kept.
     let tune_renderer = cfg.renderer_learning_rate > 0.0 && cfg.steps > 0;
     let renderer_vars = material.renderer_vs.variables();
-    let renderer_before: HashMap<String, Tensor> = renderer_vars.iter().map(|(k, v)| (k.clone(), v.detach().copy())).collect();
+    let renderer_before: HashMap<String, Tensor> = if tune_renderer { renderer_vars.iter().map(|(k, v)| (k.clone(), v.detach().copy())).collect() } else { HashMap::new() };
     if tune_renderer {
         material.renderer_vs.unfreeze(); // before Adam, which keeps only what needs a gradient
     }
@@ -153,8 +153,8 @@ pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEnco
     let loss_before = tch::no_grad(|| loss_of(&weights, &check))?.double_value(&[]);
     let restore = || {
         tch::no_grad(|| {
-            for (name, v) in &renderer_vars {
-                v.detach().copy_(&renderer_before[name]);
+            for (name, before) in &renderer_before {
+                renderer_vars[name].detach().copy_(before);
             }
         })
     };
@@ -189,7 +189,7 @@ pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEnco
         }
     };
     let kept = cfg.steps > 0 && loss_after < loss_before;
-    if !kept && tune_renderer {
+    if !kept {
         restore();
     }
     if kept {

@@ -2,6 +2,16 @@ use super::*;
 use crate::data::procedural::metal_material;
 use crate::fit::photos::{load_teacher, neural_material};
 use tch::Device;
+use crate::model::ggx_codes::TeacherWeights;
+
+/// Coloured metal `index` at `side x side`: its maps `[10, side, side]` and
+/// their neural material under `teacher` (a black photo).
+fn metal_and_material(teacher: &TeacherWeights, index: usize, side: usize) -> (Tensor, NeuralMaterial) {
+    let maps = metal_material(index, side).stacked().to_tensor();
+    let photo = Tensor::zeros([3, side as i64, side as i64], (Kind::Float, Device::Cpu));
+    let material = neural_material(&maps, &photo, teacher, crate::data::procedural::METAL_MATERIALS[index]).unwrap();
+    (maps, material)
+}
 
 #[test]
 fn the_gap_of_identical_renders_is_zero_and_a_tint_is_measured() {
@@ -29,9 +39,7 @@ fn fitted_codes_bring_a_wrong_encoders_colour_back_to_the_maps() {
     // what the maps draw.
     let teacher = load_teacher(None, Device::Cpu).unwrap();
     let side = 48;
-    let maps = metal_material(0, side).stacked().to_tensor();
-    let photo = Tensor::zeros([3, side as i64, side as i64], (Kind::Float, Device::Cpu));
-    let mut material = neural_material(&maps, &photo, &teacher, "metal").unwrap();
+    let (maps, mut material) = metal_and_material(&teacher, 0, side);
     let vs = tch::nn::VarStore::new(Device::Cpu);
     let wrong = GgxEncoder::new(&(vs.root() / "teacher"), teacher.config.neural_channels);
     tch::no_grad(|| {
@@ -67,10 +75,9 @@ fn the_materials_renderer_is_tuned_with_its_codes_and_travels_in_its_file() {
     // are what the saved `.nmat` holds, and they come back frozen.
     let teacher = load_teacher(None, Device::Cpu).unwrap();
     let side = 32;
-    let maps = metal_material(0, side).stacked().to_tensor();
-    let photo = Tensor::zeros([3, side as i64, side as i64], (Kind::Float, Device::Cpu));
+    let maps = metal_and_material(&teacher, 0, side).0;
     let distorted = || {
-        let m = neural_material(&maps, &photo, &teacher, "metal").unwrap();
+        let m = metal_and_material(&teacher, 0, side).1;
         tch::no_grad(|| {
             let _ = m.renderer.m_render.layers.last().unwrap().narrow(0, 0, 1).g_mul_scalar_(0.9);
         });
@@ -106,9 +113,7 @@ fn a_failed_fit_puts_the_renderer_back() {
     // A rate of 1e6 throws the weights far off: the loss becomes non-finite
     // (an error) or rises (not kept); either way the renderer is the one it was.
     let teacher = load_teacher(None, Device::Cpu).unwrap();
-    let maps = metal_material(2, 16).stacked().to_tensor();
-    let photo = Tensor::zeros([3, 16, 16], (Kind::Float, Device::Cpu));
-    let mut material = neural_material(&maps, &photo, &teacher, "copper").unwrap();
+    let (maps, mut material) = metal_and_material(&teacher, 2, 16);
     let weights: Vec<(String, Tensor)> = material.renderer_vs.variables().into_iter().map(|(k, v)| (k, v.copy())).collect();
     let cfg = CodeFitConfig { steps: 5, rows: 256, learning_rate: 1e6, renderer_learning_rate: 1e6, ..Default::default() };
     if let Ok(fit) = fit_codes(&mut material, &maps, &teacher.encoder, &[], &cfg) {
@@ -124,9 +129,7 @@ fn a_failed_fit_puts_the_renderer_back() {
 fn a_fit_that_does_not_lower_the_loss_keeps_the_teachers_codes() {
     // No steps: the check loss cannot fall, and the codes stay the teacher's.
     let teacher = load_teacher(None, Device::Cpu).unwrap();
-    let maps = metal_material(4, 16).stacked().to_tensor();
-    let photo = Tensor::zeros([3, 16, 16], (Kind::Float, Device::Cpu));
-    let mut material = neural_material(&maps, &photo, &teacher, "tile").unwrap();
+    let (maps, mut material) = metal_and_material(&teacher, 4, 16);
     let codes = material.neural_map.copy();
     let fit = fit_codes(&mut material, &maps, &teacher.encoder, &[], &CodeFitConfig::none()).unwrap();
     assert!(!fit.kept && fit.loss_after == fit.loss_before, "{fit:?}");
