@@ -840,7 +840,7 @@ fn check_distinct(earlier: &[(usize, Tensor)], photo: &Tensor, i: usize, capture
         let display = crate::spaces::linear_to_display;
         let difference = (display(photo) - display(other)).abs().mean(Kind::Double).double_value(&[]);
         ensure!(
-            !(difference < SAME_PHOTO && !same_position),
+            difference >= SAME_PHOTO || same_position,
             "{}: the same photo as {} (mean difference {difference:.1e}) at another position; each position needs its own photo (a file copied, or positions listed in another order?)",
             captures.photos[i].display(),
             name(*j)
