@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The single-photo model, trained on the CPU across sessions (issue 86):
 # M_est learns the codes of the committed teacher for every GGX material
-# (models/teacher-any-ggx.safetensors: lobes drawn), renderer frozen, one
-# thread, exports every few minutes. docs/TRAINING.md ("The CPU campaign").
+# (models/teacher-any-ggx.safetensors: lobes drawn), from the teacher's
+# renderer (frozen in stages A and B, trained since stage C), one thread,
+# exports every few minutes. docs/TRAINING.md ("The CPU campaign").
 #
 #   bash scripts/cpu-campaign.sh run [MINUTES]    # resume the run, or start it; MINUTES of one thread (default 60)
 #   bash scripts/cpu-campaign.sh export [FILE]    # the run's last exports averaged (default: $CAMPAIGN/student.safetensors)
@@ -50,10 +51,20 @@ build() {
 # 2.08 -> 1.51, lobe 0.18 -> 0.37) but its code error stalled at 0.58 after
 # 3 CPU hours with Identity LPIPS at 0.258 (bundled 0.115): the code term
 # was 0.6 of a 0.7 loss, the photo's own render 0.07
-# (reports/campaign/eval-46506.md). FLASHMAT_CAMPAIGN_CODE_WEIGHT and
-# FLASHMAT_CAMPAIGN_LPIPS_WEIGHT set them for a new run.
+# (reports/campaign/eval-46506.md). Stage B stalled too (Identity 0.159,
+# ghost 1.89 at step 48,164), so stage C (from step 48,164 on) changes the
+# model: the renderer, until then the teacher's frozen copy, trains with
+# M_est (the paper's alternating steps), so that it learns to render the
+# codes M_est can write from one photo. FLASHMAT_CAMPAIGN_CODE_WEIGHT,
+# FLASHMAT_CAMPAIGN_LPIPS_WEIGHT and FLASHMAT_CAMPAIGN_RENDERER (trained or
+# frozen) set them for a new run.
 recipe() {
-  echo --preset compact --ldr --teacher "$TEACHER" --code-weight "${FLASHMAT_CAMPAIGN_CODE_WEIGHT:-0.25}" --code-gloss-weight 4 --freeze-renderer \
+  local renderer=()
+  case "${FLASHMAT_CAMPAIGN_RENDERER:-trained}" in
+    trained) ;;
+    frozen) renderer=(--freeze-renderer) ;;
+  esac
+  echo --preset compact --ldr --teacher "$TEACHER" --code-weight "${FLASHMAT_CAMPAIGN_CODE_WEIGHT:-0.25}" --code-gloss-weight 4 "${renderer[@]}" \
     --crop 256 --outputs 4 --colocated-outputs 1 --batch 2 --lr 3e-4 --warmup-steps 50 --straight-through-output \
     --checkerboard-free --adv-weight 0 --lpips-weight "${FLASHMAT_CAMPAIGN_LPIPS_WEIGHT:-1}" --chroma-weight 1 --phone-inputs 0.5 \
     --steps 100000000 --checkpoint-every "$EVERY" --keep-exports --preview-every 1000000 --seed 13 --threads 1
@@ -81,6 +92,10 @@ run() {
   local minutes="${1:-60}"
   [[ "$minutes" =~ ^[0-9]+([.][0-9]+)?$ ]] || die "MINUTES must be a number, not '$minutes'"
   [ -f "$TEACHER" ] || die "no teacher at $TEACHER (models/MODEL.md: the teacher for every GGX material)"
+  case "${FLASHMAT_CAMPAIGN_RENDERER:-trained}" in
+    trained|frozen) ;;
+    *) die "FLASHMAT_CAMPAIGN_RENDERER is trained or frozen, not '$FLASHMAT_CAMPAIGN_RENDERER'" ;;
+  esac
   build
   mkdir -p "$CAMPAIGN/exports"
   if [ -f "$CAMPAIGN/run/checkpoint.safetensors" ]; then

@@ -173,6 +173,24 @@ impl NdEnc {
     }
 }
 
+/// ND_enc's first layer `[hidden, 9 + 18 from (+1)]` cut to the columns of
+/// the lowest `to` frequencies `[hidden, 9 + 18 to (+1)]`: the directions,
+/// sin and cos of frequencies 0..to, and the half-angle feature when
+/// `half_angle`. An ND_enc of fewer frequencies starts from one of more
+/// this way; the high frequencies' contributions are dropped, which the
+/// training that follows makes up for.
+pub fn lower_frequencies(first_layer: &Tensor, from: i64, to: i64, half_angle: bool) -> Result<Tensor> {
+    let width = 9 + 18 * from + half_angle as i64;
+    ensure!(first_layer.dim() == 2 && first_layer.size()[1] == width, "ND_enc's first layer of {from} frequencies has {width} columns, got shape {:?}", first_layer.size());
+    ensure!((0..=from).contains(&to), "cannot cut {from} frequencies to {to}");
+    // The encoding's order: [v (9), sin (from x 9, frequency-major), cos (the same), half angle].
+    let mut parts = vec![first_layer.narrow(1, 0, 9), first_layer.narrow(1, 9, 9 * to), first_layer.narrow(1, 9 + 9 * from, 9 * to)];
+    if half_angle {
+        parts.push(first_layer.narrow(1, width - 1, 1));
+    }
+    Ok(Tensor::cat(&parts, 1))
+}
+
 /// Checks a direction tensor `[..., 3]`.
 pub(crate) fn check_dirs(name: &str, t: &Tensor) -> Result<()> {
     let s = t.size();
@@ -185,6 +203,26 @@ pub(crate) fn check_dirs(name: &str, t: &Tensor) -> Result<()> {
 mod tests {
     use super::*;
     use tch::Device;
+
+    #[test]
+    fn fewer_frequencies_keep_what_the_low_ones_compute() {
+        // Weights that read only the low frequencies' columns compute the
+        // same code from the 16-frequency encoding and, cut, from the 8.
+        let (wi, wo) = (Tensor::from_slice(&[0.3f32, -0.2, 0.93]).view([1, 3]), Tensor::from_slice(&[-0.1f32, 0.4, 0.91]).view([1, 3]));
+        let w16 = Tensor::randn([5, 297], (Kind::Float, Device::Cpu));
+        let high: Vec<i64> = (9 + 72..9 + 144).chain(9 + 144 + 72..297).collect();
+        let w16 = w16.index_fill(1, &Tensor::from_slice(&high), 0.0);
+        let w8 = lower_frequencies(&w16, 16, 8, false).unwrap();
+        assert_eq!(w8.size(), [5, 153]);
+        let a = encode_directions(&wi, &wo, 16).linear(&w16, None::<&Tensor>);
+        let b = encode_directions(&wi, &wo, 8).linear(&w8, None::<&Tensor>);
+        assert!(f64::try_from((a - b).abs().max()).unwrap() < 1e-4);
+        // The half-angle column is the last one either way.
+        let h = Tensor::arange(298, (Kind::Float, Device::Cpu)).view([1, 298]);
+        let cut: Vec<f32> = Vec::try_from(lower_frequencies(&h, 16, 8, true).unwrap().flatten(0, -1)).unwrap();
+        assert_eq!((cut.len(), cut[8], cut[9], cut[80], cut[81], cut[152], cut[153]), (154, 8.0, 9.0, 80.0, 153.0, 224.0, 297.0));
+        assert!(lower_frequencies(&h, 16, 17, true).is_err() && lower_frequencies(&h, 8, 4, true).is_err());
+    }
 
     #[test]
     fn encoding_values_and_order() {

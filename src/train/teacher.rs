@@ -15,6 +15,7 @@
 
 use crate::optim::Adam;
 use crate::archive::{restore_vars, Archive};
+use crate::model::nd_enc::lower_frequencies;
 use crate::model::{Model, ModelConfig};
 use crate::model::ggx_codes::MIN_NORMAL_Z as MIN_FIT_NORMAL_Z;
 pub use crate::svbrdf::rows::{ggx_log_rows, lobe_lights, log_rows_loss as teacher_loss, normalize_rows, random_directions};
@@ -370,14 +371,30 @@ impl TeacherTrainer {
     }
 
     /// A new run of `config` from the encoder and renderer of the teacher
-    /// file `from` (same model), with a fresh optimizer at step 0.
+    /// file `from`, with a fresh optimizer at step 0. The same model, or one
+    /// that differs only in having more direction frequencies: ND_enc then
+    /// keeps the columns of the lower ones ([`lower_frequencies`]), how an
+    /// 8-frequency teacher starts from a 16-frequency one.
     pub fn warm_started(config: TeacherConfig, from: &Path, device: Device) -> Result<Self> {
         let t = Self::new(config, device)?;
         let a = Archive::load(from, FORMAT, VERSION)?;
-        let theirs = a.meta("model_id")?;
-        ensure!(theirs == t.model.model_id(), "{}: a teacher of model '{theirs}' cannot start a '{}' teacher", from.display(), t.model.model_id());
         let ctx = |what: &str| format!("{}: {what}", from.display());
-        restore_vars(&t.model.renderer_vs.variables(), &a.with_prefix("renderer/"), &ctx("renderer"))?;
+        let theirs = a.meta("model_id")?;
+        let mut renderer = a.with_prefix("renderer/");
+        if theirs != t.model.model_id() {
+            let their_config: TeacherConfig = serde_json::from_str(a.meta("teacher_config")?).with_context(|| ctx("unreadable configuration"))?;
+            let (ours, their_model) = (&t.config.model, &their_config.model);
+            let same_but_frequencies = ModelConfig { enc_frequencies: ours.enc_frequencies, name: ours.name.clone(), ..their_model.clone() } == *ours;
+            ensure!(
+                same_but_frequencies && their_model.enc_frequencies > ours.enc_frequencies,
+                "{}: a teacher of model '{theirs}' cannot start a '{}' teacher (only the same model, or one with more direction frequencies)",
+                from.display(),
+                t.model.model_id()
+            );
+            let first = renderer.get_mut(ND_ENC_FIRST_LAYER).with_context(|| ctx("renderer: no ND_enc"))?;
+            *first = lower_frequencies(first, their_model.enc_frequencies, ours.enc_frequencies, ours.half_angle_feature).with_context(|| ctx("renderer"))?;
+        }
+        restore_vars(&t.model.renderer_vs.variables(), &renderer, &ctx("renderer"))?;
         restore_vars(&t.teacher_vs.variables(), &a.with_prefix("teacher/"), &ctx("teacher encoder"))?;
         Ok(t)
     }
@@ -394,6 +411,9 @@ impl TeacherTrainer {
         Ok(t)
     }
 }
+
+/// ND_enc's first layer among a teacher file's renderer weights.
+const ND_ENC_FIRST_LAYER: &str = "renderer.nd_enc.0.weight";
 
 /// File of a teacher run folder (weights, optimizer, step: checkpoint and
 /// the file the second stage reads).
@@ -456,6 +476,32 @@ pub fn run(config: TeacherConfig, dir: &Path, device: Device, minutes: Option<f6
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_teacher_of_fewer_frequencies_starts_from_one_of_more() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = |frequencies: i64, hidden: i64| TeacherConfig {
+            model: ModelConfig { enc_frequencies: frequencies, enc_hidden: hidden, ..ModelConfig::tiny() },
+            ..TeacherConfig::default()
+        };
+        let from = dir.path().join("t16.safetensors");
+        let sixteen = TeacherTrainer::new(config(16, 32), Device::Cpu).unwrap();
+        sixteen.save(&from).unwrap();
+        let eight = TeacherTrainer::warm_started(config(8, 32), &from, Device::Cpu).unwrap();
+        let first = |t: &TeacherTrainer| t.model.renderer_vs.variables()[ND_ENC_FIRST_LAYER].shallow_clone();
+        let want = crate::model::nd_enc::lower_frequencies(&first(&sixteen), 16, 8, false).unwrap();
+        assert_eq!(first(&eight).size(), [32, 153]);
+        assert!(f64::try_from((first(&eight) - want).abs().max()).unwrap() == 0.0);
+        // The rest of the renderer and the encoder come over as they are.
+        let m = "renderer.m_render.0.weight";
+        assert!(eight.model.renderer_vs.variables()[m].equal(&sixteen.model.renderer_vs.variables()[m]));
+        // Not from fewer frequencies, nor from another width.
+        let eight_file = dir.path().join("t8.safetensors");
+        eight.save(&eight_file).unwrap();
+        let err = |r: Result<TeacherTrainer>| r.err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(err(TeacherTrainer::warm_started(config(16, 32), &eight_file, Device::Cpu)).contains("more direction frequencies"));
+        assert!(err(TeacherTrainer::warm_started(config(8, 16), &from, Device::Cpu)).contains("cannot start"));
+    }
 
     #[test]
     fn samples_match_the_scalar_ggx_oracle() {
