@@ -58,13 +58,23 @@ build() {
 # codes M_est can write from one photo. FLASHMAT_CAMPAIGN_CODE_WEIGHT,
 # FLASHMAT_CAMPAIGN_LPIPS_WEIGHT and FLASHMAT_CAMPAIGN_RENDERER (trained or
 # frozen) set them for a new run.
+# The student's preset is its teacher's: it starts from the teacher's renderer.
+teacher_preset() {
+  python3 - "$TEACHER" <<'EOF' || die "cannot read the preset of $TEACHER"
+import json, struct, sys
+with open(sys.argv[1], "rb") as f:
+    header = json.loads(f.read(struct.unpack("<Q", f.read(8))[0]))
+print(json.loads(header["__metadata__"]["teacher_config"])["model"]["name"])
+EOF
+}
+
 recipe() {
   local renderer=()
   case "${FLASHMAT_CAMPAIGN_RENDERER:-trained}" in
     trained) ;;
     frozen) renderer=(--freeze-renderer) ;;
   esac
-  echo --preset compact --ldr --teacher "$TEACHER" --code-weight "${FLASHMAT_CAMPAIGN_CODE_WEIGHT:-0.25}" --code-gloss-weight 4 "${renderer[@]}" \
+  echo --preset "$(teacher_preset)" --ldr --teacher "$TEACHER" --code-weight "${FLASHMAT_CAMPAIGN_CODE_WEIGHT:-0.25}" --code-gloss-weight 4 "${renderer[@]}" \
     --crop 256 --outputs 4 --colocated-outputs 1 --batch 2 --lr 3e-4 --warmup-steps 50 --straight-through-output \
     --checkerboard-free --adv-weight 0 --lpips-weight "${FLASHMAT_CAMPAIGN_LPIPS_WEIGHT:-1}" --chroma-weight 1 --phone-inputs 0.5 \
     --steps 100000000 --checkpoint-every "$EVERY" --keep-exports --preview-every 1000000 --seed 13 --threads 1

@@ -173,20 +173,25 @@ impl NdEnc {
     }
 }
 
-/// ND_enc's first layer `[hidden, 9 + 18 from (+1)]` cut to the columns of
-/// the lowest `to` frequencies `[hidden, 9 + 18 to (+1)]`: the directions,
-/// sin and cos of frequencies 0..to, and the half-angle feature when
-/// `half_angle`. An ND_enc of fewer frequencies starts from one of more
-/// this way; the high frequencies' contributions are dropped, which the
-/// training that follows makes up for.
-pub fn lower_frequencies(first_layer: &Tensor, from: i64, to: i64, half_angle: bool) -> Result<Tensor> {
-    let width = 9 + 18 * from + half_angle as i64;
+/// ND_enc's first layer `[hidden, 9 + 18 from (+1 with from_half)]` cut
+/// to the columns of the lowest `to` frequencies `[hidden, 9 + 18 to (+1
+/// with to_half)]`: the directions, sin and cos of frequencies 0..to, and
+/// the half-angle feature's column, kept, or added as zeros when the source
+/// has none. An ND_enc of fewer frequencies, or one that reads the half
+/// angle, starts from another this way: what the kept columns compute is
+/// unchanged, the high frequencies' share is dropped, and the training that
+/// follows makes up for it.
+pub fn lower_frequencies(first_layer: &Tensor, from: i64, from_half: bool, to: i64, to_half: bool) -> Result<Tensor> {
+    let width = 9 + 18 * from + from_half as i64;
     ensure!(first_layer.dim() == 2 && first_layer.size()[1] == width, "ND_enc's first layer of {from} frequencies has {width} columns, got shape {:?}", first_layer.size());
     ensure!((0..=from).contains(&to), "cannot cut {from} frequencies to {to}");
+    ensure!(to_half || !from_half, "cannot drop the half-angle feature");
     // The encoding's order: [v (9), sin (from x 9, frequency-major), cos (the same), half angle].
     let mut parts = vec![first_layer.narrow(1, 0, 9), first_layer.narrow(1, 9, 9 * to), first_layer.narrow(1, 9 + 9 * from, 9 * to)];
-    if half_angle {
+    if from_half {
         parts.push(first_layer.narrow(1, width - 1, 1));
+    } else if to_half {
+        parts.push(first_layer.narrow(1, 0, 1).zeros_like());
     }
     Ok(Tensor::cat(&parts, 1))
 }
@@ -212,16 +217,20 @@ mod tests {
         let w16 = Tensor::randn([5, 297], (Kind::Float, Device::Cpu));
         let high: Vec<i64> = (9 + 72..9 + 144).chain(9 + 144 + 72..297).collect();
         let w16 = w16.index_fill(1, &Tensor::from_slice(&high), 0.0);
-        let w8 = lower_frequencies(&w16, 16, 8, false).unwrap();
+        let w8 = lower_frequencies(&w16, 16, false, 8, false).unwrap();
         assert_eq!(w8.size(), [5, 153]);
         let a = encode_directions(&wi, &wo, 16).linear(&w16, None::<&Tensor>);
         let b = encode_directions(&wi, &wo, 8).linear(&w8, None::<&Tensor>);
         assert!(f64::try_from((a - b).abs().max()).unwrap() < 1e-4);
-        // The half-angle column is the last one either way.
+        // The half-angle column is the last one either way; added, it reads nothing yet.
         let h = Tensor::arange(298, (Kind::Float, Device::Cpu)).view([1, 298]);
-        let cut: Vec<f32> = Vec::try_from(lower_frequencies(&h, 16, 8, true).unwrap().flatten(0, -1)).unwrap();
+        let cut: Vec<f32> = Vec::try_from(lower_frequencies(&h, 16, true, 8, true).unwrap().flatten(0, -1)).unwrap();
         assert_eq!((cut.len(), cut[8], cut[9], cut[80], cut[81], cut[152], cut[153]), (154, 8.0, 9.0, 80.0, 153.0, 224.0, 297.0));
-        assert!(lower_frequencies(&h, 16, 17, true).is_err() && lower_frequencies(&h, 8, 4, true).is_err());
+        let w8h = lower_frequencies(&w16, 16, false, 8, true).unwrap();
+        assert_eq!(w8h.size(), [5, 154]);
+        assert!(w8h.narrow(1, 0, 153).equal(&w8) && w8h.narrow(1, 153, 1).abs().max().double_value(&[]) == 0.0);
+        assert!(lower_frequencies(&h, 16, true, 17, true).is_err() && lower_frequencies(&h, 8, true, 4, true).is_err());
+        assert!(lower_frequencies(&h, 16, true, 8, false).is_err());
     }
 
     #[test]

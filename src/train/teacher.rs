@@ -372,9 +372,10 @@ impl TeacherTrainer {
 
     /// A new run of `config` from the encoder and renderer of the teacher
     /// file `from`, with a fresh optimizer at step 0. The same model, or one
-    /// that differs only in having more direction frequencies: ND_enc then
-    /// keeps the columns of the lower ones ([`lower_frequencies`]), how an
-    /// 8-frequency teacher starts from a 16-frequency one.
+    /// that differs only in having more direction frequencies or no half
+    /// angle: ND_enc then keeps the columns of the lower ones and adds the
+    /// half angle's ([`lower_frequencies`]), how a `compact-f8h` teacher
+    /// starts from a `compact` one.
     pub fn warm_started(config: TeacherConfig, from: &Path, device: Device) -> Result<Self> {
         let t = Self::new(config, device)?;
         let a = Archive::load(from, FORMAT, VERSION)?;
@@ -384,15 +385,22 @@ impl TeacherTrainer {
         if theirs != t.model.model_id() {
             let their_config: TeacherConfig = serde_json::from_str(a.meta("teacher_config")?).with_context(|| ctx("unreadable configuration"))?;
             let (ours, their_model) = (&t.config.model, &their_config.model);
-            let same_but_frequencies = ModelConfig { enc_frequencies: ours.enc_frequencies, name: ours.name.clone(), ..their_model.clone() } == *ours;
+            let same_encoder_widths = ModelConfig {
+                enc_frequencies: ours.enc_frequencies,
+                half_angle_feature: ours.half_angle_feature,
+                name: ours.name.clone(),
+                ..their_model.clone()
+            } == *ours;
+            let (fewer, half_kept) = (their_model.enc_frequencies >= ours.enc_frequencies, ours.half_angle_feature || !their_model.half_angle_feature);
             ensure!(
-                same_but_frequencies && their_model.enc_frequencies > ours.enc_frequencies,
-                "{}: a teacher of model '{theirs}' cannot start a '{}' teacher (only the same model, or one with more direction frequencies)",
+                same_encoder_widths && fewer && half_kept,
+                "{}: a teacher of model '{theirs}' cannot start a '{}' teacher (only the same model, or one with more direction frequencies or without the half angle)",
                 from.display(),
                 t.model.model_id()
             );
             let first = renderer.get_mut(ND_ENC_FIRST_LAYER).with_context(|| ctx("renderer: no ND_enc"))?;
-            *first = lower_frequencies(first, their_model.enc_frequencies, ours.enc_frequencies, ours.half_angle_feature).with_context(|| ctx("renderer"))?;
+            *first = lower_frequencies(first, their_model.enc_frequencies, their_model.half_angle_feature, ours.enc_frequencies, ours.half_angle_feature)
+                .with_context(|| ctx("renderer"))?;
         }
         restore_vars(&t.model.renderer_vs.variables(), &renderer, &ctx("renderer"))?;
         restore_vars(&t.teacher_vs.variables(), &a.with_prefix("teacher/"), &ctx("teacher encoder"))?;
@@ -478,7 +486,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_teacher_of_fewer_frequencies_starts_from_one_of_more() {
+    fn a_teacher_of_fewer_frequencies_or_with_the_half_angle_starts_from_another() {
         let dir = tempfile::tempdir().unwrap();
         let config = |frequencies: i64, hidden: i64| TeacherConfig {
             model: ModelConfig { enc_frequencies: frequencies, enc_hidden: hidden, ..ModelConfig::tiny() },
@@ -489,9 +497,13 @@ mod tests {
         sixteen.save(&from).unwrap();
         let eight = TeacherTrainer::warm_started(config(8, 32), &from, Device::Cpu).unwrap();
         let first = |t: &TeacherTrainer| t.model.renderer_vs.variables()[ND_ENC_FIRST_LAYER].shallow_clone();
-        let want = crate::model::nd_enc::lower_frequencies(&first(&sixteen), 16, 8, false).unwrap();
+        let want = crate::model::nd_enc::lower_frequencies(&first(&sixteen), 16, false, 8, false).unwrap();
         assert_eq!(first(&eight).size(), [32, 153]);
-        assert!(f64::try_from((first(&eight) - want).abs().max()).unwrap() == 0.0);
+        assert!(first(&eight).equal(&want));
+        let with_half = |frequencies| TeacherConfig { model: ModelConfig { half_angle_feature: true, ..config(frequencies, 32).model }, ..TeacherConfig::default() };
+        let eight_half = TeacherTrainer::warm_started(with_half(8), &from, Device::Cpu).unwrap();
+        assert_eq!(first(&eight_half).size(), [32, 154]);
+        assert!(first(&eight_half).narrow(1, 0, 153).equal(&want));
         // The rest of the renderer and the encoder come over as they are.
         let m = "renderer.m_render.0.weight";
         assert!(eight.model.renderer_vs.variables()[m].equal(&sixteen.model.renderer_vs.variables()[m]));
@@ -501,6 +513,9 @@ mod tests {
         let err = |r: Result<TeacherTrainer>| r.err().map(|e| e.to_string()).unwrap_or_default();
         assert!(err(TeacherTrainer::warm_started(config(16, 32), &eight_file, Device::Cpu)).contains("more direction frequencies"));
         assert!(err(TeacherTrainer::warm_started(config(8, 16), &from, Device::Cpu)).contains("cannot start"));
+        let half_file = dir.path().join("t8h.safetensors");
+        eight_half.save(&half_file).unwrap();
+        assert!(err(TeacherTrainer::warm_started(config(8, 32), &half_file, Device::Cpu)).contains("without the half angle"));
     }
 
     #[test]
