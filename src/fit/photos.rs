@@ -704,7 +704,10 @@ pub fn fitted_neural_material(maps: &Tensor, photo: &Tensor, teacher: &TeacherWe
 pub struct CapturePhotos {
     /// `[K, 3, S, S]` linear, fall-off compensated (on the CPU).
     pub photos: Tensor,
-    /// `[K, 3, S, S]` bool: clipped in the 8-bit photo ([`clip_mask`]).
+    /// `[K, 3, S, S]` bool: clipped in the 8-bit photo ([`clip_mask`]); in a
+    /// RAW photo, above the white of its 8-bit rendering (the value times
+    /// its BaselineExposure gain at or above [`CLIP_LEVEL`]): a bound, not a
+    /// measure, for the fit either way.
     pub clipped: Tensor,
     pub configs: Vec<LightView>,
     /// Index of the overhead photo ([`Captures::overhead`] among these).
@@ -773,6 +776,13 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
         let mean = photo.mean(Kind::Double).double_value(&[]);
         ensure!(mean >= BLACK_MEAN, "{}: the photo is black (mean linear value {mean:.1e}); nothing to fit", path.display());
         let clipped = clip_mask(&photo.unsqueeze(0));
+        // What the fit takes as "at least this bright": for a RAW photo,
+        // what its 8-bit rendering at the file's own exposure would clip.
+        // Taken as measured, those peaks made the relit material worse, not
+        // better: the fit's lobe cannot draw them, and it bends normals and
+        // kd toward them (relit log error 0.0733 against its 8-bit twin's
+        // 0.0699; as bounds 0.0701; reports/capture.md, "Thirteenth slice").
+        let beyond_white = clip_mask(&(photo.unsqueeze(0) * captures.raw_gains[i]));
         ensure!(
             clipped.logical_not().any().int64_value(&[]) != 0,
             "{}: the photo is white (clipped everywhere); nothing to fit",
@@ -796,7 +806,7 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
         // Brought to the overhead photo's exposure; the clipped mask stays the photo's own.
         photos.push(compensated(&photo, c.light, r0, captures.exposure_factor(i, indices[overhead])));
         decoded.push((i, photo));
-        raw.push(clipped);
+        raw.push(beyond_white);
         names.push(path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());
     }
     // On the photos brought to one exposure and white balance: a grey

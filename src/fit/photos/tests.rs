@@ -495,26 +495,30 @@ fn a_raw_capture_fits_at_least_as_well_as_its_8_bit_twin() {
         crate::data::captures::write_synthetic_as(dir.path(), &material, &configs, &vec![0.5; count], 10.0, files).unwrap();
         let loaded = load_capture(&Captures::open(dir.path()).unwrap(), count, side).unwrap();
         let clipped = loaded.clipped.to_kind(Kind::Float).mean(Kind::Double).double_value(&[]);
+        let peak = loaded.photos.max().double_value(&[]);
         let cfg = PhotoFitConfig { size: side, ..PhotoFitConfig::default() };
         let start = flat_start(&loaded.photos.get(0), &loaded.configs[0]);
         let maps = fit_photos(&loaded.photos, &loaded.clipped, &loaded.configs, &start, &cfg, |_| ()).unwrap().maps;
         let fitted = Svbrdf::from_stacked(&crate::image::Image::from_tensor(&maps).unwrap()).unwrap();
         let renders = (crate::svbrdf::cpu::render_tensor(&fitted, &held_out) + 1.0).log();
         let error = (renders - &truth_renders).abs().mean(Kind::Double).double_value(&[]);
-        (clipped, error)
+        (clipped, peak, error)
     };
-    let (png_clipped, png_error) = fit(crate::data::captures::PhotoFiles::Png8);
-    let (dng_clipped, dng_error) = fit(crate::data::captures::PhotoFiles::Dng { bits: 12 });
-    eprintln!("clipped channels: PNG {png_clipped:.3}, DNG {dng_clipped:.3}; relit log error: PNG {png_error:.4}, DNG {dng_error:.4}");
+    let (png_clipped, png_peak, png_error) = fit(crate::data::captures::PhotoFiles::Png8);
+    let (dng_clipped, dng_peak, dng_error) = fit(crate::data::captures::PhotoFiles::Dng { bits: 12 });
+    eprintln!("bounded channels: PNG {png_clipped:.3}, DNG {dng_clipped:.3}; brightest: PNG {png_peak:.2}, DNG {dng_peak:.2}; relit log error: PNG {png_error:.4}, DNG {dng_error:.4}");
     // The RAW photos keep the peaks (the overhead photo's brightest pixel
-    // 6.6 where the PNG stops at 1) and clip nothing, and read at the
-    // PNGs' scale (the third photo's mean 0.0114 against 0.0115).
-    assert!(png_clipped > 0.01 && dng_clipped == 0.0);
-    // Measured 0.0733 against 0.0699 (the same at 16 bits: not the
-    // quantisation): the fit does not yet turn the unclipped peaks into a
-    // better relit material on this board (reports/capture.md, "Tenth
-    // slice"). The bound keeps it from getting worse.
-    assert!(dng_error <= 1.1 * png_error, "DNG {dng_error} against PNG {png_error}");
+    // 6.6 where the PNG stops at 1) and read at the PNGs' scale (the third
+    // photo's mean 0.0114 against 0.0115). Above their 8-bit rendering's
+    // white they are bounds for the fit, as the PNGs' clipped channels are:
+    // as many channels, give or take the PNGs' rounding.
+    assert!(dng_peak > 3.0 * png_peak, "brightest DNG {dng_peak} PNG {png_peak}");
+    assert!(png_clipped > 0.01 && (dng_clipped - png_clipped).abs() < 0.1 * png_clipped, "PNG {png_clipped} DNG {dng_clipped}");
+    // Measured 0.0701 against 0.0699 (5 photos: 0.0423 against 0.0420);
+    // with the peaks taken as measured 0.0733 (0.0457): the fit's lobe could
+    // not draw them and bent normals and kd toward them (reports/capture.md,
+    // "Thirteenth slice").
+    assert!(dng_error <= 1.02 * png_error, "DNG {dng_error} against PNG {png_error}");
 }
 
 #[test]
