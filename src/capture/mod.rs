@@ -209,6 +209,10 @@ pub struct Capture {
     /// What each photo's paper says of its exposure and white balance
     /// ([`photometry`]), in order.
     pub paper: Vec<photometry::PaperReading>,
+    /// The tone curve's exponent the paper measured and the rectified
+    /// photos were corrected for ([`photometry::response_exponent`]); None:
+    /// decoded as sRGB (or RAW).
+    pub response: Option<f64>,
 }
 
 impl Capture {
@@ -357,7 +361,18 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
     let half = layout.opening_mm() / 2.0;
     let overhead = &results[first];
     let side = rectified_side(&overhead.intrinsics, &overhead.pose, half, cfg.max_side);
-    let decode = |v: u8| crate::spaces::photo_decode(v as f32 / 255.0);
+    // The paper first: where it says the photos' tone curve is not sRGB
+    // (one curve for all of them), their decoded values are corrected to
+    // linear before anything reads them ([`photometry::response_exponent`]).
+    let margin = layout.paper_margin_centre_mm();
+    let paper: Vec<photometry::PaperReading> = order.iter().map(|&i| photometry::read_paper(&photos[i], &results[i], margin, 1.0)).collect();
+    let response = if photos[0].raw.is_none() { photometry::response_exponent(&paper) } else { None };
+    let paper = match response {
+        Some(k) => order.iter().map(|&i| photometry::read_paper(&photos[i], &results[i], margin, k)).collect(),
+        None => paper,
+    };
+    let inverse = 1.0 / response.unwrap_or(1.0) as f32;
+    let decode = |v: u8| crate::spaces::photo_decode(v as f32 / 255.0).powf(inverse);
     let mut rectified = Vec::new();
     for (n, &i) in order.iter().enumerate() {
         on_progress(2, n, order.len());
@@ -368,7 +383,6 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
         rectified.push(rectify::rectify(pixels, &results[i].intrinsics, &results[i].pose, half, side, &decode));
     }
     on_progress(2, order.len(), order.len());
-    let paper: Vec<photometry::PaperReading> = order.iter().map(|&i| photometry::read_paper(&photos[i], &results[i], layout.paper_margin_centre_mm())).collect();
     // A grey photo among colour ones, named here while its file is the one
     // the user gave; on the openings brought to one white balance by the
     // paper, as the fit's check is, so a grey material with a cast in one
@@ -403,7 +417,7 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
         return Err(crate::fit::coverage::covered_error(&name(&photos[order[covered.photo]].path), &covered));
     }
     let photos_out = order.iter().map(|&i| results[i].clone()).collect();
-    Ok(Capture { layout, photos: photos_out, rectified, side, distortion: calibration.distortion, paper })
+    Ok(Capture { layout, photos: photos_out, rectified, side, distortion: calibration.distortion, paper, response })
 }
 
 /// The opening's side in the photo's pixels (the mean of its four edges),

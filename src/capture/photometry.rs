@@ -26,6 +26,12 @@ const CLIP_CODE: u8 = 250;
 const MIN_LOG_SPREAD: f64 = 0.05;
 /// A response slope outside 1 +- this is warned about.
 pub const SLOPE_TOLERANCE: f64 = 0.3;
+/// The photos' stated response slopes must agree within this for the
+/// capture's tone curve to be corrected by their median.
+const SLOPE_AGREEMENT: f64 = 0.05;
+/// A response exponent within this of 1 is a linear photo's (a clean
+/// photo's slope measures within 0.01 of 1).
+const LINEAR_RESPONSE: f64 = 0.03;
 /// Measured exposures within this of the overhead photo's (relative, every
 /// channel) are one exposure: no `exposures.txt`.
 pub const SAME_EXPOSURE: f64 = 0.03;
@@ -58,8 +64,10 @@ fn paper_points(margin_centre_mm: f64) -> Vec<[f64; 2]> {
         .collect()
 }
 
-/// Reads the paper of one photo whose pose and light `result` has.
-pub fn read_paper(photo: &FramePhoto, result: &PhotoResult, margin_centre_mm: f64) -> PaperReading {
+/// Reads the paper of one photo whose pose and light `result` has; an
+/// 8-bit photo's decoded values raised to `1 / response` (1: as decoded;
+/// [`response_exponent`]'s correction).
+pub fn read_paper(photo: &FramePhoto, result: &PhotoResult, margin_centre_mm: f64, response: f64) -> PaperReading {
     let pixels = match &photo.raw {
         Some(raw) => Pixels::Linear(&raw.linear),
         None => Pixels::Coded(&photo.rgb),
@@ -73,6 +81,10 @@ pub fn read_paper(photo: &FramePhoto, result: &PhotoResult, margin_centre_mm: f6
             continue;
         }
         let Some(rgb) = linear_at(&pixels, px) else { continue };
+        let rgb = match pixels {
+            Pixels::Coded(_) => rgb.map(|v| v.powf(1.0 / response)),
+            Pixels::Linear(_) => rgb,
+        };
         let to_light = sub(result.light, [p[0], p[1], 0.0]);
         let r = length(to_light) / 1000.0;
         let irradiance = (to_light[2] / 1000.0 / r) / (r * r);
@@ -137,6 +149,25 @@ fn slope(points: &[(f64, f64)]) -> Option<f64> {
     ((sxx / n).sqrt() >= MIN_LOG_SPREAD).then(|| sxy / sxx)
 }
 
+/// The exponent of the capture's tone curve, where the paper says it is
+/// not the sRGB curve the photos are decoded with: decoded values come out
+/// as the radiance to this power (a phone's curve of gamma 2.4 read as
+/// 2.2: 2.2 / 2.4 = 0.92), so `decoded^(1 / exponent)` undoes it. The
+/// median of the photos' response slopes, when at least two photos state
+/// one, all within [`SLOPE_TOLERANCE`] of 1 (a tone-mapped photo is warned
+/// about instead) and within [`SLOPE_AGREEMENT`] of each other (one curve
+/// for the capture), and it is more than [`LINEAR_RESPONSE`] from 1; None
+/// otherwise.
+pub fn response_exponent(readings: &[PaperReading]) -> Option<f64> {
+    let mut slopes: Vec<f64> = readings.iter().filter_map(|r| r.response_slope).collect();
+    if slopes.len() < 2 || slopes.iter().any(|s| (s - 1.0).abs() > SLOPE_TOLERANCE) {
+        return None;
+    }
+    let spread = slopes.iter().cloned().fold(f64::NEG_INFINITY, f64::max) - slopes.iter().cloned().fold(f64::INFINITY, f64::min);
+    let k = median(&mut slopes);
+    (spread <= SLOPE_AGREEMENT && (k - 1.0).abs() > LINEAR_RESPONSE).then_some(k)
+}
+
 /// Each photo's exposure per channel relative to `readings[0]`'s (the
 /// overhead photo's), when every photo has a reading; None otherwise.
 pub fn relative_levels(readings: &[PaperReading]) -> Option<Vec<[f64; 3]>> {
@@ -182,6 +213,18 @@ pub fn warnings(results: &[PhotoResult], readings: &[PaperReading]) -> Vec<Strin
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn one_curve_for_the_capture_is_read_from_agreeing_slopes() {
+        let r = |s: Option<f64>| PaperReading { level: [1.0; 3], samples: 96, response_slope: s };
+        // Gamma 2.4 read as 2.2, stated by the two tilted photos.
+        assert_eq!(response_exponent(&[r(None), r(Some(0.91)), r(Some(0.93))]), Some(0.92));
+        // A linear capture, one photo's word, photos that disagree, a tone-mapped photo: no correction.
+        assert_eq!(response_exponent(&[r(None), r(Some(0.99)), r(Some(1.01))]), None);
+        assert_eq!(response_exponent(&[r(None), r(Some(0.9)), r(None)]), None);
+        assert_eq!(response_exponent(&[r(None), r(Some(0.85)), r(Some(0.95))]), None);
+        assert_eq!(response_exponent(&[r(Some(0.92)), r(Some(0.92)), r(Some(0.5))]), None);
+    }
 
     #[test]
     fn the_slope_is_the_exponent_and_is_withheld_on_even_light() {

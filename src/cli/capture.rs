@@ -176,6 +176,11 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         ),
         _ => {}
     }
+    if let Some(k) = capture.response {
+        eprintln!(
+            "the frame's paper says the photos' tone curve is not the sRGB curve (they read as the light to the power {k:.2}): the capture's photos are corrected to linear"
+        );
+    }
     eprintln!("look at {}", folder.join("capture.jpg").display());
     for w in flashmat::capture::photometry::warnings(&capture.photos, &capture.paper) {
         eprintln!("warning: {w}");
