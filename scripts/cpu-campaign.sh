@@ -55,9 +55,17 @@ build() {
 # ghost 1.89 at step 48,164), so stage C (from step 48,164 on) changes the
 # model: the renderer, until then the teacher's frozen copy, trains with
 # M_est (the paper's alternating steps), so that it learns to render the
-# codes M_est can write from one photo. FLASHMAT_CAMPAIGN_CODE_WEIGHT,
-# FLASHMAT_CAMPAIGN_LPIPS_WEIGHT and FLASHMAT_CAMPAIGN_RENDERER (trained or
-# frozen) set them for a new run.
+# codes M_est can write from one photo. In 287 steps it took Identity LPIPS
+# 0.159 -> 0.139, the ghost 1.89 -> 1.64 and the rest 1.15 -> 1.02, but the
+# lobe back to the bundled model's (0.44 -> 0.20): trained on the output
+# renders alone, the renderer forgets the lobes (reports/campaign/eval-48451.md).
+# Stage D (next): the teacher of 2026-12-07 (compact-f8h), M_est from stage
+# C, the renderer trained with a small lobe term (--lobe-weight 0.02, half
+# the lights in the lobe), which holds the teacher's lobes (E3 of
+# reports/highlights-experiments.md: lobe 0.16 -> 0.50 at weight 0.02).
+# FLASHMAT_CAMPAIGN_CODE_WEIGHT, FLASHMAT_CAMPAIGN_LPIPS_WEIGHT,
+# FLASHMAT_CAMPAIGN_RENDERER (trained or frozen) and
+# FLASHMAT_CAMPAIGN_LOBE_WEIGHT set them for a new run.
 # The student's preset is its teacher's: it starts from the teacher's renderer.
 teacher_preset() {
   python3 - "$TEACHER" <<'EOF' || die "cannot read the preset of $TEACHER"
@@ -71,7 +79,7 @@ EOF
 recipe() {
   local renderer=()
   case "${FLASHMAT_CAMPAIGN_RENDERER:-trained}" in
-    trained) ;;
+    trained) renderer=(--lobe-weight "${FLASHMAT_CAMPAIGN_LOBE_WEIGHT:-0.02}" --lobe-share 0.5) ;;
     frozen) renderer=(--freeze-renderer) ;;
   esac
   echo --preset "$(teacher_preset)" --ldr --teacher "$TEACHER" --code-weight "${FLASHMAT_CAMPAIGN_CODE_WEIGHT:-0.25}" --code-gloss-weight 4 "${renderer[@]}" \
