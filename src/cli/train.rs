@@ -278,7 +278,7 @@ pub struct TeacherArgs {
     /// capture fit can return: metals, saturated colours, steep normals; use with --min-roughness 0.02).
     #[arg(long, value_enum, default_value_t = flashmat::train::teacher::PixelMaterials::Procedural)]
     pub materials: flashmat::train::teacher::PixelMaterials,
-    /// Start a new teacher from this teacher file's weights (same preset, or one with more direction frequencies: ND_enc keeps the lower ones), with a fresh optimizer.
+    /// Start a new teacher from this teacher file's weights (same preset, or one with more direction frequencies or without the half angle: ND_enc keeps the lower frequencies and adds the half angle's column), with a fresh optimizer.
     #[arg(long, value_name = "TEACHER")]
     pub warm_start: Option<PathBuf>,
     /// cpu or cuda.
