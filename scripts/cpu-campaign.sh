@@ -68,7 +68,7 @@ build() {
 # FLASHMAT_CAMPAIGN_LOBE_WEIGHT set them for a new run.
 # The student's preset is its teacher's: it starts from the teacher's renderer.
 teacher_preset() {
-  python3 - "$TEACHER" <<'EOF' || die "cannot read the preset of $TEACHER"
+  python3 - "$TEACHER" 2>/dev/null <<'EOF' || die "$TEACHER is not a teacher file (no preset in its header); models/MODEL.md has the committed teacher's recipe"
 import json, struct, sys
 with open(sys.argv[1], "rb") as f:
     header = json.loads(f.read(struct.unpack("<Q", f.read(8))[0]))
@@ -76,13 +76,14 @@ print(json.loads(header["__metadata__"]["teacher_config"])["model"]["name"])
 EOF
 }
 
+# $1: the student's preset (teacher_preset's, read once by run).
 recipe() {
   local renderer=()
   case "${FLASHMAT_CAMPAIGN_RENDERER:-trained}" in
     trained) renderer=(--lobe-weight "${FLASHMAT_CAMPAIGN_LOBE_WEIGHT:-0.02}" --lobe-share 0.5) ;;
     frozen) renderer=(--freeze-renderer) ;;
   esac
-  echo --preset "$(teacher_preset)" --ldr --teacher "$TEACHER" --code-weight "${FLASHMAT_CAMPAIGN_CODE_WEIGHT:-0.25}" --code-gloss-weight 4 "${renderer[@]}" \
+  echo --preset "$1" --ldr --teacher "$TEACHER" --code-weight "${FLASHMAT_CAMPAIGN_CODE_WEIGHT:-0.25}" --code-gloss-weight 4 "${renderer[@]}" \
     --crop 256 --outputs 4 --colocated-outputs 1 --batch 2 --lr 3e-4 --warmup-steps 50 --straight-through-output \
     --checkerboard-free --adv-weight 0 --lpips-weight "${FLASHMAT_CAMPAIGN_LPIPS_WEIGHT:-1}" --chroma-weight 1 --phone-inputs 0.5 \
     --steps 100000000 --checkpoint-every "$EVERY" --keep-exports --preview-every 1000000 --seed 13 --threads 1
@@ -121,10 +122,11 @@ run() {
     # --keep-exports is the run's option, not the recipe's: given again on resume.
     "$BIN" train --resume "$CAMPAIGN/run" --minutes "$minutes" --export-dir "$CAMPAIGN/exports" --keep-exports --threads 1
   else
-    local start; start=$(start_model)
+    local preset start; preset=$(teacher_preset) || exit 1
+    start=$(start_model)
     echo "cpu-campaign: a new run from $start for $minutes minutes" >&2
     # shellcheck disable=SC2046
-    "$BIN" train --out "$CAMPAIGN/run" --warm-start "$start" $(recipe) --minutes "$minutes" --export-dir "$CAMPAIGN/exports"
+    "$BIN" train --out "$CAMPAIGN/run" --warm-start "$start" $(recipe "$preset") --minutes "$minutes" --export-dir "$CAMPAIGN/exports"
   fi
 }
 
