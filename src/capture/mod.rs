@@ -209,10 +209,11 @@ pub struct Capture {
     /// What each photo's paper says of its exposure and white balance
     /// ([`photometry`]), in order.
     pub paper: Vec<photometry::PaperReading>,
-    /// The tone curve's exponent the paper measured and the rectified
-    /// photos were corrected for ([`photometry::response_exponent`]); None:
-    /// decoded as sRGB (or RAW).
-    pub response: Option<f64>,
+    /// The gamma of the pure power curve the paper measured and the
+    /// rectified photos were read with (linear = code^gamma) where it said
+    /// the sRGB curve is wrong ([`photometry::srgb_mismatch`],
+    /// [`photometry::power_gamma`]); None: decoded as sRGB (or RAW).
+    pub gamma: Option<f64>,
 }
 
 impl Capture {
@@ -362,17 +363,17 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
     let overhead = &results[first];
     let side = rectified_side(&overhead.intrinsics, &overhead.pose, half, cfg.max_side);
     // The paper first: where it says the photos' tone curve is not sRGB
-    // (one curve for all of them), their decoded values are corrected to
-    // linear before anything reads them ([`photometry::response_exponent`]).
+    // (one curve for all of them), they are read through the pure power
+    // that makes it linear before anything reads them
+    // ([`photometry::srgb_mismatch`], [`photometry::power_gamma`]).
     let margin = layout.paper_margin_centre_mm();
-    let paper: Vec<photometry::PaperReading> = order.iter().map(|&i| photometry::read_paper(&photos[i], &results[i], margin, 1.0)).collect();
-    let response = if photos[0].raw.is_none() { photometry::response_exponent(&paper) } else { None };
-    let paper = match response {
-        Some(k) => order.iter().map(|&i| photometry::read_paper(&photos[i], &results[i], margin, k)).collect(),
-        None => paper,
-    };
-    let inverse = 1.0 / response.unwrap_or(1.0) as f32;
-    let decode = |v: u8| crate::spaces::photo_decode(v as f32 / 255.0).powf(inverse);
+    let read = |curve: photometry::ToneCurve| -> Vec<photometry::PaperReading> { order.iter().map(|&i| photometry::read_paper(&photos[i], &results[i], margin, curve)).collect() };
+    let paper = read(photometry::ToneCurve::Srgb);
+    let mismatch = if photos[0].raw.is_none() { photometry::srgb_mismatch(&paper) } else { None };
+    let gamma = mismatch.and_then(|_| photometry::power_gamma(&read(photometry::ToneCurve::Power(1.0))));
+    let curve = gamma.map_or(photometry::ToneCurve::Srgb, photometry::ToneCurve::Power);
+    let paper = if gamma.is_some() { read(curve) } else { paper };
+    let decode = |v: u8| curve.decode(v as f64 / 255.0) as f32;
     let mut rectified = Vec::new();
     for (n, &i) in order.iter().enumerate() {
         on_progress(2, n, order.len());
@@ -417,7 +418,7 @@ pub fn capture(photos: &[FramePhoto], cfg: &CaptureConfig, mut on_progress: impl
         return Err(crate::fit::coverage::covered_error(&name(&photos[order[covered.photo]].path), &covered));
     }
     let photos_out = order.iter().map(|&i| results[i].clone()).collect();
-    Ok(Capture { layout, photos: photos_out, rectified, side, distortion: calibration.distortion, paper, response })
+    Ok(Capture { layout, photos: photos_out, rectified, side, distortion: calibration.distortion, paper, gamma })
 }
 
 /// The opening's side in the photo's pixels (the mean of its four edges),

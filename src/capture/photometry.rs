@@ -36,6 +36,26 @@ const LINEAR_RESPONSE: f64 = 0.03;
 /// channel) are one exposure: no `exposures.txt`.
 pub const SAME_EXPOSURE: f64 = 0.03;
 
+/// How an 8-bit photo's codes are read as linear light.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ToneCurve {
+    /// The sRGB curve (what a phone's JPEG states).
+    Srgb,
+    /// A pure power: linear = (code / 255)^gamma (a display gamma of 2.2
+    /// or 2.4 without sRGB's linear toe; 1: the codes themselves).
+    Power(f64),
+}
+
+impl ToneCurve {
+    /// Linear light of a code in [0, 1].
+    pub fn decode(self, code: f64) -> f64 {
+        match self {
+            ToneCurve::Srgb => crate::spaces::photo_decode(code as f32) as f64,
+            ToneCurve::Power(gamma) => code.powf(gamma),
+        }
+    }
+}
+
 /// What a photo's paper says.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PaperReading {
@@ -65,9 +85,8 @@ fn paper_points(margin_centre_mm: f64) -> Vec<[f64; 2]> {
 }
 
 /// Reads the paper of one photo whose pose and light `result` has; an
-/// 8-bit photo's decoded values raised to `1 / response` (1: as decoded;
-/// [`response_exponent`]'s correction).
-pub fn read_paper(photo: &FramePhoto, result: &PhotoResult, margin_centre_mm: f64, response: f64) -> PaperReading {
+/// 8-bit photo's codes read through `curve`.
+pub fn read_paper(photo: &FramePhoto, result: &PhotoResult, margin_centre_mm: f64, curve: ToneCurve) -> PaperReading {
     let pixels = match &photo.raw {
         Some(raw) => Pixels::Linear(&raw.linear),
         None => Pixels::Coded(&photo.rgb),
@@ -82,7 +101,7 @@ pub fn read_paper(photo: &FramePhoto, result: &PhotoResult, margin_centre_mm: f6
         }
         let Some(rgb) = linear_at(&pixels, px) else { continue };
         let rgb = match pixels {
-            Pixels::Coded(_) => rgb.map(|v| v.powf(1.0 / response)),
+            Pixels::Coded(_) => rgb.map(|code| curve.decode(code)),
             Pixels::Linear(_) => rgb,
         };
         let to_light = sub(result.light, [p[0], p[1], 0.0]);
@@ -100,8 +119,9 @@ pub fn read_paper(photo: &FramePhoto, result: &PhotoResult, margin_centre_mm: f6
     PaperReading { level, samples: logs.len(), response_slope: slope(&logs) }
 }
 
-/// A photo's linear RGB at a pixel position (centres at +0.5), bilinear;
-/// None where any of the four pixels is near clipping.
+/// A photo's RGB at a pixel position (centres at +0.5), bilinear: an
+/// 8-bit photo's codes in [0, 1], a RAW photo's linear values; None where
+/// any of the four pixels is near clipping.
 fn linear_at(pixels: &Pixels, p: [f64; 2]) -> Option<[f64; 3]> {
     let (x, y) = (p[0] - 0.5, p[1] - 0.5);
     let (x0, y0) = (x.floor() as usize, y.floor() as usize);
@@ -111,7 +131,7 @@ fn linear_at(pixels: &Pixels, p: [f64; 2]) -> Option<[f64; 3]> {
             Pixels::Coded(photo) => {
                 let o = (yi * photo.width + xi) * 3;
                 let codes = &photo.data[o..o + 3];
-                (codes.iter().all(|&c| c < CLIP_CODE)).then(|| std::array::from_fn(|c| crate::spaces::photo_decode(codes[c] as f32 / 255.0) as f64))
+                (codes.iter().all(|&c| c < CLIP_CODE)).then(|| std::array::from_fn(|c| codes[c] as f64 / 255.0))
             }
             Pixels::Linear(image) => {
                 let v: [f64; 3] = std::array::from_fn(|c| image.get(c, yi, xi) as f64);
@@ -149,16 +169,14 @@ fn slope(points: &[(f64, f64)]) -> Option<f64> {
     ((sxx / n).sqrt() >= MIN_LOG_SPREAD).then(|| sxy / sxx)
 }
 
-/// The exponent of the capture's tone curve, where the paper says it is
-/// not the sRGB curve the photos are decoded with: decoded values come out
-/// as the radiance to this power (a phone's curve of gamma 2.4 read as
-/// 2.2: 2.2 / 2.4 = 0.92), so `decoded^(1 / exponent)` undoes it. The
-/// median of the photos' response slopes, when at least two photos state
-/// one, all within [`SLOPE_TOLERANCE`] of 1 (a tone-mapped photo is warned
-/// about instead) and within [`SLOPE_AGREEMENT`] of each other (one curve
-/// for the capture), and it is more than [`LINEAR_RESPONSE`] from 1; None
-/// otherwise.
-pub fn response_exponent(readings: &[PaperReading]) -> Option<f64> {
+/// Whether the paper says the capture's photos share a tone curve that is
+/// not sRGB: the median of the photos' response slopes as read through
+/// sRGB (a phone's pure gamma of 2.4 reads about 0.92), when at least two
+/// photos state one, all within [`SLOPE_TOLERANCE`] of 1 (a tone-mapped
+/// photo is warned about instead) and within [`SLOPE_AGREEMENT`] of each
+/// other (one curve for the capture), and it is more than
+/// [`LINEAR_RESPONSE`] from 1; None otherwise.
+pub fn srgb_mismatch(readings: &[PaperReading]) -> Option<f64> {
     let mut slopes: Vec<f64> = readings.iter().filter_map(|r| r.response_slope).collect();
     if slopes.len() < 2 || slopes.iter().any(|s| (s - 1.0).abs() > SLOPE_TOLERANCE) {
         return None;
@@ -166,6 +184,18 @@ pub fn response_exponent(readings: &[PaperReading]) -> Option<f64> {
     let spread = slopes.iter().cloned().fold(f64::NEG_INFINITY, f64::max) - slopes.iter().cloned().fold(f64::INFINITY, f64::min);
     let k = median(&mut slopes);
     (spread <= SLOPE_AGREEMENT && (k - 1.0).abs() > LINEAR_RESPONSE).then_some(k)
+}
+
+/// The gamma of a pure power curve that makes the paper linear: readings
+/// of the photos' codes as they are ([`ToneCurve::Power`] of 1) follow
+/// the light with slope 1 / gamma. The median over the photos that state
+/// a slope (at least two), None otherwise. A pure power is the curve a
+/// phone that does not write sRGB most often has (a display gamma), and
+/// unlike a power on top of sRGB it is exact from black to white: sRGB's
+/// linear toe makes a 2.4 gamma's dark codes read up to twice as bright.
+pub fn power_gamma(code_readings: &[PaperReading]) -> Option<f64> {
+    let mut slopes: Vec<f64> = code_readings.iter().filter_map(|r| r.response_slope).filter(|s| *s > 0.0).collect();
+    (slopes.len() >= 2).then(|| 1.0 / median(&mut slopes))
 }
 
 /// Each photo's exposure per channel relative to `readings[0]`'s (the
@@ -218,12 +248,24 @@ mod tests {
     fn one_curve_for_the_capture_is_read_from_agreeing_slopes() {
         let r = |s: Option<f64>| PaperReading { level: [1.0; 3], samples: 96, response_slope: s };
         // Gamma 2.4 read as 2.2, stated by the two tilted photos.
-        assert_eq!(response_exponent(&[r(None), r(Some(0.91)), r(Some(0.93))]), Some(0.92));
+        assert_eq!(srgb_mismatch(&[r(None), r(Some(0.91)), r(Some(0.93))]), Some(0.92));
         // A linear capture, one photo's word, photos that disagree, a tone-mapped photo: no correction.
-        assert_eq!(response_exponent(&[r(None), r(Some(0.99)), r(Some(1.01))]), None);
-        assert_eq!(response_exponent(&[r(None), r(Some(0.9)), r(None)]), None);
-        assert_eq!(response_exponent(&[r(None), r(Some(0.85)), r(Some(0.95))]), None);
-        assert_eq!(response_exponent(&[r(Some(0.92)), r(Some(0.92)), r(Some(0.5))]), None);
+        assert_eq!(srgb_mismatch(&[r(None), r(Some(0.99)), r(Some(1.01))]), None);
+        assert_eq!(srgb_mismatch(&[r(None), r(Some(0.9)), r(None)]), None);
+        assert_eq!(srgb_mismatch(&[r(None), r(Some(0.85)), r(Some(0.95))]), None);
+        assert_eq!(srgb_mismatch(&[r(Some(0.92)), r(Some(0.92)), r(Some(0.5))]), None);
+    }
+
+    #[test]
+    fn a_pure_power_is_read_from_the_codes_slopes() {
+        let r = |s: Option<f64>| PaperReading { level: [1.0; 3], samples: 96, response_slope: s };
+        // Codes of a 2.4 gamma follow the light with slope 1 / 2.4 (the overhead photo states none).
+        let gamma = power_gamma(&[r(None), r(Some(1.0 / 2.4)), r(Some(1.0 / 2.4))]).unwrap();
+        assert!((gamma - 2.4).abs() < 1e-12, "{gamma}");
+        assert_eq!(power_gamma(&[r(None), r(Some(0.4)), r(None)]), None);
+        // 0.5^2.4 = 0.189465; sRGB's 0.5 is 0.214041.
+        assert!((ToneCurve::Power(2.4).decode(0.5) - 0.189_465).abs() < 1e-6);
+        assert!((ToneCurve::Srgb.decode(0.5) - 0.214_041).abs() < 1e-6);
     }
 
     #[test]

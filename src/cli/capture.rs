@@ -176,10 +176,8 @@ pub fn run(a: &CaptureCommandArgs) -> Result<()> {
         ),
         _ => {}
     }
-    if let Some(k) = capture.response {
-        eprintln!(
-            "the frame's paper says the photos' tone curve is not the sRGB curve (they read as the light to the power {k:.2}): the capture's photos are corrected to linear"
-        );
+    if let Some(gamma) = capture.gamma {
+        eprintln!("the frame's paper says the photos' tone curve is not the sRGB curve but a pure gamma of {gamma:.2}: the capture's photos are read through it");
     }
     eprintln!("look at {}", folder.join("capture.jpg").display());
     for w in flashmat::capture::photometry::warnings(&capture.photos, &capture.paper) {
