@@ -99,7 +99,7 @@ pub fn read_paper(photo: &FramePhoto, result: &PhotoResult, margin_centre_mm: f6
         if !(2.0..w - 2.0).contains(&px[0]) || !(2.0..h - 2.0).contains(&px[1]) {
             continue;
         }
-        let Some(rgb) = linear_at(&pixels, px) else { continue };
+        let Some(rgb) = value_at(&pixels, px) else { continue };
         let rgb = match pixels {
             Pixels::Coded(_) => rgb.map(|code| curve.decode(code)),
             Pixels::Linear(_) => rgb,
@@ -122,7 +122,7 @@ pub fn read_paper(photo: &FramePhoto, result: &PhotoResult, margin_centre_mm: f6
 /// A photo's RGB at a pixel position (centres at +0.5), bilinear: an
 /// 8-bit photo's codes in [0, 1], a RAW photo's linear values; None where
 /// any of the four pixels is near clipping.
-fn linear_at(pixels: &Pixels, p: [f64; 2]) -> Option<[f64; 3]> {
+fn value_at(pixels: &Pixels, p: [f64; 2]) -> Option<[f64; 3]> {
     let (x, y) = (p[0] - 0.5, p[1] - 0.5);
     let (x0, y0) = (x.floor() as usize, y.floor() as usize);
     let (fx, fy) = (x - x0 as f64, y - y0 as f64);
