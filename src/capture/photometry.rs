@@ -27,9 +27,9 @@ const MIN_LOG_SPREAD: f64 = 0.05;
 /// A response slope outside 1 +- this is warned about.
 pub const SLOPE_TOLERANCE: f64 = 0.3;
 /// The photos' stated response slopes must agree within this for the
-/// capture's tone curve to be corrected by their median.
+/// capture's tone curve to be corrected (one curve for all of them).
 const SLOPE_AGREEMENT: f64 = 0.05;
-/// A response exponent within this of 1 is a linear photo's (a clean
+/// A median response slope within this of 1 is an sRGB photo's (a clean
 /// photo's slope measures within 0.01 of 1).
 const LINEAR_RESPONSE: f64 = 0.03;
 /// Measured exposures within this of the overhead photo's (relative, every
