@@ -296,6 +296,15 @@ fn main() -> Result<()> {
                 let cos = (fit.maps.narrow(0, 7, 3) * m.normal.to_tensor()).sum_dim_intlist([0i64].as_slice(), false, tch::Kind::Float).clamp(-1.0, 1.0);
                 let normal_error = cos.acos().mean(tch::Kind::Double).double_value(&[]).to_degrees();
                 let clipped_overhead: Vec<bool> = Vec::<bool>::try_from(capture.clipped.get(capture.overhead as i64).reshape([-1]))?;
+                // Issue 84: the normals where the overhead photo clipped against elsewhere (median degrees).
+                let angles: Vec<f32> = flat(cos.acos() * (180.0 / std::f64::consts::PI))?;
+                let (inside, outside): (Vec<bool>, Vec<bool>) = (clipped_overhead.clone(), clipped_overhead.iter().map(|c| !c).collect());
+                eprintln!(
+                    "  normals of {name} where the overhead photo clipped ({} px): median {:.2} degrees off; elsewhere {:.2}",
+                    inside.iter().filter(|&&b| b).count(),
+                    median(&angles, &inside),
+                    median(&angles, &outside)
+                );
                 let pred = render(&moved.configs())?;
                 for (label, keep) in [("clipped", true), ("unclipped", false)] {
                     let mask: Vec<bool> = s_in.iter().zip(&clipped_overhead).map(|(&a, &c)| a && c == keep).collect();
