@@ -298,12 +298,12 @@ fn main() -> Result<()> {
                 let clipped_overhead: Vec<bool> = Vec::<bool>::try_from(capture.clipped.get(capture.overhead as i64).reshape([-1]))?;
                 // Issue 84: the normals where the overhead photo clipped against elsewhere (median degrees).
                 let angles: Vec<f32> = flat(cos.acos() * (180.0 / std::f64::consts::PI))?;
-                let (inside, outside): (Vec<bool>, Vec<bool>) = (clipped_overhead.clone(), clipped_overhead.iter().map(|c| !c).collect());
+                let unclipped: Vec<bool> = clipped_overhead.iter().map(|c| !c).collect();
                 eprintln!(
                     "  normals of {name} where the overhead photo clipped ({} px): median {:.2} degrees off; elsewhere {:.2}",
-                    inside.iter().filter(|&&b| b).count(),
-                    median(&angles, &inside),
-                    median(&angles, &outside)
+                    clipped_overhead.iter().filter(|&&b| b).count(),
+                    median(&angles, &clipped_overhead),
+                    median(&angles, &unclipped)
                 );
                 let pred = render(&moved.configs())?;
                 for (label, keep) in [("clipped", true), ("unclipped", false)] {
