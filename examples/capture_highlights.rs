@@ -58,7 +58,7 @@
 //! truth's kd, lobe or normals swapped in (which maps carry it).
 //!
 //! ```sh
-//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG] [FRAME] [BRACKET_STOPS] [LOBE_SHIFT_REGIONS] [CLIPPED_TAIL_WEIGHT] [REGIONAL_START_LOBE]
+//! cargo run --release --example capture_highlights -- [SIZE] [MATERIALS] [COUNTS] [STEPS] [PULL] [SMOOTH] [REGIONS] [LOBE_WEIGHT] [PICTURES_DIR or -] [COARSE_SHARE] [PHOTO_GAINS] [NOISE_AND_JPEG] [FRAME] [BRACKET_STOPS] [LOBE_SHIFT_REGIONS] [CLIPPED_TAIL_WEIGHT] [REGIONAL_START_LOBE] [CLIPPED_NORMAL_SMOOTH_WEIGHT]
 //! # defaults: 128 0-5 1,2,3,5 and PhotoFitConfig's steps, pull and smoothness weights; "-" keeps a default
 //! ```
 
@@ -124,6 +124,7 @@ fn main() -> Result<()> {
     let lobe_shift_regions: usize = args.get(15).filter(|a| *a != "-").map_or(Ok(defaults.lobe_shift_regions), |s| s.parse())?;
     let clipped_tail_weight: f64 = args.get(16).filter(|a| *a != "-").map_or(Ok(defaults.clipped_tail_weight), |s| s.parse())?;
     let regional_start_lobe: bool = args.get(17).filter(|a| *a != "-").map_or(Ok(defaults.regional_start_lobe), |s| s.parse())?;
+    let clipped_normal_smooth_weight: f64 = args.get(18).filter(|a| *a != "-").map_or(Ok(defaults.clipped_normal_smooth_weight), |s| s.parse())?;
     // Diagnostics from the environment: ORACLE=lobe, normals or maps fits from the truth's
     // lobes or normals (the rest estimated) or from all its maps; LOBES=1 prints the lobes' medians.
     let oracle = std::env::var("ORACLE").ok();
@@ -246,7 +247,7 @@ fn main() -> Result<()> {
                 rows.entry((0, "single")).or_default().push(score(&|c| single.render(c))?);
                 relit.push(("bundled model, 1 photo".into(), single.render(&moved.configs())?));
             }
-            let mut cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, lobe_shift_regions, clipped_tail_weight, regional_start_lobe, coarse_share, photo_gains, ..PhotoFitConfig::default() };
+            let mut cfg = PhotoFitConfig { steps, size, pull_weight, smooth_weight, lobe_regions, lobe_weight, lobe_shift_regions, clipped_tail_weight, clipped_normal_smooth_weight, regional_start_lobe, coarse_share, photo_gains, ..PhotoFitConfig::default() };
             if let Some(n) = code_steps {
                 cfg.code_fit.steps = n;
             }
@@ -383,7 +384,7 @@ fn main() -> Result<()> {
             mean(|r| r.hemisphere)
         );
     }
-    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, bracket {bracket_stops} stops, lobe shift regions {lobe_shift_regions}, clipped tail weight {clipped_tail_weight}, regional start lobe {regional_start_lobe}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
+    println!("\n{} materials at {size}x{size}, {steps} fit steps, pull {pull_weight}, smoothness {smooth_weight}, {lobe_regions} lobe regions at weight {lobe_weight}, coarse share {coarse_share}, photo gains {photo_gains}, noise and JPEG {phone_jpeg}, bracket {bracket_stops} stops, lobe shift regions {lobe_shift_regions}, clipped tail weight {clipped_tail_weight}, clipped normals' smoothness {clipped_normal_smooth_weight}, regional start lobe {regional_start_lobe}, {:.0} s", last + 1 - first, t0.elapsed().as_secs_f64());
     Ok(())
 }
 

@@ -176,6 +176,10 @@ pub struct PhotoFitConfig {
     /// 0.154; reports/capture.md, "Sixth slice").
     #[serde(default)]
     pub clipped_tail_weight: f64,
+    /// Weight of the smoothness of the normals on the pixels clipped in any
+    /// photo ([`clipped_normal_roughness`]). Older fit files carry none (0).
+    #[serde(default)]
+    pub clipped_normal_smooth_weight: f64,
     /// Replace the start's specular lobe (raw ks and roughness) by its
     /// albedo regions' means (the [`LobeShift`]'s regions, or one region
     /// without a shift) before the fit ([`regional_lobe`]). M_est's lobe
@@ -201,7 +205,7 @@ pub struct PhotoFitConfig {
 
 impl Default for PhotoFitConfig {
     fn default() -> Self {
-        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01, lobe_shift_regions: 3, clipped_tail_weight: 1.0, regional_start_lobe: true, photo_gains: false, coarse_share: 0.5, code_fit: CodeFitConfig::default() }
+        Self { steps: 600, learning_rate: 0.05, smooth_weight: 0.01, pull_weight: 0.05, size: 256, lobe_regions: 0, lobe_weight: 0.01, lobe_shift_regions: 3, clipped_tail_weight: 1.0, clipped_normal_smooth_weight: 0.03, regional_start_lobe: true, photo_gains: false, coarse_share: 0.5, code_fit: CodeFitConfig::default() }
     }
 }
 
@@ -216,6 +220,7 @@ impl PhotoFitConfig {
         ensure!(self.lobe_regions <= MAX_LOBE_REGIONS, "at most {MAX_LOBE_REGIONS} lobe regions, got {}", self.lobe_regions);
         ensure!(self.lobe_shift_regions <= MAX_LOBE_REGIONS, "at most {MAX_LOBE_REGIONS} lobe shift regions, got {}", self.lobe_shift_regions);
         ensure!(self.clipped_tail_weight.is_finite() && self.clipped_tail_weight >= 0.0, "the clipped tail weight must be a finite number >= 0, got {}", self.clipped_tail_weight);
+        ensure!(self.clipped_normal_smooth_weight.is_finite() && self.clipped_normal_smooth_weight >= 0.0, "the clipped normals' smoothness weight must be a finite number >= 0, got {}", self.clipped_normal_smooth_weight);
         ensure!(self.lobe_weight.is_finite() && self.lobe_weight >= 0.0, "the lobe weight must be a finite number >= 0, got {}", self.lobe_weight);
         ensure!(self.size >= 32 && self.size.is_multiple_of(8) && self.size <= 4096, "--size must be a multiple of 8 between 32 and 4096, got {}", self.size);
         self.code_fit.validate()
@@ -312,6 +317,22 @@ fn clipped_tail(maps: &Tensor, clipped_any: &Tensor) -> Tensor {
     (ks * alpha2 * clipped_any).mean(Kind::Float)
 }
 
+/// Mean absolute difference of neighbouring normals (maps `[1, 10, H, W]`),
+/// summed over x, y and z, on the pairs of pixels either of which a photo
+/// clipped (`clipped_any`: `[1, 1, H, W]` float), over all pixels. A
+/// clipped pixel bounds its normal from one side only; without this, the
+/// photos left to it bend each pixel's normal alone, which relights as
+/// speckle where a highlight clipped (reports/capture.md, "Fifteenth slice").
+fn clipped_normal_roughness(maps: &Tensor, clipped_any: &Tensor) -> Tensor {
+    let n = maps.narrow(1, 7, 3);
+    let (h, w) = (n.size()[2], n.size()[3]);
+    let dx = (n.narrow(3, 1, w - 1) - n.narrow(3, 0, w - 1)).abs().sum_dim_intlist([1i64].as_slice(), true, Kind::Float);
+    let dy = (n.narrow(2, 1, h - 1) - n.narrow(2, 0, h - 1)).abs().sum_dim_intlist([1i64].as_slice(), true, Kind::Float);
+    let pairs_x = clipped_any.narrow(3, 1, w - 1).maximum(&clipped_any.narrow(3, 0, w - 1));
+    let pairs_y = clipped_any.narrow(2, 1, h - 1).maximum(&clipped_any.narrow(2, 0, h - 1));
+    ((dx * pairs_x).sum(Kind::Float) + (dy * pairs_y).sum(Kind::Float)) / (h * w) as f64
+}
+
 /// Maps `[1, 10, H, W]` whose specular lobe (raw ks and roughness, as the
 /// fit parametrises them) is each pixel's mix, by its memberships
 /// `[1, C, H, W]`, of the regions' mean lobes; kd and the normals as they were.
@@ -388,6 +409,9 @@ impl Level {
             let mut loss = self.differences(maps, photo).0.mean(Kind::Float);
             if cfg.clipped_tail_weight > 0.0 {
                 loss = loss + clipped_tail(maps, &self.clipped_any) * cfg.clipped_tail_weight;
+            }
+            if cfg.clipped_normal_smooth_weight > 0.0 {
+                loss = loss + clipped_normal_roughness(maps, &self.clipped_any) * cfg.clipped_normal_smooth_weight;
             }
             if cfg.pull_weight > 0.0 {
                 let target = match &shift_here {
