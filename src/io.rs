@@ -820,6 +820,21 @@ fn owner_record() -> String {
     format!("pid {} on {host}", std::process::id())
 }
 
+/// The owner's record in the lock file at `path` ("" when it has none).
+/// An owner writes its record just after it takes the lock, so an empty
+/// file is read again for up to half a second before it counts as none
+/// (a second run started beside the first has read it empty).
+fn owner_record_of(path: &Path) -> String {
+    for _ in 0..50 {
+        let owner = std::fs::read_to_string(path).unwrap_or_default();
+        if !owner.trim().is_empty() {
+            return owner.trim().to_string();
+        }
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    String::new()
+}
+
 /// Takes ownership of the existing folder `dir` for this process (see
 /// [`FolderLock`]). When another process owns it, the error is one line
 /// naming the owner. Where the file system has no locks, the folder is
@@ -838,8 +853,7 @@ pub fn lock_folder(dir: &Path) -> Result<FolderLock> {
         match flock(&file, libc::LOCK_EX | libc::LOCK_NB) {
             Ok(()) => {}
             Err(e) if e.raw_os_error() == Some(libc::EWOULDBLOCK) => {
-                let owner = std::fs::read_to_string(&path).unwrap_or_default();
-                let owner = owner.trim();
+                let owner = owner_record_of(&path);
                 let owner = if owner.is_empty() { "another process".to_string() } else { format!("flashmat {owner}") };
                 return Err(anyhow!("{} is in use by {owner}: one process at a time trains in a folder; wait for it to finish or stop it", dir.display()));
             }
@@ -867,10 +881,7 @@ pub fn folder_owner(dir: &Path) -> Option<String> {
     let path = dir.join(LOCK_FILE);
     let file = std::fs::File::open(&path).ok()?;
     match flock(&file, libc::LOCK_SH | libc::LOCK_NB) {
-        Err(e) if e.raw_os_error() == Some(libc::EWOULDBLOCK) => {
-            let owner = std::fs::read_to_string(&path).unwrap_or_default();
-            Some(format!("flashmat {}", owner.trim()))
-        }
+        Err(e) if e.raw_os_error() == Some(libc::EWOULDBLOCK) => Some(format!("flashmat {}", owner_record_of(&path))),
         _ => None,
     }
 }

@@ -477,6 +477,28 @@ fn a_clipped_highlight_leaves_no_patch_in_the_maps() {
 }
 
 #[test]
+fn only_pairs_touching_a_clipped_pixel_count_in_the_normals_smoothness() {
+    // 2x2 normals, all (0, 0, 1) but the top left (0.6, 0, 0.8): its
+    // pairs differ by |0.6| + |0.2| = 0.8 (to the right and below).
+    let maps = Tensor::zeros([1, 10, 2, 2], (Kind::Float, Device::Cpu));
+    let _ = maps.narrow(1, 9, 1).fill_(1.0);
+    let _ = maps.narrow(1, 7, 1).narrow(2, 0, 1).narrow(3, 0, 1).fill_(0.6);
+    let _ = maps.narrow(1, 9, 1).narrow(2, 0, 1).narrow(3, 0, 1).fill_(0.8);
+    let mask = |y: i64, x: i64| {
+        let m = Tensor::zeros([1, 1, 2, 2], (Kind::Float, Device::Cpu));
+        let _ = m.narrow(2, y, 1).narrow(3, x, 1).fill_(1.0);
+        m
+    };
+    let value = |m: &Tensor| clipped_normal_roughness(&maps, m).double_value(&[]);
+    // The bottom right clipped: its pairs (with top right and bottom left) are flat.
+    assert_eq!(value(&mask(1, 1)), 0.0);
+    // The top right clipped: its pair with the top left counts, 0.8 over 4 pixels.
+    assert!((value(&mask(0, 1)) - 0.2).abs() < 1e-6);
+    // The top left itself: both its pairs, 1.6 over 4.
+    assert!((value(&mask(0, 0)) - 0.4).abs() < 1e-6);
+}
+
+#[test]
 fn normals_under_a_clipped_photo_relight_without_speckle() {
     // Held-out material 15, glossy all over, taken as capture_highlights
     // takes it (overhead and two tilted phones, the flash 0.15 beside the
