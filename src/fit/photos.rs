@@ -327,13 +327,12 @@ fn clipped_tail(maps: &Tensor, clipped_any: &Tensor) -> Tensor {
 /// photos left to it bend each pixel's normal alone, which relights as
 /// speckle where a highlight clipped (reports/capture.md, "Fifteenth slice").
 fn clipped_normal_roughness(maps: &Tensor, clipped_any: &Tensor) -> Tensor {
-    let n = maps.narrow(1, 7, 3);
-    let (h, w) = (n.size()[2], n.size()[3]);
-    let dx = (n.narrow(3, 1, w - 1) - n.narrow(3, 0, w - 1)).abs().sum_dim_intlist([1i64].as_slice(), true, Kind::Float);
-    let dy = (n.narrow(2, 1, h - 1) - n.narrow(2, 0, h - 1)).abs().sum_dim_intlist([1i64].as_slice(), true, Kind::Float);
-    let pairs_x = clipped_any.narrow(3, 1, w - 1).maximum(&clipped_any.narrow(3, 0, w - 1));
-    let pairs_y = clipped_any.narrow(2, 1, h - 1).maximum(&clipped_any.narrow(2, 0, h - 1));
-    ((dx * pairs_x).sum(Kind::Float) + (dy * pairs_y).sum(Kind::Float)) / (h * w) as f64
+    let (dx, dy) = super::differences(&maps.get(0).narrow(0, 7, 3)); // [3, H, W-1], [3, H-1, W]
+    let clipped = clipped_any.get(0); // [1, H, W]
+    let (h, w) = (clipped.size()[1], clipped.size()[2]);
+    let pairs_x = clipped.narrow(2, 1, w - 1).maximum(&clipped.narrow(2, 0, w - 1));
+    let pairs_y = clipped.narrow(1, 1, h - 1).maximum(&clipped.narrow(1, 0, h - 1));
+    ((dx.abs() * pairs_x).sum(Kind::Float) + (dy.abs() * pairs_y).sum(Kind::Float)) / (h * w) as f64
 }
 
 /// Maps `[1, 10, H, W]` whose specular lobe (raw ks and roughness, as the
