@@ -51,6 +51,14 @@
 //! scores the coloured-metal set (`data::procedural::metal_material`,
 //! MATERIALS its indices) instead of the 50.
 //!
+//! DNG_BITS=12 (environment; told positions, clean photos) writes each
+//! capture as linear DNGs of that many bits in place of the 8-bit PNGs
+//! (`PhotoFiles::Dng`: the brightest value of the photos at 0.95 of the
+//! white level, nothing clipped, BaselineExposure bringing them back): the
+//! RAW twin of the PNG capture. DNG_HEADROOM=4 as well: as a phone exposes
+//! for the diffuse, the normal exposure's white at most 4 stops under the
+//! sensor's, the peaks above clipped. Needs `--features raw`.
+//!
 //! LOBES=1 prints the median roughness and ks of the truth and the fit on
 //! the photographed and the moved highlights, the fit's mean normal error,
 //! the ghost per moved light on the photographed highlight's clipped
@@ -63,7 +71,7 @@
 //! ```
 
 use anyhow::Result;
-use flashmat::data::captures::{write_synthetic_exposed, Captures, TILTED_PHONES};
+use flashmat::data::captures::{write_synthetic_as, write_synthetic_exposed, Captures, PhotoFiles, TILTED_PHONES};
 use flashmat::eval::highlights::{self, HighlightConfig, MaterialHighlights};
 use flashmat::fit::photos::{estimated_start, fit_capture, fit_photos, load_capture, load_teacher, fitted_neural_material, start_fit_config, PhotoFitConfig};
 use flashmat::geometry::{LightView, Sampling, MODEL_FOV_DEG};
@@ -145,6 +153,11 @@ fn main() -> Result<()> {
     let baseline_teacher = std::env::var_os("BASELINE_TEACHER").map(|f| load_teacher(Some(std::path::Path::new(&f)), Device::Cpu)).transpose()?;
     // SET=metals: the coloured-metal set (data::procedural::metal_material) in place of the 50.
     let metals = std::env::var("SET").is_ok_and(|s| s == "metals");
+    // DNG_BITS=12: the told-position captures as linear DNGs of that many bits;
+    // DNG_HEADROOM=4: their normal white at most 4 stops under the sensor's.
+    let dng_bits: Option<u32> = std::env::var("DNG_BITS").ok().map(|b| b.parse()).transpose()?;
+    let max_headroom_stops: f64 = std::env::var("DNG_HEADROOM").ok().map(|b| b.parse()).transpose()?.unwrap_or(f64::INFINITY);
+    anyhow::ensure!(dng_bits.is_none() || !(frame || phone_jpeg), "DNG_BITS needs told positions and no NOISE_AND_JPEG");
     let lpips = Lpips::new(Device::Cpu)?;
     let moved = HighlightConfig::default();
     let overhead = LightView::colocated(MODEL_FOV_DEG);
@@ -207,7 +220,10 @@ fn main() -> Result<()> {
                 anyhow::ensure!(k >= 2, "a capture of the printed frame needs 2 or more photos");
                 frame_capture(&m, &cameras, dir.path(), i, photometry)?;
             } else {
-                write_synthetic_exposed(dir.path(), &m, &truths, &exposures, 2.0)?;
+                match dng_bits {
+                    Some(bits) => write_synthetic_as(dir.path(), &m, &truths, &exposures, 2.0, PhotoFiles::Dng { bits, max_headroom_stops })?,
+                    None => write_synthetic_exposed(dir.path(), &m, &truths, &exposures, 2.0)?,
+                }
                 if phone_jpeg {
                     for j in 0..photos_taken {
                         let png = dir.path().join(format!("{j:02}.png"));

@@ -286,7 +286,10 @@ pub fn raw_baseline_gain(path: &Path) -> f64 {
         }
         let Ok(bytes) = read_input(path) else { return 1.0 };
         let stops = std::panic::catch_unwind(|| raw::baseline_exposure(&bytes)).ok().flatten().unwrap_or(0.0);
-        2f64.powf(stops.clamp(-8.0, 8.0))
+        // Beyond 16 stops is past what a 16-bit sensor value can hold: a
+        // broken tag, not a camera (12-bit RAWs with unclipped flash peaks
+        // reach 8-11 stops).
+        2f64.powf(stops.clamp(-16.0, 16.0))
     }
     #[cfg(not(feature = "raw"))]
     {

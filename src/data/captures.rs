@@ -348,8 +348,11 @@ pub enum PhotoFiles {
     Png8,
     /// `NN.dng`, linear, `bits` bits a sample, as a phone's RAW with
     /// headroom: the brightest value of all photos at 0.95 of the white
-    /// level (nothing clips), BaselineExposure bringing it back.
-    Dng { bits: u32 },
+    /// level (nothing clips), BaselineExposure bringing it back; but the
+    /// normal exposure's white at most `max_headroom_stops` under the
+    /// sensor's (what is brighter clips, as on a phone that exposes for the
+    /// diffuse; `f64::INFINITY`: nothing clips).
+    Dng { bits: u32, max_headroom_stops: f64 },
 }
 
 /// [`write_synthetic_exposed`] with the photos stored as `files` says.
@@ -375,8 +378,8 @@ pub fn write_synthetic_as(dir: &Path, material: &Svbrdf, configs: &[LightView], 
                 let display = Image::from_tensor(&crate::spaces::linear_to_display(linear))?;
                 crate::io::write_png(&dir.join(format!("{i:02}.png")), &display, crate::io::BitDepth::Eight)?;
             }
-            PhotoFiles::Dng { bits } => {
-                let headroom = 0.95 / peak;
+            PhotoFiles::Dng { bits, max_headroom_stops } => {
+                let headroom = (0.95 / peak).max(0.5f64.powf(max_headroom_stops));
                 let opts = crate::io::dng::DngOptions { bits, baseline_exposure: -headroom.log2(), ..Default::default() };
                 crate::io::dng::write_dng(&dir.join(format!("{i:02}.dng")), &Image::from_tensor(&(linear * headroom))?, &opts)?;
             }

@@ -799,7 +799,9 @@ pub fn load_capture_photos(captures: &Captures, indices: &[usize], size: usize) 
                 p0.display()
             ),
         }
-        let mean = photo.mean(Kind::Double).double_value(&[]);
+        // A RAW photo at its camera's exposure: one with 8 stops of
+        // headroom for a flash peak reads near 0 as decoded.
+        let mean = photo.mean(Kind::Double).double_value(&[]) * captures.raw_gains[i];
         ensure!(mean >= BLACK_MEAN, "{}: the photo is black (mean linear value {mean:.1e}); nothing to fit", path.display());
         let clipped = clip_mask(&photo.unsqueeze(0));
         // What the fit takes as "at least this bright": for a RAW photo,
@@ -873,8 +875,10 @@ fn check_distinct(earlier: &[(usize, Tensor)], photo: &Tensor, i: usize, capture
     let apart = |a: &LightView, b: &LightView| crate::geometry::length(crate::geometry::sub(a.light, b.light)).max(crate::geometry::length(crate::geometry::sub(a.view, b.view)));
     for ((j, other), other_config) in earlier.iter().zip(earlier_configs) {
         let same_position = apart(config, other_config) < SAME_POSITION;
-        let display = crate::spaces::linear_to_display;
-        let difference = (display(photo) - display(other)).abs().mean(Kind::Double).double_value(&[]);
+        // At the cameras' exposures: two RAW photos with 10 stops of
+        // headroom differ by a few codes as decoded, and are not one photo.
+        let display = |p: &Tensor, k: usize| crate::spaces::linear_to_display(&(p * captures.raw_gains[k]));
+        let difference = (display(photo, i) - display(other, *j)).abs().mean(Kind::Double).double_value(&[]);
         ensure!(
             difference >= SAME_PHOTO || same_position,
             "{}: the same photo as {} (mean difference {difference:.1e}) at another position; each position needs its own photo (a file copied, or positions listed in another order?)",

@@ -241,6 +241,16 @@ mod tests {
         let (clipped, kept) = (read.get(1, 4, 2), read.get(1, 4, 12));
         assert!((clipped - 1.0).abs() < 1e-3 && (kept - 0.3).abs() < 2e-3, "clipped {clipped}, kept {kept}");
         assert!((super::super::raw_baseline_gain(&path) - 2f64.powf(1.5)).abs() < 1e-4);
+        // A flash peak kept unclipped in 12 bits needs 8-11 stops of
+        // headroom: its gain is read whole (it was cut at 8 stops, and the
+        // capture fit relit test05 at 0.77 of its brightness); beyond 16
+        // stops no sensor value could hold it: cut there.
+        for (stops, gain) in [(8.4, 2f64.powf(8.4)), (-3.0, 0.125), (40.0, 65536.0)] {
+            let p = dir.path().join(format!("b{stops}.dng"));
+            write_dng(&p, &bright, &DngOptions { baseline_exposure: stops, ..Default::default() }).unwrap();
+            let read = super::super::raw_baseline_gain(&p);
+            assert!((read / gain - 1.0).abs() < 1e-4, "BaselineExposure {stops}: gain {read}, not {gain}");
+        }
         // An 8-bit photo has no baseline gain.
         let png = dir.path().join("p.png");
         super::super::write_png(&png, &bright, super::super::BitDepth::Eight).unwrap();

@@ -545,6 +545,58 @@ fn normals_under_a_clipped_photo_relight_without_speckle() {
 
 #[cfg(feature = "raw")]
 #[test]
+fn a_raw_photo_is_black_or_not_at_its_cameras_exposure() {
+    // Photo 01 as a 16-bit DNG 12 stops under its PNG, as a RAW that keeps
+    // a near-mirror's flash peak: its values as decoded average 5e-5, below
+    // the black bound; BaselineExposure 12 brings them back to 0.2.
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    write_truth_capture(d);
+    let png = d.join("01.png");
+    let linear = crate::io::read_image(&png).unwrap().map(crate::spaces::gamma_decode).map(|v| v / 4096.0);
+    std::fs::remove_file(&png).unwrap();
+    let write = |stops: f64| {
+        let opts = crate::io::dng::DngOptions { bits: 16, black: 0, neutral: [1.0; 3], baseline_exposure: stops, ..Default::default() };
+        crate::io::dng::write_dng(&d.join("01.dng"), &linear, &opts).unwrap();
+        Captures::open(d).unwrap()
+    };
+    let decoded_mean = linear.to_tensor().mean(Kind::Double).double_value(&[]);
+    assert!(decoded_mean < BLACK_MEAN && decoded_mean * 4096.0 > 0.1, "{decoded_mean}");
+    let loaded = load_capture(&write(12.0), 3, 32).unwrap();
+    let mean = |i: i64| loaded.photos.get(i).mean(Kind::Double).double_value(&[]);
+    assert!((mean(1) / (decoded_mean * 4096.0) - 1.0).abs() < 0.35, "photo 01 loads at {} (PNG {})", mean(1), decoded_mean * 4096.0);
+    // Without the BaselineExposure it is black, and refused.
+    let m = one_line(load_capture(&write(0.0), 3, 32).unwrap_err());
+    assert!(m.contains("01.dng") && m.contains("black"), "{m}");
+}
+
+#[cfg(feature = "raw")]
+#[test]
+fn raw_photos_of_a_near_mirror_are_told_apart_at_their_cameras_exposure() {
+    // Held-out material 34 (a near-mirror) as 12-bit DNGs that keep its
+    // flash peak: 10.7 stops of headroom leave its diffuse a few codes, so
+    // the photos as decoded look alike (display-encoded mean difference
+    // below the same-photo bound); at their cameras' exposure they do not.
+    let dir = tempfile::tempdir().unwrap();
+    let material = crate::data::procedural::test_material(34, 64);
+    // As `capture_highlights` takes it: overhead, two tilted phones, the flash beside the lens.
+    let overhead = LightView::colocated(crate::geometry::MODEL_FOV_DEG).view;
+    let cameras = [overhead, crate::data::captures::TILTED_PHONES[0], crate::data::captures::TILTED_PHONES[1]];
+    let configs: Vec<LightView> = cameras.iter().map(|&c| LightView { light: [c[0] + 0.15, c[1], c[2]], view: c }).collect();
+    let files = crate::data::captures::PhotoFiles::Dng { bits: 12, max_headroom_stops: f64::INFINITY };
+    crate::data::captures::write_synthetic_as(dir.path(), &material, &configs, &[1.0; 3], 2.0, files).unwrap();
+    let captures = Captures::open(dir.path()).unwrap();
+    let decoded: Vec<Tensor> = captures.photos.iter().map(|p| crate::io::read_image(p).unwrap().to_tensor()).collect();
+    let display = crate::spaces::linear_to_display;
+    let as_decoded = (display(&decoded[0]) - display(&decoded[1])).abs().mean(Kind::Double).double_value(&[]);
+    eprintln!("gain {:.0}, display difference as decoded {as_decoded:.1e}", captures.raw_gains[0]);
+    assert!(as_decoded < SAME_PHOTO, "{as_decoded}");
+    let loaded = load_capture(&captures, 3, 32).unwrap();
+    assert_eq!(loaded.photos.size(), [3, 3, 32, 32]);
+}
+
+#[cfg(feature = "raw")]
+#[test]
 fn a_raw_capture_fits_at_least_as_well_as_its_8_bit_twin() {
     // The clipped checker's capture twice: 8-bit PNGs whose overhead photo
     // clips a band (17% of the sample), and 12-bit linear DNGs of the same
@@ -573,7 +625,7 @@ fn a_raw_capture_fits_at_least_as_well_as_its_8_bit_twin() {
         (clipped, peak, error)
     };
     let (png_clipped, png_peak, png_error) = fit(crate::data::captures::PhotoFiles::Png8);
-    let (dng_clipped, dng_peak, dng_error) = fit(crate::data::captures::PhotoFiles::Dng { bits: 12 });
+    let (dng_clipped, dng_peak, dng_error) = fit(crate::data::captures::PhotoFiles::Dng { bits: 12, max_headroom_stops: f64::INFINITY });
     eprintln!("bounded channels: PNG {png_clipped:.3}, DNG {dng_clipped:.3}; brightest: PNG {png_peak:.2}, DNG {dng_peak:.2}; relit log error: PNG {png_error:.4}, DNG {dng_error:.4}");
     // The RAW photos keep the peaks (the overhead photo's brightest pixel
     // 6.6 where the PNG stops at 1) and read at the PNGs' scale (the third
