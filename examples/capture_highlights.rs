@@ -57,7 +57,8 @@
 //! white level, nothing clipped, BaselineExposure bringing them back): the
 //! RAW twin of the PNG capture. DNG_HEADROOM=4 as well: as a phone exposes
 //! for the diffuse, the normal exposure's white at most 4 stops under the
-//! sensor's, the peaks above clipped. Needs `--features raw`.
+//! sensor's, the peaks above clipped. With NOISE_AND_JPEG true, the DNGs
+//! get the JPEG twin's noise in linear terms (no JPEG). Needs `--features raw`.
 //!
 //! LOBES=1 prints the median roughness and ks of the truth and the fit on
 //! the photographed and the moved highlights, the fit's mean normal error,
@@ -157,7 +158,7 @@ fn main() -> Result<()> {
     // DNG_HEADROOM=4: their normal white at most 4 stops under the sensor's.
     let dng_bits: Option<u32> = std::env::var("DNG_BITS").ok().map(|b| b.parse()).transpose()?;
     let max_headroom_stops: f64 = std::env::var("DNG_HEADROOM").ok().map(|b| b.parse()).transpose()?.unwrap_or(f64::INFINITY);
-    anyhow::ensure!(dng_bits.is_none() || !(frame || phone_jpeg), "DNG_BITS needs told positions and no NOISE_AND_JPEG");
+    anyhow::ensure!(dng_bits.is_none() || !frame, "DNG_BITS needs told positions");
     let lpips = Lpips::new(Device::Cpu)?;
     let moved = HighlightConfig::default();
     let overhead = LightView::colocated(MODEL_FOV_DEG);
@@ -224,7 +225,24 @@ fn main() -> Result<()> {
                     Some(bits) => write_synthetic_as(dir.path(), &m, &truths, &exposures, 2.0, PhotoFiles::Dng { bits, max_headroom_stops })?,
                     None => write_synthetic_exposed(dir.path(), &m, &truths, &exposures, 2.0)?,
                 }
-                if phone_jpeg {
+                if let (true, Some(bits)) = (phone_jpeg, dng_bits) {
+                    for j in 0..photos_taken {
+                        // The JPEG twin's noise in the same photons: its display-space sigma taken to linear (dv = 2.2 d^1.2 dd).
+                        let path = dir.path().join(format!("{j:02}.dng"));
+                        let (photo, gain) = (flashmat::io::read_image(&path)?, flashmat::io::raw_baseline_gain(&path));
+                        let mut noise_rng = rand_pcg::Pcg64::seed_from_u64(7000 + 10 * i as u64 + j as u64);
+                        let (h, w) = (photo.height, photo.width);
+                        let z: Vec<f32> = (0..3 * h * w).map(|_| rand_distr::Distribution::<f32>::sample(&rand_distr::StandardNormal, &mut noise_rng)).collect();
+                        let noisy = flashmat::image::Image::from_fn(3, h, w, |c, y, x| {
+                            let v = photo.get(c, y, x) * gain as f32;
+                            let d = v.max(0.0).powf(1.0 / 2.2);
+                            let sigma = 2.2 * d.powf(1.2) * (0.01 * d + 0.004);
+                            ((v + sigma * z[(c * h + y) * w + x]) / gain as f32).clamp(0.0, 1.0)
+                        });
+                        let opts = flashmat::io::dng::DngOptions { bits, baseline_exposure: gain.log2(), ..Default::default() };
+                        flashmat::io::dng::write_dng(&path, &noisy, &opts)?;
+                    }
+                } else if phone_jpeg {
                     for j in 0..photos_taken {
                         let png = dir.path().join(format!("{j:02}.png"));
                         let photo = flashmat::io::read_image(&png)?;
