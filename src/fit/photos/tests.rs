@@ -563,6 +563,11 @@ fn a_raw_photo_is_black_or_not_at_its_cameras_exposure() {
     let decoded_mean = linear.to_tensor().mean(Kind::Double).double_value(&[]);
     assert!(decoded_mean < BLACK_MEAN && decoded_mean * 4096.0 > 0.1, "{decoded_mean}");
     let loaded = load_capture(&write(12.0), 3, 32).unwrap();
+    // ... and is told it is exposed for a peak the fit reads as a bound.
+    let exposed_for_peak = |warnings: &[String]| warnings.iter().filter(|w| w.contains("stops above the material's white")).cloned().collect::<Vec<_>>();
+    let told = exposed_for_peak(&loaded.warnings);
+    assert!(told.len() == 1 && told[0].contains("01.dng") && told[0].contains("12.0 stops"), "{told:?}");
+    assert!(exposed_for_peak(&load_capture(&write(RAW_HEADROOM_STOPS), 3, 32).unwrap().warnings).is_empty());
     let mean = |i: i64| loaded.photos.get(i).mean(Kind::Double).double_value(&[]);
     assert!((mean(1) / (decoded_mean * 4096.0) - 1.0).abs() < 0.35, "photo 01 loads at {} (PNG {})", mean(1), decoded_mean * 4096.0);
     // Without the BaselineExposure it is black, and refused.
