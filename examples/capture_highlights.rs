@@ -225,18 +225,24 @@ fn main() -> Result<()> {
                     Some(bits) => write_synthetic_as(dir.path(), &m, &truths, &exposures, 2.0, PhotoFiles::Dng { bits, max_headroom_stops })?,
                     None => write_synthetic_exposed(dir.path(), &m, &truths, &exposures, 2.0)?,
                 }
+                // Noise of 1% of the display value plus 0.4% (about one 8-bit step), as a phone's processed photo.
+                let display_sigma = |d: f32| 0.01 * d + 0.004;
+                // Photo j's standard normals: their own generator, so the told positions match the clean run's.
+                let normals = |j: usize, n: usize| -> Vec<f32> {
+                    let mut noise_rng = rand_pcg::Pcg64::seed_from_u64(7000 + 10 * i as u64 + j as u64);
+                    (0..n).map(|_| rand_distr::Distribution::<f32>::sample(&rand_distr::StandardNormal, &mut noise_rng)).collect()
+                };
                 if let (true, Some(bits)) = (phone_jpeg, dng_bits) {
                     for j in 0..photos_taken {
                         // The JPEG twin's noise in the same photons: its display-space sigma taken to linear (dv = 2.2 d^1.2 dd).
                         let path = dir.path().join(format!("{j:02}.dng"));
                         let (photo, gain) = (flashmat::io::read_image(&path)?, flashmat::io::raw_baseline_gain(&path));
-                        let mut noise_rng = rand_pcg::Pcg64::seed_from_u64(7000 + 10 * i as u64 + j as u64);
                         let (h, w) = (photo.height, photo.width);
-                        let z: Vec<f32> = (0..3 * h * w).map(|_| rand_distr::Distribution::<f32>::sample(&rand_distr::StandardNormal, &mut noise_rng)).collect();
+                        let z = normals(j, 3 * h * w);
                         let noisy = flashmat::image::Image::from_fn(3, h, w, |c, y, x| {
                             let v = photo.get(c, y, x) * gain as f32;
                             let d = v.max(0.0).powf(1.0 / 2.2);
-                            let sigma = 2.2 * d.powf(1.2) * (0.01 * d + 0.004);
+                            let sigma = 2.2 * d.powf(1.2) * display_sigma(d);
                             ((v + sigma * z[(c * h + y) * w + x]) / gain as f32).clamp(0.0, 1.0)
                         });
                         let opts = flashmat::io::dng::DngOptions { bits, baseline_exposure: gain.log2(), ..Default::default() };
@@ -246,14 +252,11 @@ fn main() -> Result<()> {
                     for j in 0..photos_taken {
                         let png = dir.path().join(format!("{j:02}.png"));
                         let photo = flashmat::io::read_image(&png)?;
-                        // Noise of 1% of the display value plus 0.4% (about one 8-bit step), as a phone's processed photo.
-                        // Its own generator, so the told positions match the clean run's.
-                        let mut noise_rng = rand_pcg::Pcg64::seed_from_u64(7000 + 10 * i as u64 + j as u64);
                         let (h, w) = (photo.height, photo.width);
-                        let z: Vec<f32> = (0..3 * h * w).map(|_| rand_distr::Distribution::<f32>::sample(&rand_distr::StandardNormal, &mut noise_rng)).collect();
+                        let z = normals(j, 3 * h * w);
                         let noisy = flashmat::image::Image::from_fn(3, h, w, |c, y, x| {
                             let v = photo.get(c, y, x);
-                            (v + (0.01 * v + 0.004) * z[(c * h + y) * w + x]).clamp(0.0, 1.0)
+                            (v + display_sigma(v) * z[(c * h + y) * w + x]).clamp(0.0, 1.0)
                         });
                         flashmat::io::write_jpeg(&dir.path().join(format!("{j:02}.jpg")), &noisy, 90)?;
                         std::fs::remove_file(&png)?;
