@@ -163,6 +163,12 @@ pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEnco
             }
         })
     };
+    // One thread: a step's few hundred rows are too small to share, and a
+    // second thread's hand-offs cost more than it computes (`flashmat bench
+    // capture` on 2 cores: 47 s one thread, 72 s two; reports/capture.md,
+    // seventeenth slice).
+    let threads = tch::get_num_threads();
+    tch::set_num_threads(1);
     let trained = (|| -> Result<(Vec<Tensor>, f64)> {
         for step in 0..cfg.steps {
             adam.zero_grad();
@@ -185,6 +191,7 @@ pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEnco
         ensure!(loss_after.is_finite(), "the fitted codes render non-finite values");
         Ok((weights, loss_after))
     })();
+    tch::set_num_threads(threads);
     material.renderer_vs.freeze();
     let (weights, loss_after) = match trained {
         Ok(t) => t,
