@@ -43,8 +43,8 @@ pub struct CodeFitConfig {
     /// Adam steps on the encoder's (and renderer's) weights (0: the
     /// teacher's codes as they are), their rates decayed to 0 along a cosine. Many small steps beat
     /// few large ones for the same rows (reports/capture.md, twelfth and
-    /// eighteenth slices: 3,200 x 512 draws a glossy material's overhead
-    /// highlight at half the LPIPS of 800 x 2,048, in about 1.15x the time).
+    /// seventeenth slices: 3,200 x 512 draws a glossy material's overhead
+    /// highlight at half the LPIPS of 800 x 2,048, in 1.1-1.5x the time).
     pub steps: usize,
     /// Rows (pixel, light, view) per step.
     pub rows: usize,
@@ -165,8 +165,8 @@ pub fn fit_codes(material: &mut NeuralMaterial, maps: &Tensor, encoder: &GgxEnco
     };
     // One thread: a step's few hundred rows are too small to share, and a
     // second thread's hand-offs cost more than it computes (`flashmat bench
-    // capture` on 2 cores: 47 s one thread, 72 s two; reports/capture.md,
-    // seventeenth slice).
+    // capture` on 2 cores: 58.8 s with the code fit on one thread, 71.8 s
+    // on two; reports/capture.md, seventeenth slice).
     let threads = tch::get_num_threads();
     tch::set_num_threads(1);
     let trained = (|| -> Result<(Vec<Tensor>, f64)> {
